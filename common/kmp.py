@@ -375,7 +375,10 @@ class LCNSKMP:
         if q.min() >= 0.0:
             info.active_rows, info.qp_solved = 0, False
             return eta
-        alpha = self._dual(q, self._last_active)
+        # Warm start only from a large previous active set (e.g. the mean itself constrained over a stretch):
+        # a small one has usually moved with the step index, and re-adding 1-3 rows cold is cheaper.
+        warm = self._last_active if len(self._last_active) >= 4 else None
+        alpha = self._dual(q, warm)
         nz = np.flatnonzero(alpha)
         info.active_rows, info.qp_solved = int(nz.size), True
         return eta + rows[:, nz] @ alpha[nz]

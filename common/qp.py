@@ -26,6 +26,17 @@ import scipy.sparse
 __all__ = ["QPError", "solve_dual_qp", "solve_least_distance_osqp", "lcp_residual"]
 
 
+_trtrs = scipy.linalg.get_lapack_funcs("trtrs", dtype=np.float64)
+
+
+def _tri_solve(L: np.ndarray, b: np.ndarray, trans: int = 0) -> np.ndarray:
+    """Lower-triangular solve via LAPACK directly (scipy's wrapper costs ~40 µs per call here)."""
+    x, info = _trtrs(L, b, lower=1, trans=trans)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"singular triangular factor (info={info})")
+    return x
+
+
 class QPError(RuntimeError):
     """The constraint QP has no solution (incompatible constraints) or did not converge."""
 
@@ -48,7 +59,7 @@ def _warm_state(Q: np.ndarray, q: np.ndarray, guess: list[int]) -> tuple[list[in
             L = np.linalg.cholesky(Q[np.ix_(active, active)])
         except np.linalg.LinAlgError:
             break
-        a_act = scipy.linalg.cho_solve((L, True), -q[active], check_finite=False)
+        a_act = _tri_solve(L, _tri_solve(L, -q[active]), trans=1)
         if np.all(a_act >= 0.0):
             return active, L, a_act
         active = [i for i, v in zip(active, a_act) if v > 0.0]
@@ -103,8 +114,8 @@ def solve_dual_qp(
             if it > max_iter:
                 raise QPError(f"dual QP did not converge in {max_iter} iterations")
             if active:
-                l_vec = scipy.linalg.solve_triangular(L, Q[p, active], lower=True, check_finite=False)
-                rvec = scipy.linalg.solve_triangular(L, l_vec, lower=True, trans="T", check_finite=False)
+                l_vec = _tri_solve(L, Q[p, active])
+                rvec = _tri_solve(L, l_vec, trans=1)
                 dd = q_pp - float(l_vec @ l_vec)
                 step_dir = Q[p] - rvec @ Q[active]  # slack change per unit of a_p (Q symmetric: rows)
             else:
