@@ -29,7 +29,7 @@ import scipy.linalg
 import scipy.optimize
 
 from common.kernels import RBF, Kernel, evaluate_kernel, kernel_diag
-from common.qp import QPError, lcp_residual, solve_dual_qp, solve_least_distance_osqp
+from common.qp import QPError, solve_dual_qp, solve_least_distance_interior
 
 __all__ = ["LCNSKMP", "InfeasibleConstraintsError", "QPError"]
 
@@ -146,9 +146,12 @@ class LCNSKMP:
         self._proj = self.beta * blocks / self._kdiag[:, None, None]
         self._proj = 0.5 * (self._proj + np.swapaxes(self._proj, 1, 2))
 
+        self._eta0.flags.writeable = False
+        self._proj.flags.writeable = False
         self._G: np.ndarray | None = None
-        self._H: np.ndarray | None = None  # least-distance factor, built only for the OSQP fallback
+        self._H: np.ndarray | None = None  # least-distance factor, built only for the interior-point fallback
         self._last_active: list[int] = []  # warm start for the next grid step's QP
+        self._last_alpha: np.ndarray | None = None  # multipliers of the last constrained grid step
         self._c: np.ndarray | None = None
         self.step_info = StepInfo()
         if constraints is not None:
@@ -177,13 +180,13 @@ class LCNSKMP:
 
     @property
     def grid_mean(self) -> np.ndarray:
-        """(N, O) unconstrained grid mean K A mu (xi = 0)."""
-        return self._eta0.copy()
+        """(N, O) unconstrained grid mean K A mu (xi = 0); a read-only view."""
+        return self._eta0
 
     @property
     def grid_projector(self) -> np.ndarray:
-        """(N, O, O) projector table N(s_n) with s* = s_hat = s_n."""
-        return self._proj.copy()
+        """(N, O, O) projector table N(s_n) with s* = s_hat = s_n; a read-only view."""
+        return self._proj
 
     # -------------------------------------------------------------- constraints
     def _setup_constraints(self, G: np.ndarray, c: np.ndarray) -> None:
@@ -245,8 +248,9 @@ class LCNSKMP:
         """alpha* = argmin_{alpha>=0} 1/2 alpha^T Q alpha + q^T alpha (eq. 3, corrected; math.md §3).
 
         ``q`` is the constraint slack of the unconstrained grid trajectory; the constrained one is
-        that trajectory + M Gbar alpha. Goldfarb-Idnani active set (exact, finite); if it fails, OSQP on
-        the least-distance form with H = Gbar^T R, M = R R^T (built on first use).
+        that trajectory + M Gbar alpha. Goldfarb-Idnani active set (exact, finite); for degenerate
+        constraint sets where it fails, an interior-point solve of the least-distance form with
+        H = Gbar^T R, M = R R^T (R built on first use).
         """
         try:
             alpha, self._last_active = solve_dual_qp(self._Q, q, warm)
@@ -254,13 +258,14 @@ class LCNSKMP:
         except (QPError, np.linalg.LinAlgError):
             if self._H is None:
                 evals, evecs = np.linalg.eigh(self._M)
-                keep = evals > 1e-9 * evals[-1]  # M's round-off floor is ~1e-12 absolute
+                keep = evals > 1e-14 * evals[-1]
                 R3 = (evecs[:, keep] * np.sqrt(evals[keep])).reshape(self.n_points, self.out_dim, -1)
                 self._H = np.einsum("nfo,nor->nfr", self._G, R3).reshape(self._Q.shape[0], -1)
-            z = solve_least_distance_osqp(self._H, -q)
-            alpha = scipy.optimize.nnls(self._H.T, z, maxiter=50 * len(z))[0]
-            if lcp_residual(self._Q, q, alpha) > 1e-6 * max(1.0, float(np.max(np.abs(q)))):
-                raise QPError("constraint QP unsolved by the active-set method and OSQP") from None
+            _, alpha = solve_least_distance_interior(self._H, -q)
+            # feasibility, not complementarity: interior-point multipliers are large (~1e5) on such problems
+            if np.min(self._Q @ alpha + q) < -1e-6 * max(1.0, float(np.max(np.abs(q)))):
+                raise QPError("constraint QP unsolved by the active-set and interior-point methods") from None
+            self._last_active = []
             return alpha
 
     # ------------------------------------------------------------ general path
@@ -365,6 +370,11 @@ class LCNSKMP:
         (q = q0 + (beta / k_nn) (M Gbar)[n]^T xi), alpha = 0 if q >= 0 (KKT shortcut), else a small
         active-set QP (Goldfarb-Idnani) that adds violated rows one at a time. ``self.step_info`` tells which happened.
         """
+        if not 0 <= n < self.n_points:
+            raise IndexError(f"grid index {n} outside [0, {self.n_points})")
+        xi = np.asarray(xi, dtype=np.float64)
+        if xi.shape != (self.out_dim,) or not np.isfinite(xi).all():
+            raise ValueError(f"xi must be a finite ({self.out_dim},) vector, got shape {xi.shape}")
         eta = self._eta0[n] + self._proj[n] @ xi
         if self._G is None:
             return eta
@@ -374,18 +384,33 @@ class LCNSKMP:
         info = self.step_info
         if q.min() >= 0.0:
             info.active_rows, info.qp_solved = 0, False
+            self._last_alpha = None
             return eta
         # Warm start only from a large previous active set (e.g. the mean itself constrained over a stretch):
         # a small one has usually moved with the step index, and re-adding 1-3 rows cold is cheaper.
         warm = self._last_active if len(self._last_active) >= 4 else None
         alpha = self._dual(q, warm)
+        self._last_alpha = alpha
         nz = np.flatnonzero(alpha)
         info.active_rows, info.qp_solved = int(nz.size), True
         return eta + rows[:, nz] @ alpha[nz]
 
     def grid_invert(self, n: int, p_h: np.ndarray) -> np.ndarray:
-        """Eq. (6) on the grid: xi_h = N_n^-1 (P_h - eta0_n), from the tabulated projector."""
+        """Eq. (6) on the grid: xi_h = N_n^-1 (P_h - eta0_n), from the tabulated projector (alpha = 0)."""
+        if not 0 <= n < self.n_points:
+            raise IndexError(f"grid index {n} outside [0, {self.n_points})")
+        p_h = np.asarray(p_h, dtype=np.float64)
+        if p_h.shape != (self.out_dim,) or not np.isfinite(p_h).all():
+            raise ValueError(f"p_h must be a finite ({self.out_dim},) vector, got shape {p_h.shape}")
         return scipy.linalg.solve(self._proj[n], np.asarray(p_h, dtype=np.float64) - self._eta0[n], assume_a="pos")
+
+    def grid_constraint_term(self, n: int) -> np.ndarray:
+        """[k* A Sigma Gbar alpha] at s_n for the alpha of the last :meth:`grid_step` (zero if none was active)."""
+        if self._G is None or self._last_alpha is None:
+            return np.zeros(self.out_dim)
+        nz = np.flatnonzero(self._last_alpha)
+        o = self.out_dim
+        return self._P[n * o : (n + 1) * o, nz] @ self._last_alpha[nz]
 
     def grid_index(self, s_star: float) -> int:
         """Nearest grid index to a scalar input (I = 1)."""

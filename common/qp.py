@@ -13,17 +13,16 @@ grown by one row per added constraint (the new diagonal is the squared length of
 normal orthogonal to the active ones -- a constraint with a numerically dependent normal is never added
 by a full step). A per-step problem with a few active constraints costs a few O(m k) vector updates.
 
-:func:`solve_least_distance_osqp` solves the least-distance form with OSQP, given an explicit factor H:
-the general-purpose fallback.
+:func:`solve_least_distance_interior` solves the least-distance form with an interior-point method
+(Clarabel through cvxpy), given an explicit factor H: the fallback for degenerate constraint sets.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
-import scipy.sparse
 
-__all__ = ["QPError", "solve_dual_qp", "solve_least_distance_osqp", "lcp_residual"]
+__all__ = ["QPError", "solve_dual_qp", "solve_least_distance_interior", "lcp_residual"]
 
 
 _trtrs = scipy.linalg.get_lapack_funcs("trtrs", dtype=np.float64)
@@ -73,6 +72,7 @@ def solve_dual_qp(
     *,
     tol: float = 1e-12,
     dep_tol: float = 1e-9,
+    dep_feas_tol: float = 1e-6,
     max_iter: int | None = None,
 ) -> tuple[np.ndarray, list[int]]:
     """Goldfarb-Idnani (identity Hessian, Gram form) for ``min_{a>=0} 1/2 a^T Q a + q^T a``.
@@ -84,6 +84,8 @@ def solve_dual_qp(
         tol: slack tolerance, relative to ``max(1, max|q|)``.
         dep_tol: a normal whose component orthogonal to the active normals has squared length below
             ``dep_tol * Q_pp`` is treated as dependent (M's round-off floor is ~1e-9 relative).
+        dep_feas_tol: a dependent row violated by less than this (relative to ``max(1, max|q|)``) is set
+            aside instead of declaring the constraints incompatible (degenerate constraint sets).
         max_iter: iteration cap (default 4 m + 20).
 
     Returns:
@@ -102,10 +104,16 @@ def solve_dual_qp(
         a[active] = a_act
         slack += a_act @ Q[active]
         slack[active] = 0.0
+    # A row whose normal is numerically dependent on the active ones cannot be exchanged into the active
+    # set. When its violation is tiny it is set aside: this happens with degenerate constraint sets, e.g. an
+    # equality written as two inequalities at every grid point, where ~40 neighbouring rows span only the
+    # kernel's numerical rank; what remains is ~1e-7 (measured), so such rows hold to dep_feas_tol.
+    dep_eps = max(eps, dep_feas_tol * max(1.0, float(np.max(np.abs(q), initial=0.0))))
+    skipped = np.zeros(m, dtype=bool)
     it = 0
     while True:
-        p = int(np.argmin(slack))
-        if slack[p] >= -eps:
+        p = int(np.argmin(np.where(skipped, np.inf, slack)))
+        if skipped[p] or slack[p] >= -eps:
             return a, active
         q_pp = float(Q[p, p])
         # Add p, dropping blocking constraints whose multiplier would turn negative.
@@ -132,7 +140,10 @@ def solve_dual_qp(
                     j = int(np.argmin(ratios))
                     t2 = float(ratios[j])
             if not (np.isfinite(t1) or np.isfinite(t2)):
-                raise QPError(f"constraints are incompatible: row {p} cannot hold with the active rows {active}")
+                if slack[p] >= -dep_eps:
+                    skipped[p] = True
+                    break
+                raise QPError(f"constraints are incompatible: row {p} (violated by {-slack[p]:.3g}) cannot hold with the active rows {active}")
             t = min(t1, t2)
             slack += t * step_dir
             if active:
@@ -157,26 +168,20 @@ def solve_dual_qp(
         np.maximum(a, 0.0, out=a)
 
 
-def solve_least_distance_osqp(H: np.ndarray, b: np.ndarray, *, eps: float = 1e-10, max_iter: int = 100000) -> np.ndarray:
-    """OSQP on ``min 1/2 ||z||^2 s.t. H z >= b`` (with polishing); returns z. Fallback solver."""
-    import osqp
+def solve_least_distance_interior(H: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Fallback for degenerate problems (where the active-set method can cycle): an interior-point solve of
+    ``min 1/2 ||z||^2 s.t. H z >= b`` with cvxpy + Clarabel (OSQP if Clarabel is unavailable).
+    Returns ``(z, a)`` with a >= 0 the constraint multipliers (the dual QP's solution)."""
+    import cvxpy as cp
 
-    m, r = H.shape
-    solver = osqp.OSQP()
-    solver.setup(
-        scipy.sparse.identity(r, format="csc"),
-        np.zeros(r),
-        scipy.sparse.csc_matrix(H),
-        b,
-        np.full(m, np.inf),
-        eps_abs=eps,
-        eps_rel=eps,
-        max_iter=max_iter,
-        polishing=True,
-        verbose=False,
-    )
-    res = solver.solve()
-    status = str(res.info.status).lower()
-    if res.x is None or "infeasible" in status or not np.all(np.isfinite(res.x)):
-        raise QPError(f"OSQP: {res.info.status}")
-    return np.asarray(res.x)
+    z = cp.Variable(H.shape[1])
+    cons = [H @ z >= b]
+    prob = cp.Problem(cp.Minimize(0.5 * cp.sum_squares(z)), cons)
+    solver = cp.CLARABEL if cp.CLARABEL in cp.installed_solvers() else cp.OSQP
+    try:
+        prob.solve(solver=solver)
+    except cp.error.SolverError as exc:
+        raise QPError(f"interior-point fallback failed: {exc}") from exc
+    if prob.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or z.value is None:
+        raise QPError(f"interior-point fallback: {prob.status} (are the constraints compatible?)")
+    return np.asarray(z.value), np.maximum(np.asarray(cons[0].dual_value), 0.0)

@@ -58,12 +58,14 @@ class Scenario:
     walls: tuple[Wall, ...]
     obstacle: Obstacle | None
     default_scale: float  # L (per dimension), paper: 20 in A, 15 in B
+    learn_scale: bool  # KhGRL refits L from the human here (paper: B only; in A "the exploration noise ... is kept equal")
     # demonstration spread (half-width of the fan in y) as (phase, half_width) knots, linearly interpolated
     spread_knots: tuple[tuple[float, float], ...]
     arrive_phase: float = 0.92  # demonstrations reach the goal at this phase and dwell there
     goal_radius: float = 0.03
     workspace_margin: float = 0.02  # hard constraints keep P_t in [margin, 1 - margin]^2
     human_waypoints: tuple[tuple[float, float], ...] = field(default=())  # a safe path through the gaps
+    human_window: tuple[float, float] = (0.0, 1.0)  # x-range of the path where a human helps
 
 
 SCENARIOS: dict[str, Scenario] = {
@@ -74,8 +76,10 @@ SCENARIOS: dict[str, Scenario] = {
         walls=(Wall(0.32, 0.57, 0.64), Wall(0.68, 0.57, 0.64)),
         obstacle=Obstacle(center=(0.5, 0.5), radius=0.07),
         default_scale=20.0,
+        learn_scale=False,
         spread_knots=((0.0, 0.0), (0.12, 0.02), (0.25, 0.16), (0.75, 0.16), (0.88, 0.02), (1.0, 0.0)),
         human_waypoints=((0.08, 0.5), (0.26, 0.605), (0.5, 0.625), (0.74, 0.605), (0.92, 0.5)),
+        human_window=(0.2, 0.8),
     ),
     "low_cov": Scenario(
         name="low_cov",
@@ -84,8 +88,10 @@ SCENARIOS: dict[str, Scenario] = {
         walls=(Wall(0.32, 0.465, 0.535), Wall(0.68, 0.555, 0.615)),
         obstacle=None,
         default_scale=15.0,
+        learn_scale=True,
         spread_knots=((0.0, 0.0), (0.1, 0.02), (0.22, 0.12), (0.4, 0.12), (0.5, 0.006), (0.8, 0.006), (0.9, 0.002), (1.0, 0.0)),
         human_waypoints=((0.08, 0.5), (0.32, 0.5), (0.56, 0.585), (0.76, 0.585), (0.92, 0.5)),
+        human_window=(0.5, 0.8),
     ),
 }
 

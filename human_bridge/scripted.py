@@ -1,0 +1,106 @@
+"""The scripted human: a reproducible stand-in for a person who drags the robot's desired position.
+
+It knows a safe path through the gaps (and around the obstacle) -- the scenario's ``human_waypoints`` --
+and, in the given episodes, over the part of the task where help is needed (the scenario's
+``human_window``, in workspace x), sets the desired position P_h on that path at the point the KMP mean
+has reached in x; optional seeded noise imitates an unsteady hand. Outside the window it releases.
+
+Its output is a correction P_h or ``None`` (released) per step: exactly what a person's drag produces.
+In one process it is applied with ``PassageEnv.set_correction`` (:class:`HumanCorrectionWrapper`); in the
+distributed system it is published as correction messages that the actor applies the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+
+from common.scenarios import Scenario, get_scenario
+
+__all__ = ["PAPER_EPISODES", "ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper"]
+
+PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)
+
+
+@dataclass(frozen=True)
+class ScriptedHumanConfig:
+    episodes: tuple[int, ...] = PAPER_EPISODES  # 1-based episode numbers in which the human helps
+    window: tuple[float, float] | None = None  # x-range where it helps (default: the scenario's)
+    noise: float = 0.0  # std of Gaussian noise on P_h (workspace units)
+    seed: int = 0
+
+
+class ScriptedHuman:
+    """Decides P_h (or None) from what a person watching the screen sees: episode, robot and KMP mean."""
+
+    def __init__(self, scenario: Scenario | str, config: ScriptedHumanConfig = ScriptedHumanConfig()) -> None:
+        self.scenario = get_scenario(scenario) if isinstance(scenario, str) else scenario
+        if not self.scenario.human_waypoints:
+            raise ValueError(f"scenario {self.scenario.name} has no safe path for a scripted human")
+        self.config = config
+        self.window = config.window if config.window is not None else self.scenario.human_window
+        way = np.asarray(self.scenario.human_waypoints, dtype=np.float64)
+        if np.any(np.diff(way[:, 0]) <= 0):
+            raise ValueError("human waypoints must increase in x")
+        self._way = way
+        self._rng = np.random.default_rng(config.seed)
+
+    def path_y(self, x: float) -> float:
+        """The safe path's y at workspace x (piecewise linear through the waypoints)."""
+        return float(np.interp(x, self._way[:, 0], self._way[:, 1]))
+
+    def active_in(self, episode: int) -> bool:
+        return episode in self.config.episodes
+
+    def correction(self, episode: int, mean: np.ndarray) -> np.ndarray | None:
+        """P_h for this step, or None. ``mean`` is the KMP mean eta0_t at the current step (the red line)."""
+        if not self.active_in(episode):
+            return None
+        x = float(mean[0])
+        if not (self.window[0] <= x <= self.window[1]):
+            return None
+        p_h = np.array([x, self.path_y(x)])
+        if self.config.noise > 0:
+            p_h = p_h + self._rng.normal(0.0, self.config.noise, size=2)
+        return p_h
+
+
+class HumanCorrectionWrapper(gym.Wrapper):
+    """Single-process use: asks a human (scripted) for P_h before every step and applies it to the env.
+
+    Counts episodes from 1 (the paper's numbering). ``on_release`` is called with the intervention's
+    steps when a correction stream ends, e.g. to refit the exploration scale.
+    """
+
+    def __init__(self, env: gym.Env, human: ScriptedHuman, on_release=None) -> None:
+        super().__init__(env)
+        self.human = human
+        self.episode = 0
+        self.on_release = on_release
+        self._segment: list[dict] = []
+
+    def reset(self, **kwargs):
+        self._flush()
+        self.episode += 1
+        return self.env.reset(**kwargs)
+
+    def step(self, action):
+        base = self.env.unwrapped
+        p_h = self.human.correction(self.episode, base.mapping.mean(min(base.t, base.horizon - 1)))
+        base.set_correction(p_h)
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        if info.get("intervened"):
+            self._segment.append({"xi_h": info["xi_h"], "phase": info["phase"], "position": info["desired"]})
+        elif self._segment:
+            self._flush()
+        if terminated or truncated:
+            base.set_correction(None)
+            self._flush()
+        return obs, reward, terminated, truncated, info
+
+    def _flush(self) -> None:
+        if self._segment and self.on_release is not None:
+            self.on_release(self._segment)
+        self._segment = []
