@@ -177,9 +177,12 @@ def solve_least_distance_interior(H: np.ndarray, b: np.ndarray) -> tuple[np.ndar
     z = cp.Variable(H.shape[1])
     cons = [H @ z >= b]
     prob = cp.Problem(cp.Minimize(0.5 * cp.sum_squares(z)), cons)
-    solver = cp.CLARABEL if cp.CLARABEL in cp.installed_solvers() else cp.OSQP
+    if cp.CLARABEL in cp.installed_solvers():
+        kwargs = dict(solver=cp.CLARABEL, tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11, tol_ktratio=1e-9)
+    else:
+        kwargs = dict(solver=cp.OSQP, eps_abs=1e-10, eps_rel=1e-10, max_iter=200000, polish=True)
     try:
-        prob.solve(solver=solver)
+        prob.solve(**kwargs)
     except cp.error.SolverError as exc:
         raise QPError(f"interior-point fallback failed: {exc}") from exc
     if prob.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or z.value is None:
