@@ -65,11 +65,35 @@ def _cmd_bench_kmp(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_reference(args: argparse.Namespace) -> int:
+    from learner.reference import ReferenceConfig, run_reference
+
+    config = ReferenceConfig(scenario=args.scenario, method=args.method, episodes=args.episodes, seed=args.seed,
+                             human_noise=args.human_noise)
+    run_dir = Path(args.run_dir or f"runs/reference/{args.scenario}-{args.method}-seed{args.seed}")
+    episodes = run_reference(config, run_dir, progress=not args.quiet)
+    ok = [e.episode for e in episodes if e.success]
+    print(f"{len(ok)}/{len(episodes)} successful episodes; first success: {ok[0] if ok else 'none'}; results in {run_dir}")
+    return 0
+
+
+# Commands that are whole programs with their own argument parsers (each has --help): name -> (module, function)
+PROCESS_COMMANDS = {
+    "up": ("deploy.launcher", "main", "launch router, learner, actor(s) and human-input process locally"),
+    "learner": ("learner.service", "main", "the learner process (TQC, replay buffer from the transition stream)"),
+    "actor": ("actor.service", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
+    "human": ("human_bridge.service", "main", "the human-input process (scripted client, ...)"),
+    "router": ("common.session", "router_main", "a Zenoh router (zenoh-python in router mode)"),
+}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="khgrl", description="KhGRL: kernelized human-guided RL (actor, learner and human-input processes over Zenoh)."
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (_, _, help_text) in PROCESS_COMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
 
     demos = sub.add_parser("demos", help="demonstration files").add_subparsers(dest="action", required=True, metavar="ACTION")
     p = demos.add_parser("make", help="generate the seeded demonstrations of a passage-world scenario")
@@ -93,6 +117,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_cmd_kmp_fit)
 
+    p = sub.add_parser("reference", help="single-process SB3 TQC baseline on the passage world (no Zenoh)")
+    p.add_argument("--scenario", default="high_cov", choices=["high_cov", "low_cov"])
+    p.add_argument("--method", default="khgrl", choices=["khgrl", "kgrl"], help="khgrl: scripted human at the paper's episodes")
+    p.add_argument("--episodes", type=int, default=60)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--human-noise", type=float, default=0.0, help="std of the scripted human's hand noise")
+    p.add_argument("--run-dir", default=None, help="output directory (default runs/reference/SCENARIO-METHOD-seedN)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_reference)
+
     bench = sub.add_parser("bench", help="benchmarks that print numbers").add_subparsers(dest="action", required=True, metavar="ACTION")
     p = bench.add_parser("kmp", help="per-step LC-NS-KMP cost: tables vs direct formula vs lc-ns-kmp (N=400, O=2, F=4)")
     p.add_argument("--repeats", type=int, default=2000, help="timed calls per case (median reported)")
@@ -103,6 +137,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in PROCESS_COMMANDS:
+        import importlib
+
+        module, func, _ = PROCESS_COMMANDS[argv[0]]
+        return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
