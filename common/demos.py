@@ -74,15 +74,20 @@ def load_demos(path: str | Path) -> np.ndarray:
 
 
 def _load_csv(path: Path) -> np.ndarray:
-    try:
-        table = np.genfromtxt(path, delimiter=",", comments="#", names=True, dtype=np.float64)
-    except ValueError as exc:
-        raise DemoFormatError(f"{path}: cannot parse CSV ({exc})") from exc
-    names = table.dtype.names or ()
+    lines = [ln.strip() for ln in path.read_text().splitlines()]
+    lines = [ln for ln in lines if ln and not ln.startswith("#")]
+    if not lines:
+        raise DemoFormatError(f"{path}: empty CSV")
+    names = tuple(c.strip() for c in lines[0].split(","))
     if len(names) < 3 or names[0] != "demo" or names[1] != "step":
         raise DemoFormatError(f"{path}: CSV header must be 'demo,step,y0,...', got {','.join(names)}")
-    table = np.atleast_1d(table)
-    cols = np.stack([table[name] for name in names], axis=1)
+    try:
+        rows = [[float(v) for v in ln.split(",")] for ln in lines[1:]]
+    except ValueError as exc:
+        raise DemoFormatError(f"{path}: non-numeric value ({exc})") from exc
+    if not rows or any(len(r) != len(names) for r in rows):
+        raise DemoFormatError(f"{path}: every row needs {len(names)} columns ({','.join(names)})")
+    cols = np.asarray(rows, dtype=np.float64)
     if np.isnan(cols[:, :2]).any():
         raise DemoFormatError(f"{path}: missing or non-numeric demo/step index")
     demo_ids = cols[:, 0].astype(np.int64)

@@ -87,18 +87,25 @@ def build_world(
 
 
 def _segment_blocked(p: np.ndarray, q: np.ndarray, walls) -> tuple[np.ndarray, bool]:
-    """Move p -> q unless a wall is in the way: then stop just short of the wall (blocked)."""
+    """Move p -> q unless a wall is in the way: then stop just short of it (blocked).
+
+    A wall is the line x = wall.x minus its open gap. The robot may stand on the line only inside the gap
+    (it passed through it); from there, moving along the line is clamped to the gap, and leaving the line
+    is free (the crossing point is in the gap).
+    """
     for wall in walls:
         dx0, dx1 = p[0] - wall.x, q[0] - wall.x
-        crosses = dx0 * dx1 < 0.0 or (dx1 == 0.0 and dx0 != 0.0)  # strictly across, or landing on the wall
-        if not crosses:
+        if dx0 == 0.0:
+            if dx1 == 0.0 and not (wall.gap_lo < q[1] < wall.gap_hi):
+                eps = 1e-4 * (wall.gap_hi - wall.gap_lo)
+                return np.array([wall.x, np.clip(q[1], wall.gap_lo + eps, wall.gap_hi - eps)]), True
             continue
-        frac = dx0 / (dx0 - dx1)
-        y_cross = p[1] + frac * (q[1] - p[1])
+        if not (dx0 * dx1 < 0.0 or dx1 == 0.0):
+            continue  # stays strictly on one side
+        y_cross = p[1] + dx0 / (dx0 - dx1) * (q[1] - p[1])
         if wall.gap_lo < y_cross < wall.gap_hi:
             continue
-        side = np.sign(dx0)
-        return np.array([wall.x + side * 1e-4, y_cross]), True
+        return np.array([wall.x + np.sign(dx0) * 1e-4, y_cross]), True
     return q, False
 
 
@@ -162,6 +169,7 @@ class PassageEnv(gym.Env):
         self.blocked_steps = 0
         self.trail = [start.copy()]
         self.last_info: dict = {}
+        self._done = False
 
     def _obs(self) -> np.ndarray:
         t = min(self.t, self.horizon - 1)
@@ -201,7 +209,7 @@ class PassageEnv(gym.Env):
         return self._obs(), {"phase": 0.0}
 
     def step(self, action):
-        if self.t >= self.horizon:
+        if self._done:
             raise RuntimeError("step() called after the episode ended: call reset()")
         t = self.t
         a = np.asarray(action, dtype=np.float64).reshape(-1)
@@ -246,6 +254,7 @@ class PassageEnv(gym.Env):
         terminated = success or failed
         truncated = (not terminated) and self.t >= self.horizon
         reward = r_a + r_o + r_p + r_T
+        self._done = terminated or truncated
         info.update(
             r_a=r_a, r_o=r_o, r_p=r_p, r_T=r_T, success=success, failure=failed, blocked=blocked,
             in_obstacle=in_obstacle, action=np.asarray(stored, dtype=np.float32), xi=xi, scale=L,

@@ -88,20 +88,14 @@ class KGRLMapping:
         xi = unscale(np.asarray(a, dtype=np.float64), L)
         return self.model.grid_step(t, xi), xi
 
-    def intervene(self, t: int, p_h: np.ndarray, L: np.ndarray, max_iter: int = 5) -> Intervention:
+    def intervene(self, t: int, p_h: np.ndarray, L: np.ndarray) -> Intervention:
         """Eq. (6) then scale: P_h -> xi_h -> a_h = clip(xi_h (/) L_t, -1, 1).
 
-        Eq. (6) assumes alpha = 0. If the hard constraints are active for xi_h (its trajectory violates them
-        elsewhere on the grid), math.md §4 subtracts the constraint term: xi <- N^-1 (P_h - eta0 - c(xi)) with
-        c(xi) = [k* A Sigma Gbar alpha(xi)] at s_t, iterated a few times, so the forward map reproduces P_h.
+        Eq. (6) assumes alpha = 0. If the hard constraints are active for that xi_h (its trajectory violates
+        them somewhere on the grid), math.md §4 accounts for the constraint term: xi_h is then the solution of
+        the constrained forward map = P_h (``LCNSKMP.grid_invert_constrained``).
         """
-        xi = self.model.grid_invert(t, p_h)
-        if self.model.constrained:
-            for _ in range(max_iter):
-                p = self.model.grid_step(t, xi)
-                if self.model.step_info.active_rows == 0 or np.max(np.abs(p - p_h)) <= 1e-10:
-                    break
-                xi = self.model.grid_invert(t, np.asarray(p_h) - self.model.grid_constraint_term(t))
+        xi = self.model.grid_invert_constrained(t, p_h)
         raw = scale(xi, L)
         clipped = bool(np.any(np.abs(raw) > 1.0))
         return Intervention(action=np.clip(raw, -1.0, 1.0), xi=xi, raw_action=raw, clipped=clipped)

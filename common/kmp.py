@@ -404,6 +404,34 @@ class LCNSKMP:
             raise ValueError(f"p_h must be a finite ({self.out_dim},) vector, got shape {p_h.shape}")
         return scipy.linalg.solve(self._proj[n], np.asarray(p_h, dtype=np.float64) - self._eta0[n], assume_a="pos")
 
+    def grid_invert_constrained(self, n: int, p_h: np.ndarray, *, tol: float = 1e-10, max_iter: int = 10) -> np.ndarray:
+        """xi such that :meth:`grid_step` (with the hard constraints) gives ``p_h`` (math.md §4).
+
+        Starts from eq. (6) (alpha = 0). While constraints are active the forward map is piecewise affine in
+        xi: for a fixed active set A, alpha_A = -Q_AA^-1 q_A(xi), so dP/dxi = N_n - (beta/k_nn) P_nA Q_AA^-1 P_nA^T.
+        Newton steps on it are exact once A is right (a least-squares step when P_h is pinned by a
+        constraint at this very point). Returns the best xi found.
+        """
+        p_h = np.asarray(p_h, dtype=np.float64)
+        xi = self.grid_invert(n, p_h)
+        if self._G is None:
+            return xi
+        o = self.out_dim
+        rows = self._P[n * o : (n + 1) * o]
+        best, best_err = xi, np.inf
+        for _ in range(max_iter):
+            p = self.grid_step(n, xi)
+            err = float(np.max(np.abs(p - p_h)))
+            if err < best_err:
+                best, best_err = xi, err
+            if err <= tol or self.step_info.active_rows == 0:
+                break
+            act = [i for i in self._last_active if self._last_alpha is not None and self._last_alpha[i] > 0]
+            pa = rows[:, act]
+            jac = self._proj[n] - (self.beta / self._kdiag[n]) * pa @ np.linalg.lstsq(self._Q[np.ix_(act, act)], pa.T, rcond=1e-12)[0]
+            xi = xi + np.linalg.lstsq(jac, p_h - p, rcond=1e-12)[0]
+        return best
+
     def grid_constraint_term(self, n: int) -> np.ndarray:
         """[k* A Sigma Gbar alpha] at s_n for the alpha of the last :meth:`grid_step` (zero if none was active)."""
         if self._G is None or self._last_alpha is None:

@@ -209,6 +209,14 @@ def _check_transitions(m: dict) -> dict:
         if np.any(arrays[flag] > 1):
             raise ProtocolError(f"{flag}: flags must be 0/1")
     m.update(arrays)
+    # optional (actor service): the oldest batch seq the actor still holds (everything below was confirmed
+    # durable by a learner) and a random id per actor incarnation
+    if "base_seq" in m:
+        _typ("base_seq", m["base_seq"], int, low=0)
+        if m["base_seq"] > m["seq"]:
+            raise ProtocolError(f"base_seq {m['base_seq']} > seq {m['seq']}")
+    if "stream" in m:
+        _ident("stream", m["stream"])
     return m
 
 
@@ -218,11 +226,16 @@ def _check_ack(m: dict) -> dict:
         _typ(f, m.get(f), int, low=-1)
     _typ("trained", m.get("trained"), int, low=0)
     _typ("epoch", m.get("epoch"), str)
+    _typ("version", m.get("version"), int, low=0)  # latest weights version of this learner incarnation
+    if "stream" in m:  # optional: the actor incarnation (transitions' stream) this ack is about
+        _ident("stream", m["stream"])
     return m
 
 
 def _check_weights(m: dict) -> dict:
     _typ("version", m.get("version"), int, low=0)
+    if "epoch" in m:  # optional: the learner incarnation that made these weights (as in its acks)
+        _ident("epoch", m["epoch"])
     _typ("trained", m.get("trained"), dict)
     for k, v in m["trained"].items():
         _ident("trained key", k)

@@ -119,7 +119,11 @@ class ScaleModel:
         count = np.bincount(inverse)
         x = np.stack([np.bincount(inverse, self._x[:, k]) / count for k in range(self._x.shape[1])], axis=1)
         y = np.stack([np.bincount(inverse, self._y[:, k]) / count for k in range(self._y.shape[1])], axis=1)
-        self._x, self._y = x[-self.config.max_points :], y[-self.config.max_points :]
+        newest = np.zeros(len(count), dtype=np.int64)
+        np.maximum.at(newest, inverse, np.arange(inverse.size))  # latest sample index in each bin
+        keep = np.sort(np.argsort(newest)[-self.config.max_points :])
+        order = keep[np.argsort(newest[keep])]  # oldest to newest
+        self._x, self._y = x[order], y[order]
 
     def _fit(self) -> None:
         c = self.config

@@ -1,0 +1,195 @@
+"""Helpers for integration tests that start real KhGRL processes (router, learner, actors, human input).
+
+Every process is a ``subprocess`` running ``python -c "from MODULE import main; ..."`` in the repository
+root (never forked from a process with an open Zenoh session), with its output in a log file. Use
+:class:`ProcGroup` as a context manager: whatever is still running at the end is killed by PID.
+
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        learner = g.learner(run, ep, "--learning-starts", "16")
+        actor = g.actor(run, ep, "--episodes", "2")
+        assert actor.wait(120) == 0, actor.tail()
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+REPO = Path(__file__).resolve().parents[1]
+
+__all__ = ["REPO", "Proc", "ProcGroup", "free_endpoint", "unique_run", "wait_for", "wait_for_file", "read_json",
+           "python_main"]
+
+
+def unique_run(prefix: str = "t") -> str:
+    """A run id (key prefix) no other test uses."""
+    return f"{prefix}{os.getpid()}{secrets.token_hex(3)}"
+
+
+def free_endpoint() -> str:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def python_main(module: str, func: str = "main") -> list[str]:
+    """argv prefix that runs ``module.func(argv)`` and exits with its return value."""
+    return [sys.executable, "-c", f"from {module} import {func}; import sys; sys.exit({func}(sys.argv[1:]))"]
+
+
+def wait_for(cond: Callable[[], Any], timeout: float, what: str = "condition", interval: float = 0.1,
+             procs: list["Proc"] | None = None) -> Any:
+    """Poll ``cond()`` until it returns something truthy (returned) or ``timeout`` s pass (AssertionError).
+    If one of ``procs`` exits meanwhile, fail at once with its log tail."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            value = cond()
+        except (OSError, ValueError, KeyError):  # a file being written, half-written JSON, ...
+            value = None
+        if value:
+            return value
+        for p in procs or []:
+            if p.poll() is not None:
+                raise AssertionError(f"{p.name} exited with {p.returncode} while waiting for {what}\n{p.tail()}")
+        if time.monotonic() > deadline:
+            tails = "\n".join(f"--- {p.name}\n{p.tail()}" for p in procs or [])
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}\n{tails}")
+        time.sleep(interval)
+
+
+def wait_for_file(path: str | Path, timeout: float, procs: list["Proc"] | None = None) -> Path:
+    path = Path(path)
+    wait_for(path.exists, timeout, f"file {path}", procs=procs)
+    return path
+
+
+def read_json(path: str | Path) -> Any:
+    return json.loads(Path(path).read_text())
+
+
+class Proc:
+    """One child process with its log file."""
+
+    def __init__(self, name: str, argv: list[str], log_path: Path, env: dict | None = None) -> None:
+        self.name = name
+        self.argv = argv
+        self.log_path = log_path
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        self._log = open(log_path, "ab")
+        self.popen = subprocess.Popen(argv, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT,
+                                      env=env, start_new_session=True)
+        self.returncode: int | None = None
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+    def poll(self) -> int | None:
+        if self.returncode is None:
+            self.returncode = self.popen.poll()
+        return self.returncode
+
+    def wait(self, timeout: float) -> int | None:
+        """Exit code, or None if still running after ``timeout`` s."""
+        try:
+            self.returncode = self.popen.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return None
+        return self.returncode
+
+    def signal(self, sig: int) -> None:
+        if self.poll() is None:
+            try:
+                os.kill(self.pid, sig)
+            except ProcessLookupError:
+                pass
+
+    def kill(self) -> None:
+        """SIGKILL (a crash) and reap."""
+        self.signal(signal.SIGKILL)
+        self.wait(10)
+
+    def stop(self, timeout: float = 30.0) -> int | None:
+        """SIGTERM, wait, then SIGKILL if it is still there."""
+        self.signal(signal.SIGTERM)
+        rc = self.wait(timeout)
+        if rc is None:
+            self.kill()
+        return rc
+
+    def tail(self, n: int = 40) -> str:
+        try:
+            self._log.flush()
+            lines = self.log_path.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join(lines[-n:])
+
+    def close(self) -> None:
+        if self.poll() is None:
+            self.kill()
+        self._log.close()
+
+
+class ProcGroup:
+    """Starts KhGRL processes under ``base`` (logs in ``base/logs``) and kills leftovers on exit."""
+
+    def __init__(self, base: str | Path) -> None:
+        self.base = Path(base)
+        self.procs: list[Proc] = []
+        self.env = dict(os.environ)
+        self.env["PYTHONPATH"] = str(REPO) + (os.pathsep + self.env["PYTHONPATH"] if self.env.get("PYTHONPATH") else "")
+        self.env.setdefault("RUST_LOG", "error")
+        self.env["PYTHONUNBUFFERED"] = "1"
+
+    def __enter__(self) -> "ProcGroup":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for p in reversed(self.procs):
+            p.close()
+
+    def start(self, name: str, argv: list[str]) -> Proc:
+        p = Proc(name, argv, self.base / "logs" / f"{name}-{len(self.procs)}.log", env=self.env)
+        self.procs.append(p)
+        return p
+
+    def router(self, endpoint: str | None = None, timeout: float = 30.0) -> str:
+        """Start a router; returns its endpoint once it accepts TCP connections."""
+        endpoint = endpoint or free_endpoint()
+        p = self.start("router", python_main("common.session", "router_main") + ["--listen", endpoint])
+        host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+
+        def up() -> bool:
+            try:
+                with socket.create_connection((host, int(port)), timeout=0.5):
+                    return True
+            except OSError:
+                return False
+
+        wait_for(up, timeout, f"router on {endpoint}", procs=[p])
+        return endpoint
+
+    def learner(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
+        run_dir = Path(run_dir or self.base / "run")
+        return self.start("learner", python_main("learner.service") + [
+            "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
+
+    def actor(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
+        run_dir = Path(run_dir or self.base / "run")
+        return self.start("actor", python_main("actor.service") + [
+            "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
+
+    def human(self, run: str, endpoint: str, *extra: str) -> Proc:
+        return self.start("human", python_main("human_bridge.service") + [*extra[:1], "--run", run,
+                                                                            "--connect", endpoint, *extra[1:]])

@@ -1,0 +1,125 @@
+"""The ``khgrl`` command (deploy/cli.py)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.demos import load_demos
+from deploy.cli import build_parser, main
+
+VENV_KHGRL = Path(sys.executable).with_name("khgrl")
+
+
+def _commands(parser: argparse.ArgumentParser, prefix=()):
+    """Every command path of the parser: (), ("demos",), ("demos", "make"), ..."""
+    yield prefix
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from _commands(sub, prefix + (name,))
+
+
+ALL_COMMANDS = list(_commands(build_parser()))
+
+
+def test_expected_commands_exist():
+    for cmd in [("demos", "make"), ("kmp", "fit"), ("reference",), ("bench", "kmp")]:
+        assert cmd in ALL_COMMANDS
+
+
+@pytest.mark.parametrize("cmd", ALL_COMMANDS, ids=lambda c: " ".join(c) or "khgrl")
+def test_help_exits_zero(cmd, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([*cmd, "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: khgrl")
+
+
+def test_console_script_help():
+    exe = VENV_KHGRL if VENV_KHGRL.exists() else None
+    if exe is None:
+        pytest.skip("khgrl console script not installed next to this interpreter")
+    res = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert "demos" in res.stdout and "kmp" in res.stdout and "reference" in res.stdout
+
+
+def test_no_command_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([])
+    assert exc.value.code == 2
+    assert "usage" in capsys.readouterr().err
+
+
+def test_demos_make_csv(tmp_path):
+    path = tmp_path / "d.csv"
+    assert main(["demos", "make", "--n-demos", "3", "--n-steps", "20", "--out", str(path)]) == 0
+    assert path.read_text().splitlines()[0] == "demo,step,y0,y1"
+    assert load_demos(path).shape == (3, 20, 2)
+
+
+def test_demos_make_then_kmp_fit(tmp_path, capsys):
+    demos_path = tmp_path / "demos.npz"
+    assert main(["demos", "make", "--scenario", "low_cov", "--n-demos", "4", "--n-steps", "120", "--seed", "3",
+                 "--out", str(demos_path)]) == 0
+    assert "wrote 4 demonstrations x 120 steps x 2 outputs" in capsys.readouterr().out
+    demos = load_demos(demos_path)
+    assert demos.shape == (4, 120, 2)
+
+    png = tmp_path / "fig" / "kmp.png"
+    png.parent.mkdir()
+    rc = main(["kmp", "fit", str(demos_path), "--out", str(png), "--components", "4", "--box", "0.02", "0.98",
+               "--scenario", "low_cov"])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert str(png) in out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 1000
+    summary = json.loads(png.with_suffix(".json").read_text())
+    assert summary["shape"] == [4, 120, 2]
+    assert summary["box"] == [0.02, 0.98]
+    assert summary["config"]["n_components"] == 4
+    assert 0 < summary["projector_min"] <= summary["projector_max"]
+    assert np.isfinite(summary["mean_minus_gmr_max_abs"])
+
+
+def test_demos_make_is_seeded(tmp_path):
+    a, b = tmp_path / "a.npz", tmp_path / "b.npz"
+    assert main(["demos", "make", "--out", str(a), "--seed", "7"]) == 0
+    assert main(["demos", "make", "--out", str(b), "--seed", "7"]) == 0
+    np.testing.assert_array_equal(load_demos(a), load_demos(b))
+    assert load_demos(a).shape == (9, 400, 2)
+
+
+def test_missing_demo_file_exit_2(tmp_path, capsys):
+    missing = tmp_path / "nope.npz"
+    rc = main(["kmp", "fit", str(missing), "--out", str(tmp_path / "k.png")])
+    assert rc == 2
+    captured = capsys.readouterr()
+    assert "khgrl: error:" in captured.err and "no such file" in captured.err and str(missing) in captured.err
+    assert not (tmp_path / "k.png").exists()
+
+
+def test_bad_demo_file_exit_2(tmp_path, capsys):
+    bad = tmp_path / "ragged.csv"
+    bad.write_text("demo,step,y0\n0,0,1\n0,1,2\n1,0,1\n")
+    assert main(["kmp", "fit", str(bad), "--out", str(tmp_path / "k.png")]) == 2
+    assert "ragged" in capsys.readouterr().err
+
+
+def test_demos_make_bad_extension_exit_2(tmp_path, capsys):
+    assert main(["demos", "make", "--out", str(tmp_path / "d.txt")]) == 2
+    assert "unknown demonstration format" in capsys.readouterr().err
+
+
+def test_bad_choice_is_usage_error(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["demos", "make", "--scenario", "nope", "--out", "x.npz"])
+    assert exc.value.code == 2
