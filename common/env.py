@@ -275,7 +275,7 @@ class PassageEnv(gym.Env):
             desired=self.desired.copy(),
             phase=self.phase,
             trail=np.array(self.trail),
-            band=self.mapping.band() if self.mapping._table is not None else None,
+            band=self.mapping.band() if self.mapping.scale_table is not None else None,
             human_active=self._correction is not None,
             correction=None if self._correction is None else self._correction.copy(),
             text=text if text is not None else [

@@ -68,6 +68,11 @@ class KGRLMapping:
         else:
             self._table = None
 
+    @property
+    def scale_table(self) -> np.ndarray | None:
+        """(N, O) L on the grid (phase-input scale models), None for position input."""
+        return self._table
+
     def scale_at(self, t: int, position: np.ndarray | None = None) -> np.ndarray:
         """L_t, the exploration scale in force at step t (O,)."""
         if self._table is not None:

@@ -269,7 +269,7 @@ class LCNSKMP:
             return alpha
 
     # ------------------------------------------------------------ general path
-    def _secondary(self, xi: np.ndarray | None, s_hat: np.ndarray | None, q_count: int):
+    def _secondary(self, xi: np.ndarray | None, s_hat: np.ndarray | None):
         """Validate (xi, s_hat); returns (xi, s_hat (1, I)) or (None, None) when xi is absent or zero."""
         if xi is None:
             return None, None
@@ -297,7 +297,7 @@ class LCNSKMP:
             (Q, O) expectations.
         """
         s_star = self._check_query(s_star)
-        xi, s_hat = self._secondary(xi, s_hat, s_star.shape[0])
+        xi, s_hat = self._secondary(xi, s_hat)
         n, o = self.n_points, self.out_dim
         kstar = evaluate_kernel(self.kernel, s_star, self.s)  # (Q, N)
         mean = kstar @ self._a_mu.reshape(n, o)

@@ -171,9 +171,10 @@ def run_reference(config: ReferenceConfig, run_dir: str | Path, progress: bool =
         },
         "successes": int(sum(e.success for e in episodes)),
         "first_success": next((e.episode for e in episodes if e.success), None),
-        "final_scale_table_max": base.mapping._table.max(axis=0).tolist() if base.mapping._table is not None else None,
+        "final_scale_table_max": None if base.mapping.scale_table is None else base.mapping.scale_table.max(axis=0).tolist(),
     }
     write_episodes(run_dir, episodes, {"reference": asdict(config), "tqc": {k: str(v) for k, v in tqc_kwargs(config.seed).items()}})
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-    np.save(run_dir / "scale_table.npy", base.mapping._table) if base.mapping._table is not None else None
+    if base.mapping.scale_table is not None:
+        np.save(run_dir / "scale_table.npy", base.mapping.scale_table)
     return episodes
