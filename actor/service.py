@@ -175,7 +175,7 @@ class WeightsReceiver:
         self.rejects = rejects
         self.key = key
         self.lock = threading.Lock()
-        self.ready: tuple | None = None  # (epoch, version, trained, state_dict)
+        self.ready: tuple | None = None  # (epoch, version, trained, state_dict, publish ts)
         self.received = 0
         self.thread = threading.Thread(target=self._run, name="weights-rx", daemon=True)
 
@@ -202,7 +202,7 @@ class WeightsReceiver:
             if tuple(tensors[k].shape) != shape:
                 raise ProtocolError(f"tensors[{k}]: shape {tensors[k].shape}, the actor network has {shape}")
         sd = {k: torch.from_numpy(np.array(v, dtype=np.float32)) for k, v in tensors.items()}
-        return (msg.get("epoch"), msg["version"], dict(msg["trained"]), sd)
+        return (msg.get("epoch"), msg["version"], dict(msg["trained"]), sd, float(msg["ts"]))
 
     def offer(self, payload: bytes) -> None:
         try:
@@ -266,6 +266,7 @@ class ActorService:
         self.loaded_trained = 0
         self.initial_weights_version: int | None = None
         self.weights_swaps = 0
+        self.weights_latency: list[float] = []  # s from the learner's publish (msg ts) to applied in the loop
         self.max_weight_lag = 0
         self.lag_hist: dict[str, int] = {}  # steps by (transitions - those the loaded weights were trained on)
         # counters
@@ -422,7 +423,7 @@ class ActorService:
 
     # ---------------------------------------------------------------- weights
     def _load(self, item) -> None:
-        epoch, version, trained, sd = item
+        epoch, version, trained, sd, _ts = item
         if epoch == self.loaded_epoch and version <= self.loaded_version:
             return
         self.policy.actor.load_state_dict(sd)
@@ -433,7 +434,10 @@ class ActorService:
     def _swap_weights(self) -> None:
         item = self.weights.take()
         if item is not None:
+            swaps = self.weights_swaps
             self._load(item)
+            if self.weights_swaps > swaps:  # applied: latency from the learner's publish (same-machine clock)
+                self.weights_latency.append(time.time() - item[4])
 
     def _get_weights(self, timeout: float) -> None:
         """Pull the current weights from the learner's queryable (late joiner / missed update)."""
@@ -691,6 +695,7 @@ class ActorService:
 
     def summary(self, rc: int, wall: float) -> dict:
         p = np.asarray(self.periods)
+        wl = np.asarray(self.weights_latency)
 
         def pct(q):
             return float(np.percentile(p, q) * 1e3) if p.size else None
@@ -708,6 +713,9 @@ class ActorService:
                         "swaps": self.weights_swaps, "received": self.weights.received,
                         "max_lag": self.max_weight_lag,
                         "lag_histogram": dict(sorted(self.lag_hist.items(), key=lambda kv: (len(kv[0]), kv[0])))},
+            "weights_latency_ms": {"p50": float(np.percentile(wl, 50) * 1e3) if wl.size else None,
+                                   "p99": float(np.percentile(wl, 99) * 1e3) if wl.size else None,
+                                   "max": float(wl.max() * 1e3) if wl.size else None, "n": int(wl.size)},
             "corrections": dict(self.arbiter.counts), "scale_updates": self.scale_updates,
             "successes": int(sum(e.success for e in self.episodes)),
             "rejects": self.rejects.by_kind(), "stream": self.stream,

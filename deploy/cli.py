@@ -65,6 +65,17 @@ def _cmd_bench_kmp(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_runtime(args: argparse.Namespace) -> int:
+    from benchmarks.runtime import run_runtime_benchmark
+
+    run_runtime_benchmark(quick=args.quick, out=args.out, episodes=args.episodes, actor_episodes=args.actor_episodes,
+                          ingest_transitions=args.ingest_transitions,
+                          ingest_checkpoint_transitions=args.ingest_checkpoint_transitions, batch=args.batch,
+                          inflight=args.inflight, train_seconds=args.train_seconds, rate=args.rate,
+                          scenario=args.scenario, loss_check=args.loss_check, seed=args.seed, keep=args.keep)
+    return 0
+
+
 def _cmd_reference(args: argparse.Namespace) -> int:
     from learner.reference import ReferenceConfig, run_reference
 
@@ -133,6 +144,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="also write the results as JSON here")
     p.set_defaults(func=_cmd_bench_kmp)
+    p = bench.add_parser("runtime", help="distributed runtime: ingest rate, weights latency, actor loop period vs "
+                                         "single-process SB3, learner gradient steps/s vs standalone TQC")
+    p.add_argument("--quick", action="store_true", help="small sizes for a smoke run (< 3 min)")
+    p.add_argument("--episodes", type=int, default=None, help="single-process reference episodes (default 2; quick 1)")
+    p.add_argument("--actor-episodes", type=int, default=None, help="episodes of the 50 Hz actor (default 10; quick 2)")
+    p.add_argument("--ingest-transitions", type=int, default=None,
+                   help="transitions published for the ingest rate (default 200000; quick 50000)")
+    p.add_argument("--ingest-checkpoint-transitions", type=int, default=None,
+                   help="the same with checkpoints every 2000 (default 100000; quick 20000)")
+    p.add_argument("--batch", type=int, default=256, help="transitions per published batch")
+    p.add_argument("--inflight", type=int, default=8, help="unacknowledged batches at most")
+    p.add_argument("--train-seconds", type=float, default=None,
+                   help="learner and standalone train() time, each, in alternating slices (default 30 s in 3 rounds; quick 10 s in 2)")
+    p.add_argument("--rate", type=float, default=50.0, help="actor control rate in Hz")
+    p.add_argument("--scenario", default="high_cov", choices=["high_cov", "low_cov"])
+    p.add_argument("--loss-check", action=argparse.BooleanOptionalAction, default=None,
+                   help="learner SIGKILL + resume, count lost/duplicated transitions (default: on, off with --quick)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--keep", action="store_true", help="keep the work directory (logs, run dirs)")
+    p.add_argument("--out", default=None, help="also write the results as JSON here")
+    p.set_defaults(func=_cmd_bench_runtime)
     return parser
 
 
