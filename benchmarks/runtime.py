@@ -505,8 +505,9 @@ def _measure_actor(procs: _Procs, ep: str, work: Path, *, scenario: str, episode
     run = _run_id(tag)
     run_dir = work / tag
     learning_starts = 128
+    # as `khgrl up` does: the learner runs at nice 5 so training yields the CPU to the control loop
     learner = _learner(procs, f"learner-{tag}", run, ep, run_dir, "--learning-starts", str(learning_starts),
-                       "--seed", str(seed))
+                       "--seed", str(seed), "--nice", "5")
     actor = procs.start("actor", "actor", [
         "--run", run, "--connect", ep, "--run-dir", str(run_dir), "--id", "a0", "--scenario", scenario,
         "--method", "kgrl", "--episodes", str(episodes), "--seed", str(seed), "--rate", str(rate),

@@ -187,7 +187,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.connect:
         router = Child("router", _module_argv("router", ["--listen", endpoint]), logs / "router.log")
         children.append(router)
-    learner_args = [*common, "--run-dir", str(run_dir), "--seed", str(args.seed), "--learning-starts", str(args.learning_starts)]
+    learner_args = [*common, "--run-dir", str(run_dir), "--seed", str(args.seed), "--learning-starts", str(args.learning_starts),
+                    "--nice", str(args.learner_nice)]
     if args.resume:
         learner_args.append("--resume")
     children.append(Child("learner", _module_argv("learner", learner_args), logs / "learner.log"))
@@ -296,6 +297,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-lead", type=int, default=8, help="transitions an actor may run ahead of the learner's training")
     p.add_argument("--rate", type=float, default=0.0, help="actor control rate in Hz (0: as fast as allowed)")
     p.add_argument("--learning-starts", type=int, default=100)
+    p.add_argument("--learner-nice", type=int, default=5,
+                   help="run the learner at this nice level so training yields the CPU to actor control loops (default %(default)s)")
     p.add_argument("--resume", action="store_true", help="resume the learner from RUN_DIR/learner/checkpoint")
     p.add_argument("--timeout", type=float, default=0.0, help="fail the run after this many seconds (0: none)")
     p.add_argument("--stop-timeout", type=float, default=60.0, help="seconds to wait for processes to stop")

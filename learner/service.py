@@ -387,6 +387,9 @@ def run(args: argparse.Namespace) -> int:
     (run_dir / "learner").mkdir(parents=True, exist_ok=True)
     _setup_logging(run_dir / "learner" / "learner.log")
     torch.set_num_threads(max(1, args.threads))
+    if args.nice:
+        # training yields the CPU to the actors' control loops when they share a machine
+        os.nice(args.nice)
     flag = StopFlag()
     install_stop_handlers(flag)
     keys = Keys(args.run)
@@ -567,6 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--buffer-size", type=int, default=200_000, help="replay buffer capacity")
     p.add_argument("--lease-ms", type=int, default=3000, help="Zenoh link lease (liveliness timeout of this process)")
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default %(default)s)")
+    p.add_argument("--nice", type=int, default=0, help="lower the learner's CPU priority by N (default %(default)s)")
     return p
 
 
