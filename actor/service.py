@@ -391,7 +391,8 @@ class ActorService:
             log.warning("learner %s gone: acting on with weights version %d", key, self.loaded_version)
 
     def _on_ack(self, msg: dict) -> None:
-        if msg["actor"] != self.id or msg.get("stream", self.stream) != self.stream:
+        # the learner echoes the stream id of the transitions it acks; an ack without it is not for us
+        if msg["actor"] != self.id or msg.get("stream") != self.stream:
             return
         new_epoch = msg["epoch"] != self.ack_epoch
         restarted = new_epoch and self.ack_epoch is not None

@@ -286,10 +286,20 @@ def _check_scale(m: dict) -> dict:
     return m
 
 
+_EPISODE_NUMBERS = ("steps", "ret", "action_cost", "obstacle_cost", "passage_cost", "obstacle_steps", "interventions",
+                    "intervention_steps", "clipped_steps", "projected_steps", "mean_abs_xi_h", "wall_time")
+
+
 def _check_episode(m: dict) -> dict:
     _ident("actor", m.get("actor"))
-    _typ("stats", m.get("stats"), dict)
-    _typ("episode", m["stats"].get("episode"), int, low=1)
+    stats = _typ("stats", m.get("stats"), dict)
+    _typ("episode", stats.get("episode"), int, low=1)
+    for f in _EPISODE_NUMBERS:
+        if f in stats:
+            _typ(f"stats.{f}", stats[f], (int, float))
+    for f in ("success", "failure"):
+        if f in stats:
+            _typ(f"stats.{f}", stats[f], bool)
     return m
 
 
@@ -373,12 +383,13 @@ class RejectCounter:
         self._lock = threading.Lock()
 
     def reject(self, kind: str, key: str, err: Exception) -> None:
-        reason = str(err).split(":")[0][:80]
+        reason = str(err)[:160]  # each distinct reason is logged once, then every 100th message of the kind
         with self._lock:
             self.counts[kind] += 1
-            n = self.counts[(kind, reason)] = self.counts[(kind, reason)] + 1
-        if n == 1 or n % 100 == 0:
-            log.warning("%s rejected %s message on %s (#%d of this kind): %s", self.role, kind, key, n, err)
+            n_kind = self.counts[kind]
+            n_reason = self.counts[(kind, reason)] = self.counts[(kind, reason)] + 1
+        if n_reason == 1 or n_kind % 100 == 0:
+            log.warning("%s rejected %s message on %s (#%d of this kind): %s", self.role, kind, key, n_kind, err)
 
     @property
     def total(self) -> int:

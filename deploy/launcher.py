@@ -27,7 +27,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.protocol import Keys, ProtocolError, decode, encode
+from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
 from common.session import StopFlag, free_port, install_stop_handlers, open_client
 
 __all__ = ["main", "build_parser"]
@@ -141,7 +141,10 @@ class ProgressView:
 
     def status(self, msg: dict) -> None:
         if msg.get("role") == "learner":
-            self.learner = msg["info"]
+            # status info is free-form: keep only the numbers the view shows
+            info = msg["info"]
+            self.learner = {k: info[k] for k in ("ingested", "gradient_steps", "grad_steps_per_s", "version")
+                            if isinstance(info.get(k), (int, float)) and not isinstance(info.get(k), bool)}
             self.refresh()
 
     def refresh(self) -> None:
@@ -209,6 +212,7 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.time()
     failed: list[str] = []
     inbox: queue.Queue = queue.Queue()
+    rejects = RejectCounter("launcher")
     try:
         if router is not None:
             router.start(env)
@@ -232,8 +236,8 @@ def run(args: argparse.Namespace) -> int:
                         view.episode(msg) if kind == "episode" else view.status(msg)
                     except queue.Empty:
                         pass
-                    except ProtocolError:
-                        pass
+                    except ProtocolError as exc:
+                        rejects.reject(kind, kind, exc)
                     for ch in children:
                         rc = ch.poll()
                         if rc not in (None, 0) and ch.name not in failed:
@@ -246,21 +250,27 @@ def run(args: argparse.Namespace) -> int:
                         print(f"khgrl up: timeout after {args.timeout} s", flush=True)
                         failed.append("timeout")
                         break
-                # ask everyone left to stop (the learner checkpoints first)
+                # ask everyone left to stop (the learner checkpoints first); after a failure a process may not
+                # have subscribed yet, so wait less before falling back to signals
                 session.put(keys.control("all"), encode("control", "launcher", 0, command="stop"))
-                for ch in children:
-                    if ch is not router:
-                        ch.wait(timeout=args.stop_timeout)
+                grace = args.stop_timeout if not failed else min(args.stop_timeout, 10.0)
+                stop_deadline = time.time() + grace
+                while time.time() < stop_deadline and any(ch.poll() is None for ch in children if ch is not router):
+                    time.sleep(0.1)
             finally:
                 for s in subs:
                     s.undeclare()
     finally:
-        for ch in reversed(children):
-            if ch.poll() is None:
-                ch.signal(signal.SIGINT)
-                if ch.wait(timeout=10.0) is None:
-                    ch.signal(signal.SIGKILL)
-                    ch.wait(timeout=5.0)
+        # signal everything still running at once, then wait jointly: SIGINT (clean stop), SIGKILL after 10 s
+        for sig, grace in ((signal.SIGINT, 10.0), (signal.SIGKILL, 5.0)):
+            alive = [ch for ch in children if ch.poll() is None]
+            for ch in alive:
+                ch.signal(sig)
+            deadline = time.time() + grace
+            while alive and time.time() < deadline:
+                time.sleep(0.05)
+                alive = [ch for ch in alive if ch.poll() is None]
+        for ch in children:
             ch.close()
     wall = time.time() - t0
     codes = {ch.name: ch.returncode for ch in children}
@@ -269,7 +279,8 @@ def run(args: argparse.Namespace) -> int:
             continue
         ch = next(c for c in children if c.name == name)
         print(f"khgrl up: process {name} exited with code {ch.returncode}; last lines of {ch.log_path}:\n{ch.tail()}", file=sys.stderr)
-    summary = {"run": run_id, "wall_time_s": wall, "exit_codes": codes, "failed": failed, "interrupted": bool(flag)}
+    summary = {"run": run_id, "wall_time_s": wall, "exit_codes": codes, "failed": failed, "interrupted": bool(flag),
+               "launcher_rejects": rejects.by_kind()}
     for aid in actors:
         p = run_dir / f"actor-{aid}" / "summary.json"
         if p.exists():

@@ -193,3 +193,39 @@ class ProcGroup:
     def human(self, run: str, endpoint: str, *extra: str) -> Proc:
         return self.start("human", python_main("human_bridge.service") + [*extra[:1], "--run", run,
                                                                             "--connect", endpoint, *extra[1:]])
+
+
+# ------------------------------------------------------------------ additions for tests/test_integration.py
+def free_port() -> int:
+    """A free TCP port on 127.0.0.1 (bind to port 0 and read it)."""
+    return int(free_endpoint().rsplit(":", 1)[1])
+
+
+def pids_matching(pattern: str) -> list[int]:
+    """PIDs of processes whose full command line matches the regex ``pattern`` (``pgrep -f``), not this one."""
+    out = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True, timeout=10)
+    return [int(p) for p in out.stdout.split() if int(p) != os.getpid()]
+
+
+def endpoint_pattern(endpoint: str) -> str:
+    """A ``pgrep -f`` regex for the processes started with this endpoint (``--listen``/``--connect``)."""
+    host_port = endpoint.split("/", 1)[1]
+    return host_port.replace(".", r"\.") + "( |$)"
+
+
+def pid_alive(pid: int) -> bool:
+    """True while ``pid`` exists and is not a zombie."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+
+
+def kill_pids(pids: list[int]) -> None:
+    """SIGKILL each PID (by PID, one at a time); already gone is fine."""
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
