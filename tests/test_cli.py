@@ -123,3 +123,23 @@ def test_bad_choice_is_usage_error(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["demos", "make", "--scenario", "nope", "--out", "x.npz"])
     assert exc.value.code == 2
+
+
+def test_report_on_committed_reference_runs(tmp_path):
+    from deploy.cli import main
+
+    from pathlib import Path
+
+    docs = Path(__file__).resolve().parents[1] / "docs" / "reference_runs"
+    out = tmp_path / "rep.png"
+    assert main(["report", str(docs / "low_cov-kgrl-seed0"), str(docs / "low_cov-khgrl-seed0"), "--out", str(out)]) == 0
+    assert out.stat().st_size > 10_000
+    table = out.with_suffix(".md").read_text()
+    assert "| low_cov-kgrl-seed0 | 0/60 |" in table and "| low_cov-khgrl-seed0 | 51/60 |" in table
+
+
+def test_report_missing_run_dir(tmp_path, capsys):
+    from deploy.cli import main
+
+    assert main(["report", str(tmp_path / "nope")]) == 2
+    assert "no episodes.csv" in capsys.readouterr().err

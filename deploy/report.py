@@ -1,0 +1,105 @@
+"""``khgrl report``: per-episode results of one or more runs as a figure and a markdown table.
+
+Accepts run directories of ``khgrl reference`` (``RUN/episodes.csv``) and of ``khgrl up``
+(``RUN/actor-<id>/episodes.csv``, one series per actor).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+__all__ = ["main", "load_series", "summarize"]
+
+
+def load_series(run_dir: Path) -> dict[str, list[dict]]:
+    """{label: episode rows} for a run directory."""
+    run_dir = Path(run_dir)
+    files = [run_dir / "episodes.csv"] if (run_dir / "episodes.csv").exists() else sorted(run_dir.glob("actor-*/episodes.csv"))
+    if not files:
+        raise FileNotFoundError(f"{run_dir}: no episodes.csv (expected RUN/episodes.csv or RUN/actor-*/episodes.csv)")
+    out = {}
+    for f in files:
+        label = run_dir.name if f.parent == run_dir else f"{run_dir.name}/{f.parent.name}"
+        with open(f, newline="") as fh:
+            out[label] = list(csv.DictReader(fh))
+    return out
+
+
+def summarize(rows: list[dict]) -> dict:
+    succ = [r["success"] == "True" for r in rows]
+    human = [int(r["intervention_steps"]) > 0 for r in rows]
+    return {
+        "episodes": len(rows),
+        "successes": sum(succ),
+        "first_success": next((int(r["episode"]) for r, s in zip(rows, succ) if s), None),
+        "first_success_without_human": next((int(r["episode"]) for r, s, h in zip(rows, succ, human) if s and not h), None),
+        "success_last_10": sum(succ[-10:]),
+        "episodes_with_collision": sum(float(r["obstacle_cost"]) < 0 for r in rows),
+        "human_episodes": sum(human),
+        "clipped_human_steps": sum(int(r["clipped_steps"]) for r in rows),
+        "mean_return_last_10": sum(float(r["ret"]) for r in rows[-10:]) / max(1, len(rows[-10:])),
+    }
+
+
+def plot(series: dict[str, list[dict]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, 1, figsize=(10, 9), sharex=True, constrained_layout=True)
+    for k, (label, rows) in enumerate(series.items()):
+        ep = [int(r["episode"]) for r in rows]
+        color = f"C{k}"
+        axes[0].plot(ep, [float(r["ret"]) for r in rows], color=color, label=label)
+        hs = [(e, float(r["ret"])) for e, r in zip(ep, rows) if int(r["intervention_steps"]) > 0]
+        if hs:
+            axes[0].scatter(*zip(*hs), color=color, marker="^", s=30)
+        axes[1].plot(ep, [float(r["obstacle_cost"]) for r in rows], color=color)
+        axes[2].plot(ep, [float(r["passage_cost"]) for r in rows], color=color)
+    axes[0].set_ylabel("return (▲ human episodes)")
+    axes[1].set_ylabel("obstacle cost")
+    axes[2].set_ylabel("passage cost")
+    axes[2].set_xlabel("episode")
+    axes[0].legend(fontsize=8)
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def markdown_table(series: dict[str, list[dict]]) -> str:
+    cols = ["run", "successes", "first success", "first success w/o human", "success last 10", "collision episodes",
+            "human episodes", "clipped human steps", "mean return last 10"]
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for label, rows in series.items():
+        s = summarize(rows)
+        lines.append(f"| {label} | {s['successes']}/{s['episodes']} | {s['first_success'] or '-'} | "
+                     f"{s['first_success_without_human'] or '-'} | {s['success_last_10']}/10 | {s['episodes_with_collision']} | "
+                     f"{s['human_episodes']} | {s['clipped_human_steps']} | {s['mean_return_last_10']:.1f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="khgrl report", description="Per-episode results of runs: a PNG and a markdown table.")
+    p.add_argument("runs", nargs="+", help="run directories (khgrl reference or khgrl up)")
+    p.add_argument("--out", default="runs/report.png", help="figure to write (the table is printed and written beside it as .md)")
+    args = p.parse_args(argv)
+    series: dict[str, list[dict]] = {}
+    try:
+        for run in args.runs:
+            series.update(load_series(Path(run)))
+    except FileNotFoundError as exc:
+        print(f"khgrl report: error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    plot(series, out)
+    table = markdown_table(series)
+    out.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    print(f"wrote {out} and {out.with_suffix('.md')}")
+    return 0
