@@ -46,7 +46,7 @@ import numpy as np
 from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
 from common.session import StopFlag, install_stop_handlers, open_client
 
-__all__ = ["main", "build_parser", "Outbox", "CorrectionArbiter"]
+__all__ = ["main", "build_parser", "Outbox", "CorrectionArbiter", "CorrectionRecord"]
 
 log = logging.getLogger("khgrl.actor")
 
@@ -124,7 +124,7 @@ class CorrectionArbiter:
         self.p_h: np.ndarray | None = None
         self.deadline = 0.0
         self.counts = {"applied": 0, "ignored_other_client": 0, "ignored_other_actor": 0, "ignored_method": 0,
-                       "stale_episode": 0, "timeouts": 0, "releases": 0, "holds": 0}
+                       "stale_episode": 0, "timeouts": 0, "releases": 0, "holds": 0, "projected_steps": 0}
 
     def offer(self, msg: dict, arrival: float, episode: int) -> None:
         if msg["actor"] != self.actor:
@@ -162,6 +162,40 @@ class CorrectionArbiter:
             self.holder, self.p_h = None, None
             self.counts["timeouts"] += 1
         return self.p_h
+
+
+class CorrectionRecord:
+    """``RUN_DIR/actor-ID/corrections.csv``: one row per step at which the actor applied a human correction
+    (run, actor, episode, step t, wall time, client, P_h as received, and whether it was projected onto the
+    workspace / its action clipped). ``khgrl human replay`` feeds such a file into a new run."""
+
+    FIELDS = ("run", "actor", "episode", "step", "time", "client", "p_h_x", "p_h_y", "projected", "clipped")
+
+    def __init__(self, path: Path, run: str, actor: str) -> None:
+        import csv
+
+        self.path = Path(path)
+        self.run, self.actor = run, actor
+        self._fh = open(self.path, "w", newline="")
+        self._w = csv.writer(self._fh)
+        self._w.writerow(self.FIELDS)
+        self.rows = 0
+
+    def write(self, episode: int, t: int, client: str | None, p_h, info: dict) -> None:
+        if self._fh.closed:
+            return
+        self._w.writerow((self.run, self.actor, int(episode), int(t), f"{time.time():.6f}", client or "",
+                          repr(float(p_h[0])), repr(float(p_h[1])), int(bool(info.get("projected"))),
+                          int(bool(info.get("clipped")))))
+        self.rows += 1
+
+    def flush(self) -> None:
+        if not self._fh.closed:
+            self._fh.flush()
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.close()
 
 
 # ---------------------------------------------------------------------------------------- weights
@@ -246,6 +280,8 @@ class ActorService:
         self.khgrl = args.method == "khgrl"
         self.arbiter = CorrectionArbiter(self.id, args.correction_timeout, enabled=self.khgrl)
         self.outbox = Outbox(args.outbox_memory, out_dir / "outbox")
+        self.record = CorrectionRecord(out_dir / "corrections.csv", args.run, self.id)
+        self.tb = None  # a torch SummaryWriter, set by run() unless --no-tensorboard
         # stream state
         self.count = 0  # transitions collected (the next transition's per-actor index)
         self.sent = 0  # transitions published (first time)
@@ -582,6 +618,7 @@ class ActorService:
             self.episode = acc.episode
             t_ep = time.perf_counter()
             segment: list[tuple] = []
+            ep_ret = 0.0
             done = False
             while not done and not self.flag:
                 self.service()
@@ -595,6 +632,11 @@ class ActorService:
                         deadline = now
                     elif deadline > now:
                         time.sleep(deadline - now)
+                        # what arrived while pacing (a correction for the frame just published) applies to this step
+                        self.service()
+                        self.rate_limit()
+                        if self.flag:
+                            break
                 start = time.perf_counter()
                 if last_start is not None:
                     self.periods.append(start - last_start)
@@ -612,6 +654,7 @@ class ActorService:
                 env.set_correction(p_h)
                 next_obs, reward, terminated, truncated, info = env.step(action)
                 acc.add(reward, info)
+                ep_ret += float(reward)
                 iv = bool(info["intervened"])
                 if iv:
                     segment.append((info["xi_h"], info["phase"]))
@@ -621,10 +664,13 @@ class ActorService:
                 self.buf.append((obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"])))
                 self.count += 1
                 t = int(info["t"])
+                if iv and p_h is not None:
+                    self.record.write(self.episode, t, self.arbiter.holder, p_h, info)
+                    self.arbiter.counts["projected_steps"] += int(bool(info.get("projected")))
                 self._put("frame", actor=self.id, episode=self.episode, t=t, phase=float(info["phase"]),
                           robot=[float(v) for v in env.robot], desired=[float(v) for v in info["desired"]],
                           mean=[float(v) for v in env.mapping.mean(t)], scale=[float(v) for v in info["scale"]],
-                          intervening=iv, scenario=args.scenario)
+                          intervening=iv, scenario=args.scenario, ret=float(ep_ret))
                 done = terminated or truncated
                 if done or self.count % args.batch == 0:
                     self.publish_batch()
@@ -634,6 +680,8 @@ class ActorService:
             env.set_correction(None)
             self._refit_scale(segment)
             st = acc.finish(time.perf_counter() - t_ep)
+            self.record.flush()
+            self._tb_episode(st)
             self.episodes.append(st)
             self._put("episode", actor=self.id, stats=asdict(st))
             log.info("episode %d: %d steps, return %.1f, success %s, interventions %d (%d steps), weights v%d",
@@ -643,6 +691,30 @@ class ActorService:
         if self.flag:
             return self._finish_on_signal()
         return self._flush()
+
+    def _tb_episode(self, st) -> None:
+        """Per-episode scalars (return, success, intervention statistics) to TensorBoard (RUN_DIR/actor-ID/tb)."""
+        if self.tb is None:
+            return
+        n = st.episode
+        iv = st.intervention_steps
+        scalars = {
+            "episode/return": st.ret, "episode/success": float(st.success), "episode/steps": st.steps,
+            "episode/obstacle_steps": st.obstacle_steps,
+            "interventions/count": st.interventions, "interventions/steps": iv,
+            "interventions/fraction_of_steps": iv / st.steps if st.steps else 0.0,
+            "interventions/clipped_fraction": st.clipped_steps / iv if iv else 0.0,
+            "interventions/projected_steps": st.projected_steps, "interventions/mean_abs_xi_h": st.mean_abs_xi_h,
+        }
+        for d, v in enumerate(st.scale_max or []):
+            scalars[f"scale/max_L{'xy'[d] if d < 2 else d}"] = v
+        try:
+            for k, v in scalars.items():
+                self.tb.add_scalar(k, float(v), n)
+            self.tb.flush()
+        except Exception as exc:  # noqa: BLE001 - metrics must never stop the robot
+            log.warning("tensorboard write failed (%s): disabled", exc)
+            self.tb = None
 
     def _flush(self) -> int:
         """Wait until the learner holds every batch in a checkpoint (or --flush-timeout)."""
@@ -681,6 +753,7 @@ class ActorService:
         return n
 
     def close(self) -> None:
+        self.record.close()
         self.weights.stop()
         for d in self.decls:
             try:
@@ -754,13 +827,24 @@ def run(args: argparse.Namespace) -> int:
     log.info("actor %s: %s/%s, world ready in %.1f s", args.id, args.scenario, args.method, time.perf_counter() - t0)
     rc = 1
     t_run = time.perf_counter()
+    tb = None
+    if args.tensorboard:
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            tb = SummaryWriter(log_dir=str(out_dir / "tb"))
+        except Exception as exc:  # noqa: BLE001
+            log.warning("no TensorBoard scalars: %s", exc)
     with open_client(args.connect, args.lease_ms) as session:
         svc = ActorService(args, session, env, policy, flag, out_dir)
+        svc.tb = tb
         try:
             rc = svc.run()
         finally:
             summary = svc.summary(rc, time.perf_counter() - t_run)
             svc.close()
+            if svc.tb is not None:
+                svc.tb.close()
     config = {"actor": vars(args), "tqc_policy": {"net_arch": [256, 256]}, "stream": svc.stream}
     write_episodes(out_dir, svc.episodes, config)
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
@@ -792,6 +876,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--outbox-memory", type=int, default=1000, help="batches kept in memory before spilling to disk")
     p.add_argument("--flush-timeout", type=float, default=120.0, help="at the end, wait this long for the learner to confirm (s)")
     p.add_argument("--lease-ms", type=int, default=3000, help="Zenoh link lease (liveliness timeout of this process)")
+    p.add_argument("--tensorboard", action=argparse.BooleanOptionalAction, default=True,
+                   help="write per-episode scalars (return, interventions) to RUN_DIR/actor-ID/tb")
     return p
 
 

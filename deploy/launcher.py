@@ -103,15 +103,29 @@ def _make_run_id(run_dir: Path) -> str:
     return f"{stem}-{secrets.token_hex(3)}"
 
 
+def _num(value, default: float = 0.0) -> float:
+    """A finite number from a (validated, but free-form in places) message field, else ``default``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return default
+    value = float(value)
+    return value if value == value and abs(value) != float("inf") else default
+
+
 class ProgressView:
-    """Live table of episodes, success, return, interventions, learner updates and weight version."""
+    """Live table of episodes, success, return, interventions (count, human steps, fraction of clipped human actions,
+    mean |xi_h|), learner updates and weight version."""
 
     def __init__(self, actors: list[str], episodes: int, enabled: bool) -> None:
-        self.actors = {a: {"done": 0, "success": 0, "last_return": None, "interventions": 0, "clipped": 0} for a in actors}
+        self.actors = {a: self._row() for a in actors}
         self.episodes = episodes
         self.learner: dict = {}
         self.enabled = enabled
         self._live = None
+
+    @staticmethod
+    def _row() -> dict:
+        return {"done": 0, "success": 0, "last_return": None, "interventions": 0, "count": 0, "clipped": 0,
+                "xi_sum": 0.0}
 
     def __enter__(self):
         if self.enabled:
@@ -128,15 +142,23 @@ class ProgressView:
 
     def episode(self, msg: dict) -> None:
         st = msg["stats"]
-        row = self.actors.setdefault(msg["actor"], {"done": 0, "success": 0, "last_return": None, "interventions": 0, "clipped": 0})
-        row["done"] = max(row["done"], int(st.get("episode", 0)))
-        row["success"] += int(bool(st.get("success", False)))
-        row["last_return"] = float(st.get("ret", 0.0))
-        row["interventions"] += int(st.get("intervention_steps", 0))
-        row["clipped"] += int(st.get("clipped_steps", 0))
+        row = self.actors.setdefault(msg["actor"], self._row())
+        steps = int(_num(st.get("intervention_steps")))
+        clipped = int(_num(st.get("clipped_steps")))
+        count = int(_num(st.get("interventions")))
+        xi = _num(st.get("mean_abs_xi_h"))
+        row["done"] = max(row["done"], int(_num(st.get("episode"))))
+        row["success"] += int(st.get("success") is True)
+        row["last_return"] = _num(st.get("ret"))
+        row["interventions"] += steps
+        row["count"] += count
+        row["clipped"] += clipped
+        row["xi_sum"] += xi * steps
         if not self.enabled:
-            print(f"[{msg['actor']}] episode {st.get('episode')}: return {st.get('ret', 0):.1f} "
-                  f"success={st.get('success')} interventions={st.get('intervention_steps')}", flush=True)
+            frac = f"{clipped / steps:.0%}" if steps else "-"
+            print(f"[{msg['actor']}] episode {st.get('episode')}: return {_num(st.get('ret')):.1f} "
+                  f"success={st.get('success')} interventions={steps} "
+                  f"(count {count}, clipped {frac}, mean |xi_h| {xi:.3g})", flush=True)
         self.refresh()
 
     def status(self, msg: dict) -> None:
@@ -155,11 +177,15 @@ class ProgressView:
         from rich.table import Table
 
         t = Table(title="KhGRL run")
-        for col in ("actor", "episodes", "successes", "last return", "human steps", "clipped"):
+        for col in ("actor", "episodes", "successes", "last return", "interventions", "human steps", "clipped",
+                    "mean |xi_h|"):
             t.add_column(col, justify="right")
         for a, r in self.actors.items():
             ret = "-" if r["last_return"] is None else f"{r['last_return']:.1f}"
-            t.add_row(a, f"{r['done']}/{self.episodes}", str(r["success"]), ret, str(r["interventions"]), str(r["clipped"]))
+            n = r["interventions"]
+            clipped = f"{r['clipped']} ({r['clipped'] / n:.0%})" if n else str(r["clipped"])
+            xi = f"{r['xi_sum'] / n:.3g}" if n else "-"
+            t.add_row(a, f"{r['done']}/{self.episodes}", str(r["success"]), ret, str(r["count"]), str(n), clipped, xi)
         li = self.learner
         t.caption = (f"learner: {li.get('ingested', 0)} transitions, {li.get('gradient_steps', 0)} gradient steps "
                      f"({li.get('grad_steps_per_s', 0):.0f}/s), weights v{li.get('version', 0)}") if li else "learner: waiting"
@@ -253,7 +279,7 @@ def run(args: argparse.Namespace) -> int:
                 # ask everyone left to stop (the learner checkpoints first); after a failure a process may not
                 # have subscribed yet, so wait less before falling back to signals
                 session.put(keys.control("all"), encode("control", "launcher", 0, command="stop"))
-                grace = args.stop_timeout if not failed else min(args.stop_timeout, 10.0)
+                grace = args.stop_timeout if not failed else min(args.stop_timeout, 5.0)
                 stop_deadline = time.time() + grace
                 while time.time() < stop_deadline and any(ch.poll() is None for ch in children if ch is not router):
                     time.sleep(0.1)
@@ -301,7 +327,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", default="runs/demo")
     p.add_argument("--run", default=None, help="run id (key prefix khgrl/<run>/); default: derived from the run dir")
     p.add_argument("--actors", type=int, default=1)
-    p.add_argument("--human", default="scripted", choices=["scripted", "none"], help="human-input client (khgrl only)")
+    p.add_argument("--human", default="scripted", choices=["scripted", "gui", "none"],
+                   help="human-input client (khgrl only): scripted, gui (a pygame window to drag the robot), none")
     p.add_argument("--human-episodes", type=int, nargs="+", default=None, help="episodes with corrections (default: the paper's)")
     p.add_argument("--connect", default=None, help="join the router at tcp/HOST:PORT instead of starting one")
     p.add_argument("--port", type=int, default=0, help="router port on 127.0.0.1 (default: a free one)")

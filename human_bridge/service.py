@@ -5,6 +5,9 @@ Clients:
 
 * ``scripted`` -- the reproducible stand-in for a person (:mod:`human_bridge.scripted`): in the given
   episodes, over the scenario's help window, it holds the desired position on a safe path through the gaps.
+* ``gui`` -- a pygame window: a person drags the robot with the mouse (:mod:`human_bridge.gui`).
+* ``replay`` -- feeds a recorded ``corrections.csv`` into a new run at the same episodes and steps
+  (:mod:`human_bridge.replay`).
 
 A correction stream is: ``active=True`` messages with ``p_h`` while the person drags (sent for every
 frame, so the actor can tell a live drag from a dead client), then one ``active=False`` on release.
@@ -148,6 +151,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--id", default="scripted", help="client id")
     p.add_argument("--run-dir", default=None, help="(unused by the scripted client; accepted for the launcher)")
     p.set_defaults(func=_run_scripted)
+    from human_bridge.gui import add_parser as add_gui
+
+    add_gui(sub, DEFAULT_ENDPOINT)
+    from human_bridge.replay import add_parser as add_replay
+
+    add_replay(sub, DEFAULT_ENDPOINT)
     return parser
 
 

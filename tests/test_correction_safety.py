@@ -1,0 +1,153 @@
+"""Safety of the correction path, against a real actor process over a real router.
+
+This test process plays several human-input clients (one Zenoh session, one publisher per client id):
+
+* alice drags; bob sends corrections while alice holds the robot: ignored and counted, never applied;
+* carol drags and then goes silent without releasing: the actor ends the intervention after its timeout;
+* dave drags to a point outside the workspace: projected onto it, applied, counted;
+* eve sends non-finite P_h and garbage, mallory corrects an actor that does not exist: rejected or ignored,
+  counted and logged -- and the run goes on to the end.
+
+The actor runs without a learner (its final flush times out: exit code 3) at 50 Hz.
+"""
+
+from __future__ import annotations
+
+import csv
+import queue
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from proc_helpers import ProcGroup, read_json, unique_run
+
+TIMEOUT_S = 0.5
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(240)
+def test_arbitration_timeout_projection_and_rejects_with_a_real_actor(tmp_path):
+    import zenoh
+
+    from common.protocol import Keys, decode, encode
+    from common.session import open_client
+    from human_bridge.service import CorrectionPublisher
+
+    run, run_dir = unique_run("safe"), tmp_path / "run"
+    keys = Keys(run)
+    frames: queue.Queue = queue.Queue()
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        actor = g.actor(run, ep, "--scenario", "low_cov", "--method", "khgrl", "--episodes", "2", "--rate", "50",
+                        "--learning-starts", "100000", "--flush-timeout", "0.5",
+                        "--correction-timeout", str(TIMEOUT_S), run_dir=run_dir)
+        with open_client(ep) as s:
+            sub = s.declare_subscriber(keys.frame("a0"), lambda smp: frames.put(smp.payload.to_bytes()))
+            pubs = {c: CorrectionPublisher(s, keys, c) for c in ("alice", "bob", "carol", "dave", "mallory")}
+            last = {}
+
+            def next_frame(timeout=30.0) -> dict:
+                f = decode("frame", frames.get(timeout=timeout))
+                last.update(f)
+                return f
+
+            def drain():
+                while True:
+                    try:
+                        last.update(decode("frame", frames.get_nowait()))
+                    except queue.Empty:
+                        return
+
+            try:
+                f = next_frame(120)  # the actor is up and stepping
+                while f["t"] < 5:
+                    f = next_frame()
+                # --- alice holds for 20 frames; bob tries to take over during the last 15
+                bob_sent = 0
+                for k in range(20):
+                    f = next_frame()
+                    pubs["alice"].send("a0", np.array(f["mean"]) + [0.0, 0.04], f["episode"], f["t"])
+                    if k >= 5:
+                        pubs["bob"].send("a0", np.array(f["mean"]) - [0.0, 0.1], f["episode"], f["t"])
+                        bob_sent += 1
+                pubs["bob"].send("a0", None)  # bob's release while alice holds: not his to give
+                bob_sent += 1
+                time.sleep(0.05)
+                pubs["alice"].send("a0", None)
+                for _ in range(5):
+                    next_frame()
+                # --- carol: 5 frames, then silence
+                for _ in range(5):
+                    f = next_frame()
+                    pubs["carol"].send("a0", np.array(f["mean"]) + [0.0, 0.03], f["episode"], f["t"])
+                carol_last = time.time()
+                time.sleep(TIMEOUT_S + 0.5)
+                drain()
+                # --- dave: outside the workspace
+                for _ in range(6):
+                    f = next_frame()
+                    pubs["dave"].send("a0", np.array([1.4, -0.3]), f["episode"], f["t"])
+                pubs["dave"].send("a0", None)
+                # --- mallory: a valid correction for an actor that does not exist
+                for _ in range(3):
+                    pubs["mallory"].send("a9", np.array([0.5, 0.5]), 1, 0)
+                # --- eve: non-finite P_h and garbage
+                evil = keys.correction("eve")
+                base = {"v": 1, "kind": "correction", "sender": "eve", "seq": 0, "ts": time.time(), "client": "eve",
+                        "actor": "a0", "active": True}
+                bad = [msgpack.packb(dict(base, p_h=[float("nan"), 0.5])),
+                       msgpack.packb(dict(base, p_h=[0.5, float("inf")])),
+                       msgpack.packb(dict(base, p_h=[0.5, float("-inf")])),
+                       b"\xc1\xc1 garbage \x00",
+                       msgpack.packb([1, 2, 3]),
+                       msgpack.packb(dict(base, p_h="up")),
+                       msgpack.packb(dict(base, v=7, p_h=[0.5, 0.5]))]
+                for payload in bad:
+                    s.put(evil, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                # the run goes on: frames keep coming (next_frame fails after 30 s without one)
+                for _ in range(10):
+                    next_frame()
+            finally:
+                sub.undeclare()
+                for p in pubs.values():
+                    p.close()
+        assert actor.wait(150) == 3, actor.tail()  # no learner: only the final flush times out
+
+    summary = read_json(run_dir / "actor-a0" / "summary.json")
+    c = summary["corrections"]
+    assert summary["episodes"] == 2 and summary["stopped_by"] is None
+    assert c["holds"] == 3, c  # alice, carol, dave
+    assert c["releases"] == 2 and c["timeouts"] == 1, c  # alice and dave let go; carol timed out
+    assert c["ignored_other_client"] == bob_sent, c
+    assert c["ignored_other_actor"] == 3, c
+    assert summary["rejects"] == {"correction": len(bad)}, summary["rejects"]
+    log = (run_dir / "actor-a0" / "actor.log").read_text()
+    assert log.count("rejected correction message") >= 5  # each distinct reason is logged
+    assert "p_h[0]: not finite" in log and "p_h[1]: not finite" in log and "not msgpack" in log
+    assert "correction client carol silent" in log
+
+    with open(run_dir / "actor-a0" / "corrections.csv", newline="") as fh:
+        rec = list(csv.DictReader(fh))
+    clients = [r["client"] for r in rec]
+    # applied in order: alice's hold, carol's, dave's; never bob's
+    order = [c for i, c in enumerate(clients) if i == 0 or clients[i - 1] != c]
+    assert order == ["alice", "carol", "dave"], order
+    alice = [r for r in rec if r["client"] == "alice"]
+    assert 18 <= len(alice) <= 22
+    # carol's hold outlived her last message by about the timeout, not more
+    carol = [r for r in rec if r["client"] == "carol"]
+    held = float(carol[-1]["time"]) - carol_last
+    assert TIMEOUT_S - 0.15 <= held <= TIMEOUT_S + 0.35, held
+    assert len(carol) >= 5 + int(0.6 * TIMEOUT_S * 50)
+    # dave's out-of-workspace P_h was applied, projected, and counted
+    dave = [r for r in rec if r["client"] == "dave"]
+    assert 5 <= len(dave) <= 8 and all(r["projected"] == "1" for r in dave)
+    assert all((float(r["p_h_x"]), float(r["p_h_y"])) == (1.4, -0.3) for r in dave)
+    assert not any(r["projected"] == "1" for r in rec if r["client"] != "dave")
+    assert c["projected_steps"] == len(dave)
+    with open(run_dir / "actor-a0" / "episodes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert sum(int(r["projected_steps"]) for r in rows) == len(dave)
+    assert sum(int(r["intervention_steps"]) for r in rows) == len(rec)
