@@ -8,7 +8,8 @@ Run directory layout::
     RUN_DIR/config.json          the launch configuration
     RUN_DIR/logs/<process>.log   each process's stdout/stderr
     RUN_DIR/learner/...          checkpoints, TensorBoard scalars
-    RUN_DIR/actor-<id>/...       episodes.csv/json, summary.json
+    RUN_DIR/actor-<id>/...       episodes.csv/json, summary.json, corrections.csv (applied human
+                                 corrections, replayable), tb/ (per-episode TensorBoard scalars)
     RUN_DIR/summary.json         exit codes, wall time, per-actor results
 """
 
