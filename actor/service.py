@@ -44,7 +44,7 @@ import msgpack
 import numpy as np
 
 from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
-from common.session import StopFlag, install_stop_handlers, open_client
+from common.session import StopFlag, install_stop_handlers, open_client, setup_process_logging
 
 __all__ = ["main", "build_parser", "Outbox", "CorrectionArbiter", "CorrectionRecord"]
 
@@ -796,15 +796,6 @@ class ActorService:
         }
 
 
-def _setup_logging(log_path: Path) -> None:
-    fmt = logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s")
-    root = logging.getLogger()
-    root.setLevel(logging.INFO)
-    for h in (logging.FileHandler(log_path), logging.StreamHandler(sys.stdout)):
-        h.setFormatter(fmt)
-        root.addHandler(h)
-
-
 def run(args: argparse.Namespace) -> int:
     import torch
     from sb3_contrib.tqc.policies import TQCPolicy
@@ -814,7 +805,7 @@ def run(args: argparse.Namespace) -> int:
 
     out_dir = Path(args.run_dir) / f"actor-{args.id}"
     out_dir.mkdir(parents=True, exist_ok=True)
-    _setup_logging(out_dir / "actor.log")
+    setup_process_logging(out_dir / "actor.log")
     torch.set_num_threads(1)
     flag = StopFlag()
     install_stop_handlers(flag)

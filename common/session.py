@@ -21,7 +21,8 @@ import sys
 import threading
 import time
 
-__all__ = ["client_config", "router_config", "free_port", "open_client", "install_stop_handlers", "router_main"]
+__all__ = ["client_config", "router_config", "free_port", "open_client", "install_stop_handlers", "router_main",
+           "setup_process_logging"]
 
 log = logging.getLogger("khgrl.session")
 
@@ -123,3 +124,15 @@ def sleep_until(deadline: float) -> None:
     delay = deadline - time.perf_counter()
     if delay > 0:
         time.sleep(delay)
+
+
+def setup_process_logging(log_path) -> None:
+    """Log INFO and above to ``log_path`` and stdout (the launcher captures stdout in RUN_DIR/logs/)."""
+    from pathlib import Path
+
+    fmt = logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s")
+    root = logging.getLogger()
+    root.setLevel(logging.INFO)
+    for h in (logging.FileHandler(Path(log_path)), logging.StreamHandler(sys.stdout)):
+        h.setFormatter(fmt)
+        root.addHandler(h)

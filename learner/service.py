@@ -50,7 +50,7 @@ import numpy as np
 from gymnasium import spaces
 
 from common.protocol import ACT_DIM, OBS_DIM, Keys, ProtocolError, RejectCounter, decode, encode
-from common.session import StopFlag, install_stop_handlers, open_client
+from common.session import StopFlag, install_stop_handlers, open_client, setup_process_logging
 
 __all__ = ["main", "build_parser", "LearnerCore", "SpacesEnv", "passage_spaces", "load_checkpoint_arrays"]
 
@@ -370,22 +370,13 @@ class _Inbox:
         return cb
 
 
-def _setup_logging(log_path: Path) -> None:
-    fmt = logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s")
-    root = logging.getLogger()
-    root.setLevel(logging.INFO)
-    for h in (logging.FileHandler(log_path), logging.StreamHandler(sys.stdout)):
-        h.setFormatter(fmt)
-        root.addHandler(h)
-
-
 def run(args: argparse.Namespace) -> int:
     import torch
     import zenoh
 
     run_dir = Path(args.run_dir)
     (run_dir / "learner").mkdir(parents=True, exist_ok=True)
-    _setup_logging(run_dir / "learner" / "learner.log")
+    setup_process_logging(run_dir / "learner" / "learner.log")
     torch.set_num_threads(max(1, args.threads))
     if args.nice:
         # training yields the CPU to the actors' control loops when they share a machine
