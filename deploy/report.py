@@ -92,7 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     series: dict[str, list[dict]] = {}
     try:
         for run in args.runs:
-            series.update(load_series(Path(run)))
+            for label, rows in load_series(Path(run)).items():
+                if label in series:  # same run name in another folder: qualify it with the folder
+                    label = f"{Path(run).resolve().parent.name}/{label}"
+                series[label] = rows
     except FileNotFoundError as exc:
         print(f"khgrl report: error: {exc}", file=sys.stderr)
         return 2
