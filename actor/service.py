@@ -114,7 +114,18 @@ class CorrectionArbiter:
     """One human-input client drives the actor at a time: the first client that sends an active correction
     holds the intervention until it sends ``active=False`` or is silent longer than ``timeout`` (of the
     actor's running time: pauses of the actor, e.g. waiting for the learner, extend the deadline, since the
-    client gets no frames then)."""
+    client gets no frames then).
+
+    Corrections come in two kinds (docs/protocol.md). A live client (a person at the GUI) sends plain ones:
+    the latest wins and applies to the actor's next step. A step-addressed one names the step it is for
+    (``step``, with ``episode``): a client that sends one is *in lock-step* for the rest of that episode --
+    the actor does not take a step before it has that client's word (P_h or release) for it (:meth:`ready`),
+    so a scripted or replayed correction applies exactly at the step it was computed for, whatever the
+    latency. A lock-step client that stays silent for ``timeout`` at a step is dropped back to plain mode
+    (:meth:`give_up`).
+    """
+
+    MAX_AHEAD = 64  # step-addressed messages kept ahead of the current step
 
     def __init__(self, actor: str, timeout: float, enabled: bool) -> None:
         self.actor = actor
@@ -123,10 +134,22 @@ class CorrectionArbiter:
         self.holder: str | None = None
         self.p_h: np.ndarray | None = None
         self.deadline = 0.0
+        self.lockstep: str | None = None  # client whose step-addressed word each step of this episode waits for
+        self._addressed: dict[int, dict] = {}  # step -> that client's message for it
         self.counts = {"applied": 0, "ignored_other_client": 0, "ignored_other_actor": 0, "ignored_method": 0,
-                       "stale_episode": 0, "timeouts": 0, "releases": 0, "holds": 0, "projected_steps": 0}
+                       "stale_episode": 0, "timeouts": 0, "releases": 0, "holds": 0, "projected_steps": 0,
+                       "addressed": 0, "late_step": 0, "lockstep_waits": 0, "lockstep_timeouts": 0}
 
-    def offer(self, msg: dict, arrival: float, episode: int) -> None:
+    def new_episode(self) -> None:
+        """Lock-step lasts one episode: a client re-enters it with its first step-addressed message, and a
+        lock-step client's hold ends with the episode (its words were for that episode's steps)."""
+        if self.lockstep is not None and self.holder == self.lockstep:
+            self._release()
+        self.lockstep = None
+        self._addressed.clear()
+
+    def offer(self, msg: dict, arrival: float, episode: int, step: int = 0) -> None:
+        """A validated correction message that arrived at ``arrival`` while the actor is before ``step`` of ``episode``."""
         if msg["actor"] != self.actor:
             self.counts["ignored_other_actor"] += 1
             return
@@ -137,26 +160,74 @@ class CorrectionArbiter:
         if self.holder is not None and client != self.holder:
             self.counts["ignored_other_client"] += 1
             return
+        if "step" in msg:
+            self._offer_addressed(msg, episode, step)
+            return
         if not msg["active"]:
             if self.holder == client:
-                self.holder, self.p_h = None, None
-                self.counts["releases"] += 1
+                self._release()
             return
         if "episode" in msg and msg["episode"] != episode:
             self.counts["stale_episode"] += 1
             return
+        self._hold(client, msg["p_h"], arrival)
+
+    def _offer_addressed(self, msg: dict, episode: int, step: int) -> None:
+        client = msg["client"]
+        if msg["episode"] != episode:
+            self.counts["stale_episode"] += 1
+            return
+        if self.lockstep is not None and client != self.lockstep:
+            self.counts["ignored_other_client"] += 1
+            return
+        if msg["step"] < step:
+            self.counts["late_step"] += 1  # the step it was meant for is already taken
+            return
+        self.lockstep = client
+        self.counts["addressed"] += 1
+        if len(self._addressed) < self.MAX_AHEAD or msg["step"] in self._addressed:
+            self._addressed[msg["step"]] = msg
+
+    def ready(self, step: int) -> bool:
+        """Whether the actor may take ``step``: True unless a lock-step client has not yet sent its word for it."""
+        return self.lockstep is None or step in self._addressed
+
+    def give_up(self, step: int) -> None:
+        """The lock-step client said nothing for ``step`` in time: carry on in plain mode (latest wins)."""
+        log.warning("lock-step correction client %s sent nothing for step %d: no longer waiting for it this episode",
+                    self.lockstep, step)
+        self.counts["lockstep_timeouts"] += 1
+        self.lockstep = None
+        self._addressed.clear()
+
+    def _hold(self, client: str, p_h, arrival: float) -> None:
         if self.holder is None:
             self.holder = client
             self.counts["holds"] += 1
-        self.p_h = np.asarray(msg["p_h"], dtype=np.float64)
+        self.p_h = np.asarray(p_h, dtype=np.float64)
         self.deadline = arrival + self.timeout
         self.counts["applied"] += 1
+
+    def _release(self) -> None:
+        self.holder, self.p_h = None, None
+        self.counts["releases"] += 1
 
     def extend(self, seconds: float) -> None:
         if self.holder is not None:
             self.deadline += seconds
 
-    def current(self, now: float) -> np.ndarray | None:
+    def current(self, now: float, step: int | None = None) -> np.ndarray | None:
+        """P_h to apply at ``step`` (None: no intervention). In lock-step, the client's word for that step."""
+        if self.lockstep is not None and step is not None:
+            msg = self._addressed.pop(step, None)
+            for s in [s for s in self._addressed if s < step]:
+                del self._addressed[s]
+            if msg is not None:
+                if msg["active"]:
+                    self._hold(msg["client"], msg["p_h"], now)
+                elif self.holder == msg["client"]:
+                    self._release()
+                return self.p_h
         if self.holder is not None and now > self.deadline:
             log.info("correction client %s silent for > %.2f s: intervention ended", self.holder, self.timeout)
             self.holder, self.p_h = None, None
@@ -316,6 +387,7 @@ class ActorService:
         self.episodes = []
         self.episode = 0
         self.scale_updates = 0
+        self.scale_history: list[tuple[int, np.ndarray]] = []  # (episode, L table over the grid) after each refit
         self._t_status = time.monotonic()
         self._ckpt_request_t = -1e9
         self._last_weights_get = -1e9
@@ -398,7 +470,7 @@ class ActorService:
                 if msg["client"] != Keys.last_chunk(key, 3):
                     self.rejects.reject("correction", key, ProtocolError(f"client {msg['client']!r} published on {key}"))
                     continue
-                self.arbiter.offer(msg, arrival, self.episode)
+                self.arbiter.offer(msg, arrival, self.episode, self.env.t)
             elif kind == "control":
                 self._on_control(msg["command"])
         self._swap_weights()
@@ -521,6 +593,17 @@ class ActorService:
         self.wait_time += dt
         self.arbiter.extend(dt)
 
+    def _await_correction(self, step: int) -> None:
+        """A lock-step correction client has not yet sent its word for ``step``: wait for it (servicing the
+        inbox) at most the correction timeout, then carry on without it."""
+        t0 = time.monotonic()
+        self.arbiter.counts["lockstep_waits"] += 1
+        while not self.flag and not self.arbiter.ready(step):
+            if time.monotonic() - t0 > self.arbiter.timeout:
+                self.arbiter.give_up(step)
+                break
+            self.service(block=0.002)
+
     # ---------------------------------------------------------------- transitions
     def publish_batch(self) -> None:
         if not self.buf:
@@ -598,7 +681,21 @@ class ActorService:
         ph = np.array([s[1] for s in segment])
         self.env.mapping.update_scale(xi, ph)
         self.scale_updates += 1
+        if self.env.mapping.scale_table is not None:
+            self.scale_history.append((self.episode, np.array(self.env.mapping.scale_table, dtype=np.float64)))
         self._publish_scale()
+
+    def save_scale(self) -> None:
+        """``scale.npz``: the exploration scale L over the grid's phases, as it ended (``table``, (N, O); KGRL and
+        scenarios without a learned scale keep the constant default) and after each refit (``history``, with the
+        ``episodes`` whose intervention produced it) -- the data of the paper's Fig. 6."""
+        m = self.env.mapping
+        if m.scale_table is None:  # a position-input scale model has no table over phase
+            return
+        table = np.asarray(m.scale_table, dtype=np.float64)
+        hist = np.array([h for _, h in self.scale_history]) if self.scale_history else np.zeros((0, *table.shape))
+        np.savez(self.dir / "scale.npz", table=table, phases=np.asarray(m.phases),
+                 history=hist, episodes=np.array([e for e, _ in self.scale_history], dtype=np.int64))
 
     # ---------------------------------------------------------------- main loop
     def run(self) -> int:
@@ -616,6 +713,7 @@ class ActorService:
             obs, _ = env.reset()
             acc.start()
             self.episode = acc.episode
+            self.arbiter.new_episode()
             t_ep = time.perf_counter()
             segment: list[tuple] = []
             ep_ret = 0.0
@@ -650,7 +748,9 @@ class ActorService:
                         self.max_weight_lag = max(self.max_weight_lag, lag)
                         b = str(lag) if lag < 2 * args.max_lead else f">={2 * args.max_lead}"
                         self.lag_hist[b] = self.lag_hist.get(b, 0) + 1
-                p_h = self.arbiter.current(time.monotonic())
+                if not self.arbiter.ready(env.t):
+                    self._await_correction(env.t)
+                p_h = self.arbiter.current(time.monotonic(), env.t)
                 env.set_correction(p_h)
                 next_obs, reward, terminated, truncated, info = env.step(action)
                 acc.add(reward, info)
@@ -670,7 +770,8 @@ class ActorService:
                 self._put("frame", actor=self.id, episode=self.episode, t=t, phase=float(info["phase"]),
                           robot=[float(v) for v in env.robot], desired=[float(v) for v in info["desired"]],
                           mean=[float(v) for v in env.mapping.mean(t)], scale=[float(v) for v in info["scale"]],
-                          intervening=iv, scenario=args.scenario, ret=float(ep_ret))
+                          intervening=iv, scenario=args.scenario, ret=float(ep_ret),
+                          **({"next_mean": [float(v) for v in env.mapping.mean(t + 1)]} if t + 1 < env.horizon else {}))
                 done = terminated or truncated
                 if done or self.count % args.batch == 0:
                     self.publish_batch()
@@ -838,6 +939,7 @@ def run(args: argparse.Namespace) -> int:
                 svc.tb.close()
     config = {"actor": vars(args), "tqc_policy": {"net_arch": [256, 256]}, "stream": svc.stream}
     write_episodes(out_dir, svc.episodes, config)
+    svc.save_scale()
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     log.info("actor %s done (exit %d): %d episodes, %d transitions, loop period p50 %.2f ms p99 %.2f ms",
              args.id, rc, len(svc.episodes), svc.count, summary["loop_period_ms"]["p50"] or 0,

@@ -263,6 +263,10 @@ def _check_correction(m: dict) -> dict:
         _typ("episode", m["episode"], int, low=0)
     if "t" in m:
         _typ("t", m["t"], int, low=0)
+    if "step" in m:  # optional: the actor step (of `episode`) this correction is for -- step-addressed
+        _typ("step", m["step"], int, low=0)
+        if "episode" not in m:
+            raise ProtocolError("step: a step-addressed correction needs its episode")
     return m
 
 
@@ -275,6 +279,8 @@ def _check_frame(m: dict) -> dict:
         m[f] = _vec(f, m.get(f), ACT_DIM)
     _typ("intervening", m.get("intervening"), bool)
     _typ("scenario", m.get("scenario"), str)
+    if "next_mean" in m:  # optional: the KMP mean at step t + 1 (absent after an episode's last step)
+        m["next_mean"] = _vec("next_mean", m["next_mean"], ACT_DIM)
     return m
 
 

@@ -95,6 +95,7 @@ PROCESS_COMMANDS = {
     "actor": ("actor.service", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
     "human": ("human_bridge.service", "main", "the human-input process (scripted client, ...)"),
     "router": ("common.session", "router_main", "a Zenoh router (zenoh-python in router mode)"),
+    "experiment": ("deploy.experiment", "main", "methods x scenarios x seeds through the real system (resumable)"),
     "report": ("deploy.report", "main", "per-episode results of runs: figure and markdown table"),
 }
 

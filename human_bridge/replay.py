@@ -2,14 +2,15 @@
 
 The actor records every correction it applies to ``RUN_DIR/actor-ID/corrections.csv`` (one row per intervened
 step: run, actor, episode, step, time, client, P_h, projected, clipped; see ``actor.service.CorrectionRecord``).
-This client watches the new run's frames and, for the frame of step (episode, t), sends the P_h recorded for
-(episode, t + 1) -- the step the actor takes next, to which a correction sent now applies -- or a release when
-step t + 1 was not corrected. With the same seeds (and a deterministic policy, e.g. still in its random warm-up)
-the new run then intervenes at exactly the recorded episodes and steps.
+This client watches the new run's frames and, in every episode that has recorded corrections, answers the frame
+of step (episode, t) with a step-addressed correction for step t + 1: the P_h recorded for (episode, t + 1), or a
+release when that step was not corrected. The actor waits for that word before taking the step (lock-step, see
+docs/protocol.md), so the replay lands on the recorded steps whatever the latency or control rate. With the same
+seeds (and a deterministic policy, e.g. still in its random warm-up) the new run then intervenes at exactly the
+recorded episodes and steps.
 
-Limits: a correction recorded at step 0 of an episode (a hold carried over an episode boundary) is not replayed
-(the frame before it belongs to the previous episode, and frames do not say which step is an episode's last); the
-replay assumes a correction reaches the actor within one control period (run the actor with ``--rate``).
+Limit: a correction recorded at step 0 of an episode (a hold carried over an episode boundary) is not replayed
+(the frame before it belongs to the previous episode, and frames do not say which step is an episode's last).
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ class ReplayPlan:
         self.source = actor
         self.steps = {(r["episode"], r["step"]): r["p_h"] for r in rows if r["actor"] == actor}
         self.last = max(self.steps) if self.steps else (0, -1)
+        self.episodes = {ep for ep, _ in self.steps}
 
     def correction(self, episode: int, t: int) -> np.ndarray | None:
         return self.steps.get((episode, t + 1))
@@ -113,7 +115,10 @@ def run_replay(args: argparse.Namespace) -> int:
                 got_frame = True
                 ep, t = msg["episode"], msg["t"]
                 p_h = plan.correction(ep, t)
-                pub.send(target, p_h, ep, t)  # None releases (only if holding)
+                if ep in plan.episodes:
+                    pub.send(target, p_h, ep, t, step=t + 1)  # step-addressed: the actor waits for it
+                else:
+                    pub.send(target, None, ep, t)  # releases a hold, if any
                 sent_steps += p_h is not None
                 if plan.finished(ep, t) and p_h is None and not pub.active.get(target, False):
                     break

@@ -47,12 +47,16 @@ class CorrectionPublisher:
         )
         self.active: dict[str, bool] = {}
 
-    def send(self, actor: str, p_h, episode: int = 0, t: int = 0) -> None:
-        """``p_h`` (2,) to drag, or None to release."""
+    def send(self, actor: str, p_h, episode: int = 0, t: int = 0, step: int | None = None) -> None:
+        """``p_h`` (2,) to drag, or None to release. With ``step`` the message is step-addressed: P_h (or the
+        release) is for that step of ``episode``, and it is sent even when there is nothing to release -- the
+        actor waits for this client's word on every step of the episode (docs/protocol.md)."""
         active = p_h is not None
-        if not active and not self.active.get(actor, False):
+        if not active and step is None and not self.active.get(actor, False):
             return  # nothing to release
         fields = {"client": self.client, "actor": actor, "active": active, "episode": int(episode), "t": int(t)}
+        if step is not None:
+            fields["step"] = int(step)
         if active:
             fields["p_h"] = [float(p_h[0]), float(p_h[1])]
         self._pub.put(encode("correction", self.client, self.seq, **fields))
@@ -94,9 +98,14 @@ def _run_scripted(args: argparse.Namespace) -> int:
                     rejects.reject("frame", key, exc)
                     continue
                 n_frames += 1
-                # the frame describes step t; the correction applies to the actor's next step
-                p_h = human.correction(frame["episode"], frame["mean"])
-                pub.send(frame["actor"], p_h, frame["episode"], frame["t"])
+                # The frame describes step t. In a help episode, answer with a step-addressed correction for
+                # step t + 1 (P_h from the mean there): the actor waits for it, so latency does not shift
+                # P_h against the mean (docs/distributed_runs.md). Other episodes: say nothing.
+                if human.active_in(frame["episode"]) and "next_mean" in frame:
+                    p_h = human.correction(frame["episode"], frame["next_mean"])
+                    pub.send(frame["actor"], p_h, frame["episode"], frame["t"], step=frame["t"] + 1)
+                elif pub.active.get(frame["actor"], False):
+                    pub.send(frame["actor"], None, frame["episode"], frame["t"])
                 if n_frames % 50 == 0:
                     status_pub.put(encode("status", args.id, n_frames // 50, role="human",
                                           info={"frames": n_frames, "corrections": pub.sent, "rejects": rejects.by_kind()}))

@@ -113,6 +113,41 @@ def test_correction_arbitration():
     assert kgrl.current(0.1) is None and kgrl.counts["ignored_method"] == 1
 
 
+def test_correction_arbitration_step_addressed():
+    """A step-addressed client puts the actor in lock-step for the episode: each step waits for its word."""
+    from actor.service import CorrectionArbiter
+
+    arb = CorrectionArbiter("a0", timeout=0.5, enabled=True)
+
+    def c(client, step, p=None, episode=1):
+        m = {"client": client, "actor": "a0", "active": p is not None, "episode": episode, "step": step}
+        if p is not None:
+            m["p_h"] = np.array(p)
+        return m
+
+    assert arb.ready(5)  # nobody in lock-step: never wait
+    arb.offer(c("s", 6, (0.1, 0.2)), arrival=1.0, episode=1, step=5)  # early: kept for step 6
+    assert arb.lockstep == "s" and not arb.ready(5) and arb.ready(6)
+    arb.offer(c("s", 5), arrival=1.0, episode=1, step=5)  # release word for step 5
+    assert arb.ready(5) and arb.current(1.0, 5) is None
+    assert np.allclose(arb.current(1.1, 6), [0.1, 0.2]) and arb.holder == "s"
+    assert not arb.ready(7)  # waits for step 7's word...
+    arb.offer(c("s", 6, (0.9, 0.9)), arrival=1.2, episode=1, step=7)  # ...one for a step already taken is late
+    arb.offer(c("g", 7, (0.5, 0.5)), arrival=1.2, episode=1, step=7)  # another client: ignored
+    arb.offer(c("s", 7, (0.3, 0.3), episode=2), arrival=1.2, episode=1, step=7)  # another episode: stale
+    assert arb.counts["late_step"] == 1 and arb.counts["ignored_other_client"] == 1 and arb.counts["stale_episode"] == 1
+    assert not arb.ready(7)
+    arb.offer(c("s", 7, (0.3, 0.4)), arrival=1.3, episode=1, step=7)
+    assert np.allclose(arb.current(5.0, 7), [0.3, 0.4])  # applied at its step, whatever the wall time
+    arb.give_up(8)  # silent at step 8: plain mode again, the last P_h holds until the timeout
+    assert arb.ready(8) and arb.counts["lockstep_timeouts"] == 1
+    assert np.allclose(arb.current(5.1, 8), [0.3, 0.4]) and arb.current(5.6, 9) is None
+    arb.offer(c("s", 3, (0.2, 0.2), episode=2), arrival=6.0, episode=2, step=3)
+    assert np.allclose(arb.current(6.0, 3), [0.2, 0.2])
+    arb.new_episode()  # a lock-step hold ends with its episode
+    assert arb.holder is None and arb.lockstep is None and arb.current(6.1, 0) is None
+
+
 def test_learner_core_orders_stream_and_keeps_sb3_schedule(tmp_path):
     from common.protocol import decode, encode
     from learner.service import LearnerCore

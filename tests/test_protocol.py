@@ -47,6 +47,19 @@ def test_correction_round_trip_and_release():
     np.testing.assert_allclose(msg["p_h"], [0.2, 0.7])
     rel = decode("correction", encode("correction", "pad", 1, client="pad", actor="a0", active=False))
     assert rel["p_h"] is None
+    addressed = decode("correction", encode("correction", "pad", 2, client="pad", actor="a0", active=False,
+                                            episode=4, step=17))
+    assert addressed["step"] == 17 and addressed["episode"] == 4 and addressed["p_h"] is None
+
+
+def test_frame_next_mean_is_optional_and_checked():
+    base = dict(actor="a0", episode=1, t=3, phase=0.1, robot=[0.1, 0.2], desired=[0.1, 0.2], mean=[0.1, 0.2],
+                scale=[20.0, 20.0], intervening=False, scenario="high_cov")
+    assert "next_mean" not in decode("frame", encode("frame", "a0", 0, **base))
+    np.testing.assert_allclose(decode("frame", encode("frame", "a0", 1, next_mean=[0.3, 0.4], **base))["next_mean"],
+                               [0.3, 0.4])
+    with pytest.raises(ProtocolError, match="next_mean"):
+        decode("frame", encode("frame", "a0", 2, next_mean=[0.3, float("nan")], **base))
 
 
 def test_weights_round_trip():
@@ -74,6 +87,9 @@ def test_weights_round_trip():
         (_raw(p_h=[0.5, float("inf")]), "not finite"),
         (_raw(p_h=["a", 0.5]), "p_h"),
         (_raw(actor=...), "actor"),
+        (_raw(step=3), "needs its episode"),
+        (_raw(step=-1, episode=1), "step"),
+        (_raw(step=1.5, episode=1), "step"),
         (b"\x00" * (MAX_BYTES["correction"] + 1), "exceeds"),
     ],
 )

@@ -1,0 +1,333 @@
+"""``khgrl experiment``: run methods x scenarios x seeds through the real three-process system.
+
+Every run is one ``khgrl up`` (router, learner, actor, and for KhGRL the scripted human at the paper's
+episodes) in its own run directory ``OUT/<scenario>-<method>-seed<S>``; with ``system = "reference"`` it is
+the single-process SB3 baseline (``khgrl reference``) instead. A configuration file (TOML or JSON) names the
+grid; command-line options override it::
+
+    khgrl experiment experiments/paper.toml --jobs 2
+    khgrl experiment --scenarios high_cov --methods khgrl kgrl --seeds 0 1 2 --episodes 60 --out runs/exp
+
+Resumable: a run whose directory holds a finished result (every process exited 0, all episodes) is not
+redone; any other run directory (an interrupted or failed run) is wiped and the run starts again from
+scratch, so no half-run is ever mixed into the results. ``OUT/experiment.json`` records the resolved
+configuration, the machine and every run's status and wall time; ``khgrl report OUT`` analyses it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from human_bridge.scripted import PAPER_EPISODES
+
+__all__ = ["ExperimentConfig", "RunSpec", "load_config", "plan_runs", "run_is_done", "main", "build_parser"]
+
+SCENARIOS = ("high_cov", "low_cov")
+METHODS = ("khgrl", "kgrl")
+SYSTEMS = ("distributed", "reference")
+_EPISODE_LINE = re.compile(r"\[a0\] episode (\d+):|^\s*(\d+)/(\d+) episodes")
+
+
+@dataclass
+class ExperimentConfig:
+    """The grid and how each run is made (the keys of a config file)."""
+
+    out: str = "runs/experiment"
+    scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
+    methods: list[str] = field(default_factory=lambda: list(METHODS))
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3, 4])
+    episodes: int = 60
+    human_episodes: list[int] = field(default_factory=lambda: list(PAPER_EPISODES))
+    system: str = "distributed"  # "distributed": khgrl up; "reference": single-process SB3 (khgrl reference)
+    jobs: int = 1  # runs at a time
+    max_lead: int = 8  # khgrl up --max-lead (8: lock-step with the learner, as the single-process reference)
+    timeout: float = 0.0  # seconds per run (0: none)
+
+    def validate(self) -> "ExperimentConfig":
+        bad = [s for s in self.scenarios if s not in SCENARIOS] + [m for m in self.methods if m not in METHODS]
+        if bad:
+            raise ValueError(f"unknown scenario/method {bad}; choose from {SCENARIOS} and {METHODS}")
+        if self.system not in SYSTEMS:
+            raise ValueError(f"system must be one of {SYSTEMS}, not {self.system!r}")
+        if not self.seeds or any(int(s) < 0 for s in self.seeds) or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"seeds must be distinct non-negative integers, got {self.seeds}")
+        if self.episodes < 1 or self.jobs < 1 or self.max_lead < 1:
+            raise ValueError("episodes, jobs and max_lead must be >= 1")
+        if any(e < 1 for e in self.human_episodes):
+            raise ValueError("human_episodes are 1-based episode numbers")
+        return self
+
+
+def load_config(path: str | Path | None, overrides: dict) -> ExperimentConfig:
+    """The config file's values (TOML or JSON), then every non-None override on top."""
+    values: dict = {}
+    if path is not None:
+        path = Path(path)
+        text = path.read_text()
+        if path.suffix == ".toml":
+            try:
+                import tomllib
+            except ModuleNotFoundError as exc:  # Python 3.10
+                raise ValueError(f"{path}: TOML configs need Python >= 3.11; use a .json config") from exc
+            values = tomllib.loads(text)
+        else:
+            values = json.loads(text)
+        known = set(ExperimentConfig.__dataclass_fields__)
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(f"{path}: unknown keys {unknown}; known: {sorted(known)}")
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return ExperimentConfig(**values).validate()
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    scenario: str
+    method: str
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.scenario}-{self.method}-seed{self.seed}"
+
+
+def plan_runs(cfg: ExperimentConfig) -> list[RunSpec]:
+    """Seed-major order, so that an experiment cut short has every method and scenario at the same seeds."""
+    return [RunSpec(sc, m, int(s)) for s in cfg.seeds for sc in cfg.scenarios for m in cfg.methods]
+
+
+def run_is_done(run_dir: Path, cfg: ExperimentConfig) -> bool:
+    """Whether ``run_dir`` holds a finished run of ``cfg.episodes`` episodes (then it is not redone)."""
+    try:
+        if cfg.system == "reference":
+            summary = json.loads((run_dir / "summary.json").read_text())
+            episodes = json.loads((run_dir / "episodes.json").read_text())
+            return "wall_time_s" in summary and len(episodes) == cfg.episodes
+        summary = json.loads((run_dir / "summary.json").read_text())
+        actor = summary.get("a0", {})
+        return (summary.get("failed") == [] and not summary.get("interrupted")
+                and all(c == 0 for c in summary.get("exit_codes", {}).values())
+                and actor.get("episodes") == cfg.episodes and actor.get("unconfirmed_transitions") == 0)
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
+    """The command of one run (the same a user types)."""
+    khgrl = [sys.executable, "-m", "deploy.cli"]
+    if cfg.system == "reference":
+        return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
+                "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]
+    argv = [*khgrl, "up", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
+            "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead), "--no-progress"]
+    if spec.method == "khgrl":
+        argv += ["--human", "scripted", "--human-episodes", *map(str, cfg.human_episodes)]
+    else:
+        argv += ["--human", "none"]
+    if cfg.timeout > 0:
+        argv += ["--timeout", str(cfg.timeout)]
+    return argv
+
+
+class _Runner:
+    """Runs the planned runs, ``jobs`` at a time, and keeps ``OUT/experiment.json`` current."""
+
+    def __init__(self, cfg: ExperimentConfig, specs: list[RunSpec], progress) -> None:
+        self.cfg, self.specs, self.progress = cfg, specs, progress
+        self.out = Path(cfg.out)
+        self.status: dict[str, dict] = {}
+        self.lock = threading.Lock()
+        self.stopping = False
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def record(self, name: str, **info) -> None:
+        with self.lock:
+            self.status.setdefault(name, {}).update(info)
+            doc = {"config": asdict(self.cfg), "machine": _machine(), "updated": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                   "runs": self.status}
+            tmp = self.out / "experiment.json.tmp"
+            tmp.write_text(json.dumps(doc, indent=2))
+            os.replace(tmp, self.out / "experiment.json")
+
+    def one(self, spec: RunSpec) -> str:
+        run_dir = self.out / spec.name
+        if self.stopping:
+            return "not started"
+        if run_is_done(run_dir, self.cfg):
+            self.progress.skip(spec.name)
+            self.record(spec.name, status="done", reused=True)
+            return "done"
+        if run_dir.exists():
+            shutil.rmtree(run_dir)  # interrupted or failed before: start again from scratch
+        run_dir.mkdir(parents=True)
+        argv = run_argv(spec, self.cfg, run_dir)
+        self.record(spec.name, status="running", argv=argv, started=time.strftime("%Y-%m-%dT%H:%M:%S"))
+        t0 = time.time()
+        log_path = run_dir / "experiment.log"
+        with open(log_path, "w") as log:
+            proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
+                                    env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
+            with self.lock:
+                self.procs[spec.name] = proc
+            self.progress.start(spec.name)
+            for line in proc.stdout:
+                log.write(line)
+                m = _EPISODE_LINE.search(line)
+                if m:
+                    self.progress.advance(spec.name, int(m.group(1) or m.group(2)))
+            rc = proc.wait()
+        with self.lock:
+            self.procs.pop(spec.name, None)
+        wall = time.time() - t0
+        ok = rc == 0 and run_is_done(run_dir, self.cfg)
+        status = "done" if ok else ("interrupted" if self.stopping else "failed")
+        self.record(spec.name, status=status, returncode=rc, wall_time_s=round(wall, 1))
+        self.progress.finish(spec.name, status, wall)
+        return status
+
+    def stop(self) -> None:
+        """Ctrl-C: let each ``khgrl up`` stop its processes (SIGINT), then wait for them."""
+        self.stopping = True
+        with self.lock:
+            procs = list(self.procs.values())
+        for p in procs:
+            try:
+                os.killpg(p.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+
+
+def _machine() -> dict:
+    return {"host": platform.node(), "cpus": os.cpu_count(), "python": platform.python_version(),
+            "platform": platform.platform()}
+
+
+class _Progress:
+    """One bar per run (episodes) and one overall bar (runs), or plain lines without a terminal."""
+
+    def __init__(self, total_runs: int, episodes: int, enabled: bool) -> None:
+        self.episodes, self.enabled = episodes, enabled
+        self.tasks: dict[str, int] = {}
+        self._p = None
+        if enabled:
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._p = Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(),
+                               TextColumn("{task.fields[note]}"), TimeElapsedColumn())
+            self._overall = self._p.add_task("runs", total=total_runs, note="")
+
+    def __enter__(self):
+        if self._p is not None:
+            self._p.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self._p is not None:
+            self._p.stop()
+
+    def _print(self, text: str) -> None:
+        if self._p is not None:
+            self._p.console.print(text)
+        else:
+            print(text, flush=True)
+
+    def skip(self, name: str) -> None:
+        self._print(f"{name}: finished before, not redone")
+        if self._p is not None:
+            self._p.advance(self._overall)
+
+    def start(self, name: str) -> None:
+        if self._p is not None:
+            self.tasks[name] = self._p.add_task(name, total=self.episodes, note="")
+        else:
+            self._print(f"{name}: started")
+
+    def advance(self, name: str, episode: int) -> None:
+        if self._p is not None and name in self.tasks:
+            self._p.update(self.tasks[name], completed=episode)
+
+    def finish(self, name: str, status: str, wall: float) -> None:
+        if self._p is not None:
+            if name in self.tasks:
+                self._p.update(self.tasks[name], note=status, visible=False)
+            self._p.advance(self._overall)
+        self._print(f"{name}: {status} in {wall:.0f} s")
+
+
+def run(args: argparse.Namespace) -> int:
+    overrides = {"out": args.out, "scenarios": args.scenarios, "methods": args.methods, "seeds": args.seeds,
+                 "episodes": args.episodes, "human_episodes": args.human_episodes, "system": args.system,
+                 "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout}
+    try:
+        cfg = load_config(args.config, overrides)
+    except (ValueError, OSError, TypeError) as exc:
+        print(f"khgrl experiment: error: {exc}", file=sys.stderr)
+        return 2
+    specs = plan_runs(cfg)
+    out = Path(cfg.out)
+    if args.dry_run:
+        for spec in specs:
+            state = "done" if run_is_done(out / spec.name, cfg) else "to run"
+            print(f"{spec.name:<28} {state:<7} {' '.join(run_argv(spec, cfg, out / spec.name)[2:])}")
+        return 0
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
+    print(f"khgrl experiment: {len(specs)} runs ({cfg.system}) into {out}, {cfg.jobs} at a time", flush=True)
+    t0 = time.time()
+    progress = _Progress(len(specs), cfg.episodes, enabled=not args.no_progress and sys.stdout.isatty())
+    runner = _Runner(cfg, specs, progress)
+    previous = signal.signal(signal.SIGINT, lambda *_: runner.stop())
+    try:
+        with progress, ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
+            results = list(pool.map(runner.one, specs))
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    counts = {s: results.count(s) for s in sorted(set(results))}
+    print(f"khgrl experiment: {counts} in {time.time() - t0:.0f} s; analyse with: khgrl report {out}", flush=True)
+    if runner.stopping:
+        return 130
+    return 0 if counts.get("done", 0) == len(specs) else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="khgrl experiment", description=__doc__.split("\n\n")[0],
+                                epilog="Options override the config file; the defaults are the paper's grid.")
+    p.add_argument("config", nargs="?", default=None, help="config file (.toml or .json) with ExperimentConfig keys")
+    p.add_argument("--out", default=None, help="output directory (default runs/experiment)")
+    p.add_argument("--scenarios", nargs="+", default=None, choices=SCENARIOS)
+    p.add_argument("--methods", nargs="+", default=None, choices=METHODS)
+    p.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default 0 1 2 3 4)")
+    p.add_argument("--episodes", type=int, default=None, help="episodes per run (default 60)")
+    p.add_argument("--human-episodes", type=int, nargs="+", default=None,
+                   help="1-based episodes with scripted corrections for KhGRL (default: the paper's 4 5 10 19 20 28 29)")
+    p.add_argument("--system", default=None, choices=SYSTEMS,
+                   help="distributed (khgrl up, the default) or reference (single-process SB3)")
+    p.add_argument("--jobs", type=int, default=None, help="runs at a time (default 1; each run's learner uses one core)")
+    p.add_argument("--max-lead", type=int, default=None, help="khgrl up --max-lead (default 8)")
+    p.add_argument("--timeout", type=float, default=None, help="fail a run after this many seconds (default: none)")
+    p.add_argument("--dry-run", action="store_true", help="list the runs, their state and commands; run nothing")
+    p.add_argument("--no-progress", action="store_true", help="plain lines instead of progress bars")
+    p.set_defaults(func=run)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
