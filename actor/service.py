@@ -121,8 +121,9 @@ class CorrectionArbiter:
     (``step``, with ``episode``): a client that sends one is *in lock-step* for the rest of that episode --
     the actor does not take a step before it has that client's word (P_h or release) for it (:meth:`ready`),
     so a scripted or replayed correction applies exactly at the step it was computed for, whatever the
-    latency. A lock-step client that stays silent for ``timeout`` at a step is dropped back to plain mode
-    (:meth:`give_up`).
+    latency. A word for step 0 of the *next* episode, sent while this one runs, announces lock-step from that
+    episode's first step. A lock-step client that stays silent for ``timeout`` at a step is dropped back to
+    plain mode (:meth:`give_up`).
     """
 
     MAX_AHEAD = 64  # step-addressed messages kept ahead of the current step
@@ -136,17 +137,23 @@ class CorrectionArbiter:
         self.deadline = 0.0
         self.lockstep: str | None = None  # client whose step-addressed word each step of this episode waits for
         self._addressed: dict[int, dict] = {}  # step -> that client's message for it
+        self._announced: tuple[int, dict] | None = None  # (next episode, a client's word for its step 0)
         self.counts = {"applied": 0, "ignored_other_client": 0, "ignored_other_actor": 0, "ignored_method": 0,
                        "stale_episode": 0, "timeouts": 0, "releases": 0, "holds": 0, "projected_steps": 0,
                        "addressed": 0, "late_step": 0, "lockstep_waits": 0, "lockstep_timeouts": 0}
 
-    def new_episode(self) -> None:
-        """Lock-step lasts one episode: a client re-enters it with its first step-addressed message, and a
-        lock-step client's hold ends with the episode (its words were for that episode's steps)."""
+    def new_episode(self, episode: int) -> None:
+        """Lock-step lasts one episode: a client re-enters it with a word for the new episode (announced during
+        the last one, or its first step-addressed message), and a lock-step client's hold ends with the episode
+        (its words were for that episode's steps)."""
         if self.lockstep is not None and self.holder == self.lockstep:
             self._release()
         self.lockstep = None
         self._addressed.clear()
+        if self._announced is not None and self._announced[0] == episode:
+            msg = self._announced[1]
+            self.lockstep, self._addressed[0] = msg["client"], msg
+        self._announced = None
 
     def offer(self, msg: dict, arrival: float, episode: int, step: int = 0) -> None:
         """A validated correction message that arrived at ``arrival`` while the actor is before ``step`` of ``episode``."""
@@ -174,6 +181,10 @@ class CorrectionArbiter:
 
     def _offer_addressed(self, msg: dict, episode: int, step: int) -> None:
         client = msg["client"]
+        if msg["episode"] == episode + 1 and msg["step"] == 0:  # announces lock-step for the next episode
+            self._announced = (episode + 1, msg)
+            self.counts["addressed"] += 1
+            return
         if msg["episode"] != episode:
             self.counts["stale_episode"] += 1
             return
@@ -713,7 +724,7 @@ class ActorService:
             obs, _ = env.reset()
             acc.start()
             self.episode = acc.episode
-            self.arbiter.new_episode()
+            self.arbiter.new_episode(self.episode)
             t_ep = time.perf_counter()
             segment: list[tuple] = []
             ep_ret = 0.0

@@ -185,6 +185,7 @@ class _Runner:
             self.progress.start(spec.name)
             for line in proc.stdout:
                 log.write(line)
+                log.flush()
                 m = _EPISODE_LINE.search(line)
                 if m:
                     self.progress.advance(spec.name, int(m.group(1) or m.group(2)))

@@ -1,7 +1,10 @@
-"""``khgrl report``: per-episode results of one or more runs as a figure and a markdown table.
+"""``khgrl report``: results of runs or of whole experiments.
 
-Accepts run directories of ``khgrl reference`` (``RUN/episodes.csv``) and of ``khgrl up``
-(``RUN/actor-<id>/episodes.csv``, one series per actor).
+* Experiment directories (``khgrl experiment`` output: run directories named ``<scenario>-<method>-seed<S>``):
+  statistics across seeds, Fig. 4-6 and the data behind them (:mod:`deploy.analysis`), written to
+  ``--out`` (default ``EXP/report``).
+* Run directories of ``khgrl reference`` (``RUN/episodes.csv``) or ``khgrl up`` (``RUN/actor-<id>/episodes.csv``,
+  one series per actor): per-episode curves in one figure and a markdown table.
 """
 
 from __future__ import annotations
@@ -85,10 +88,29 @@ def markdown_table(series: dict[str, list[dict]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="khgrl report", description="Per-episode results of runs: a PNG and a markdown table.")
-    p.add_argument("runs", nargs="+", help="run directories (khgrl reference or khgrl up)")
-    p.add_argument("--out", default="runs/report.png", help="figure to write (the table is printed and written beside it as .md)")
+    p = argparse.ArgumentParser(prog="khgrl report", description="Results of experiments (statistics across seeds, "
+                                "Fig. 4-6) or of single runs (per-episode curves and a table).")
+    p.add_argument("runs", nargs="+", help="experiment directories (khgrl experiment) or run directories (khgrl up / reference)")
+    p.add_argument("--out", default=None, help="experiments: output directory (default EXP/report); runs: the figure "
+                                                "(default runs/report.png; the table is written beside it as .md)")
     args = p.parse_args(argv)
+    from deploy.analysis import analyse, find_runs
+
+    missing = [r for r in args.runs if not Path(r).is_dir()]
+    if missing:
+        print(f"khgrl report: error: not a directory: {', '.join(missing)}", file=sys.stderr)
+        return 2
+    experiments = [r for r in args.runs if find_runs(Path(r))]
+    if experiments and len(experiments) != len(args.runs):
+        print("khgrl report: error: give either experiment directories or run directories, not both", file=sys.stderr)
+        return 2
+    if experiments:
+        out = Path(args.out or Path(experiments[0]) / "report")
+        print(analyse([Path(r) for r in experiments], out))
+        print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig4_high_cov.png, fig5_low_cov.png, "
+              "fig6_scale.png (for the scenarios present)")
+        return 0
+    args.out = args.out or "runs/report.png"
     series: dict[str, list[dict]] = {}
     try:
         for run in args.runs:

@@ -9,8 +9,9 @@ docs/protocol.md), so the replay lands on the recorded steps whatever the latenc
 seeds (and a deterministic policy, e.g. still in its random warm-up) the new run then intervenes at exactly the
 recorded episodes and steps.
 
-Limit: a correction recorded at step 0 of an episode (a hold carried over an episode boundary) is not replayed
-(the frame before it belongs to the previous episode, and frames do not say which step is an episode's last).
+While the episode before a recorded one runs, the client announces lock-step for the recorded episode with its
+word for step 0 (a hold carried over the boundary is replayed too). Limit: a recorded episode 1 has no episode
+before it, so lock-step starts with the first word that reaches the actor in time.
 """
 
 from __future__ import annotations
@@ -94,6 +95,7 @@ def run_replay(args: argparse.Namespace) -> int:
         pub = CorrectionPublisher(session, keys, args.id)
         deadline = time.monotonic() + args.wait
         got_frame = False
+        announced: set[int] = set()
         try:
             while not flag:
                 try:
@@ -115,6 +117,9 @@ def run_replay(args: argparse.Namespace) -> int:
                 got_frame = True
                 ep, t = msg["episode"], msg["t"]
                 p_h = plan.correction(ep, t)
+                if ep + 1 in plan.episodes and ep + 1 not in announced:
+                    announced.add(ep + 1)  # announce lock-step for the next episode with its step 0's word
+                    pub.send(target, plan.steps.get((ep + 1, 0)), ep + 1, t, step=0)
                 if ep in plan.episodes:
                     pub.send(target, p_h, ep, t, step=t + 1)  # step-addressed: the actor waits for it
                 else:

@@ -86,6 +86,8 @@ def _run_scripted(args: argparse.Namespace) -> int:
         status_pub = session.declare_publisher(keys.status("human", args.id), congestion_control=zenoh.CongestionControl.DROP)
         print(f"khgrl human scripted ({args.id}) driving actor {args.actor} in episodes {list(args.episodes)}", flush=True)
         n_frames = 0
+        means: dict = {}  # step -> KMP mean, from the frames seen
+        announced: set = set()  # (actor, episode) whose lock-step was announced
         try:
             while not flag:
                 try:
@@ -101,11 +103,17 @@ def _run_scripted(args: argparse.Namespace) -> int:
                 # The frame describes step t. In a help episode, answer with a step-addressed correction for
                 # step t + 1 (P_h from the mean there): the actor waits for it, so latency does not shift
                 # P_h against the mean (docs/distributed_runs.md). Other episodes: say nothing.
-                if human.active_in(frame["episode"]) and "next_mean" in frame:
-                    p_h = human.correction(frame["episode"], frame["next_mean"])
-                    pub.send(frame["actor"], p_h, frame["episode"], frame["t"], step=frame["t"] + 1)
-                elif pub.active.get(frame["actor"], False):
-                    pub.send(frame["actor"], None, frame["episode"], frame["t"])
+                ep, t, actor = frame["episode"], frame["t"], frame["actor"]
+                means.setdefault(t, frame["mean"])  # the KMP mean is the same in every episode
+                if human.active_in(ep) and "next_mean" in frame:
+                    pub.send(actor, human.correction(ep, frame["next_mean"]), ep, t, step=t + 1)
+                elif pub.active.get(actor, False):
+                    pub.send(actor, None, ep, t)
+                if human.active_in(ep + 1) and (actor, ep + 1) not in announced:
+                    # announce lock-step for the next episode with the word for its step 0
+                    announced.add((actor, ep + 1))
+                    p0 = human.correction(ep + 1, means[0]) if 0 in means else None
+                    pub.send(actor, p0, ep + 1, t, step=0)
                 if n_frames % 50 == 0:
                     status_pub.put(encode("status", args.id, n_frames // 50, role="human",
                                           info={"frames": n_frames, "corrections": pub.sent, "rejects": rejects.by_kind()}))

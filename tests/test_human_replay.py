@@ -47,7 +47,8 @@ def test_plan_leads_by_one_step(tmp_path):
         load_record(bad)
 
 
-ACTOR = ["--scenario", "low_cov", "--method", "khgrl", "--episodes", "2", "--rate", "25",
+# as fast as allowed (no --rate): step-addressed corrections keep the record and the replay on their steps
+ACTOR = ["--scenario", "low_cov", "--method", "khgrl", "--episodes", "2",
          "--learning-starts", "100000", "--flush-timeout", "0.5"]
 
 

@@ -144,8 +144,14 @@ def test_correction_arbitration_step_addressed():
     assert np.allclose(arb.current(5.1, 8), [0.3, 0.4]) and arb.current(5.6, 9) is None
     arb.offer(c("s", 3, (0.2, 0.2), episode=2), arrival=6.0, episode=2, step=3)
     assert np.allclose(arb.current(6.0, 3), [0.2, 0.2])
-    arb.new_episode()  # a lock-step hold ends with its episode
-    assert arb.holder is None and arb.lockstep is None and arb.current(6.1, 0) is None
+    arb.offer(c("s", 0, (0.6, 0.6), episode=3), arrival=6.0, episode=2, step=4)  # announces episode 3
+    arb.new_episode(3)  # a lock-step hold ends with its episode; the announced client is in lock-step at once
+    assert arb.holder is None and arb.lockstep == "s" and arb.ready(0) and not arb.ready(1)
+    assert np.allclose(arb.current(6.1, 0), [0.6, 0.6])
+    arb.offer(c("s", 1, episode=3), arrival=6.2, episode=3, step=1)
+    assert arb.current(6.2, 1) is None and arb.counts["releases"] == 2  # the old hold at new_episode, this word
+    arb.new_episode(4)  # no announcement: plain mode
+    assert arb.lockstep is None and arb.ready(0)
 
 
 def test_learner_core_orders_stream_and_keeps_sb3_schedule(tmp_path):

@@ -1,0 +1,99 @@
+"""deploy.analysis: the learning criteria, the cross-seed tables and figures of ``khgrl report EXP``."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from deploy.analysis import analyse, find_runs, stable_success, zero_cost_from
+
+FIELDS = ["episode", "steps", "ret", "success", "failure", "action_cost", "obstacle_cost", "passage_cost", "obstacle_steps",
+          "interventions", "intervention_steps", "clipped_steps", "projected_steps", "mean_abs_xi_h", "scale_max", "wall_time"]
+
+
+def test_stable_success_skips_human_episodes():
+    s = [False, True, True, True, True, False, True, True, True, True, True]
+    h = [False] * len(s)
+    assert stable_success(s, h) == 7  # 2-5 is only four in a row
+    h2 = list(h)
+    h2[5] = True  # the failure at 6 had human help: skipped, 2-5 and 7 make five autonomous successes
+    assert stable_success(s, h2) == 2
+    assert stable_success([True] * 4, [False] * 4) is None
+    # human-assisted successes do not count towards the window
+    assert stable_success([True] * 6, [True, True, False, False, False, False]) is None
+
+
+def test_zero_cost_from():
+    assert zero_cost_from([0, -5, 0, 0]) == 3
+    assert zero_cost_from([0, 0, 0]) == 1
+    assert zero_cost_from([0, 0, -1]) is None
+    assert zero_cost_from([]) is None
+
+
+def _write_run(path: Path, success: list[bool], obstacle: list[float], human: set[int] = frozenset(), actor: bool = True):
+    d = path / "actor-a0" if actor else path
+    d.mkdir(parents=True)
+    with open(d / "episodes.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=FIELDS)
+        w.writeheader()
+        for i, (s, o) in enumerate(zip(success, obstacle), start=1):
+            iv = 10 if i in human else 0
+            w.writerow({"episode": i, "steps": 100, "ret": (180.0 if s else -200.0) + o, "success": str(s),
+                        "failure": str(not s), "action_cost": -1.0, "obstacle_cost": o, "passage_cost": 0.0 if s else -200.0,
+                        "obstacle_steps": int(-o / 10), "interventions": int(iv > 0), "intervention_steps": iv,
+                        "clipped_steps": iv // 2, "projected_steps": 0, "mean_abs_xi_h": 0.0, "scale_max": "15;15",
+                        "wall_time": 1.0})
+
+
+def test_analyse_writes_tables_and_figures(tmp_path):
+    exp = tmp_path / "exp"
+    n = 12
+    # KhGRL: succeeds from episode 3 (seed 0) / 5 (seed 1), human at 2; KGRL never, one collision at 7 in seed 0
+    _write_run(exp / "low_cov-khgrl-seed0", [False, True] + [True] * 10, [0.0] * n, human={2})
+    _write_run(exp / "low_cov-khgrl-seed1", [False] * 4 + [True] * 8, [-30.0] + [0.0] * 11, human={2})
+    _write_run(exp / "low_cov-kgrl-seed0", [False] * n, [0.0] * 6 + [-20.0] + [0.0] * 5)
+    _write_run(exp / "low_cov-kgrl-seed1", [False] * n, [0.0] * n, actor=False)  # a reference-style run dir
+    (exp / "notes").mkdir()  # not a run: ignored
+    (exp / "high_cov-kgrl-seed9").mkdir()  # a run without results yet: ignored
+    assert [r[:3] for r in find_runs(exp)] == [("low_cov", "kgrl", 0), ("low_cov", "kgrl", 1),
+                                              ("low_cov", "khgrl", 0), ("low_cov", "khgrl", 1)]
+    out = tmp_path / "report"
+    text = analyse([exp], out)
+    for f in ("per_run.csv", "per_episode.csv", "scale.csv", "summary.md", "fig5_low_cov.png", "fig6_scale.png"):
+        assert (out / f).stat().st_size > 0, f
+    assert not (out / "fig4_high_cov.png").exists()
+    runs = {(r["method"], r["seed"]): r for r in csv.DictReader(open(out / "per_run.csv"))}
+    k0, k1, g0 = runs[("khgrl", "0")], runs[("khgrl", "1")], runs[("kgrl", "0")]
+    assert (k0["first_success"], k0["first_success_without_human"], k0["stable_success"]) == ("2", "3", "3")
+    assert (k1["first_success"], k1["stable_success"], k1["zero_obstacle_cost_from"]) == ("5", "5", "2")
+    assert (g0["first_success"], g0["stable_success"], g0["zero_obstacle_cost_from"]) == ("", "", "8")
+    assert k0["human_episodes"] == "1" and k0["clipped_human_steps"] == "5" and float(k0["success_last_10"]) == 1.0
+    assert g0["collision_episodes"] == "1"
+    # per-episode statistics: episode 1 return of KhGRL is the mean of -200 and -230
+    rows = [r for r in csv.DictReader(open(out / "per_episode.csv")) if r["method"] == "khgrl"]
+    assert float(rows[0]["ret_mean"]) == pytest.approx(-215.0) and float(rows[0]["ret_std"]) == pytest.approx(15.0)
+    assert float(rows[3]["success_rate"]) == pytest.approx(0.5) and rows[1]["human_seeds"] == "2"
+    # without a recorded scale table, L is the scenario's constant default
+    scale = [r for r in csv.DictReader(open(out / "scale.csv")) if r["method"] == "kgrl"]
+    assert {float(r["L_x"]) for r in scale} == {15.0}
+    assert "| low_cov | KhGRL | 0, 1 | 90% ± 10% (100%, 80%)" in text and "| low_cov | 2/2 |" in text
+    assert "never (0/2)" in text  # KGRL's first success
+
+
+def test_report_cli_dispatches_and_rejects_mixed_input(tmp_path, capsys):
+    from deploy.report import main
+
+    exp = tmp_path / "exp"
+    _write_run(exp / "high_cov-kgrl-seed0", [False, True], [0.0, 0.0])
+    single = tmp_path / "single"
+    _write_run(single, [True], [0.0], actor=False)
+    assert main([str(exp)]) == 0 and (exp / "report" / "fig4_high_cov.png").exists()
+    assert main([str(single), "--out", str(tmp_path / "one.png")]) == 0 and (tmp_path / "one.md").exists()
+    assert main([str(exp), str(single)]) == 2
+    assert main([str(tmp_path / "missing")]) == 2
+    err = capsys.readouterr().err
+    assert "not both" in err and "not a directory" in err
+    assert np.isfinite(float(next(csv.DictReader(open(exp / "report" / "per_run.csv")))["mean_return_last_10"]))

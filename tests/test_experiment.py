@@ -1,0 +1,104 @@
+"""khgrl experiment: config, run plan, resumability (a finished run is kept, an interrupted one redone)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from deploy.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
+from proc_helpers import REPO
+
+
+def test_config_file_then_overrides(tmp_path):
+    f = tmp_path / "exp.toml"
+    f.write_text('out = "x"\nseeds = [3, 4]\nepisodes = 7\nmethods = ["kgrl"]\n')
+    cfg = load_config(f, {"episodes": 9, "jobs": None})
+    assert (cfg.out, cfg.seeds, cfg.episodes, cfg.methods, cfg.jobs) == ("x", [3, 4], 9, ["kgrl"], 1)
+    j = tmp_path / "exp.json"
+    j.write_text(json.dumps({"scenarios": ["low_cov"], "system": "reference"}))
+    assert load_config(j, {}).system == "reference"
+
+
+@pytest.mark.parametrize("text,match", [
+    ('seedz = [1]', "unknown keys"),
+    ('scenarios = ["mars"]', "unknown scenario"),
+    ('seeds = [1, 1]', "distinct"),
+    ('episodes = 0', ">= 1"),
+    ('system = "cloud"', "system"),
+])
+def test_bad_configs_are_refused(tmp_path, text, match):
+    f = tmp_path / "bad.toml"
+    f.write_text(text + "\n")
+    with pytest.raises(ValueError, match=match):
+        load_config(f, {})
+
+
+def test_plan_is_seed_major_and_commands_match_the_method(tmp_path):
+    cfg = ExperimentConfig(seeds=[0, 1], scenarios=["high_cov"], human_episodes=[2, 3])
+    specs = plan_runs(cfg)
+    assert [s.name for s in specs] == ["high_cov-khgrl-seed0", "high_cov-kgrl-seed0", "high_cov-khgrl-seed1",
+                                       "high_cov-kgrl-seed1"]
+    kh = run_argv(specs[0], cfg, tmp_path / "r")
+    assert kh[kh.index("--human") + 1] == "scripted" and kh[kh.index("--human-episodes") + 1:][:2] == ["2", "3"]
+    kg = run_argv(specs[1], cfg, tmp_path / "r")
+    assert kg[kg.index("--human") + 1] == "none" and "up" in kg
+    ref = run_argv(RunSpec("low_cov", "kgrl", 2), ExperimentConfig(system="reference"), tmp_path / "r")
+    assert "reference" in ref and ref[ref.index("--seed") + 1] == "2"
+
+
+def test_run_is_done_only_for_a_complete_clean_run(tmp_path):
+    cfg = ExperimentConfig(episodes=3)
+    d = tmp_path / "run"
+    d.mkdir()
+    assert not run_is_done(d, cfg)
+    good = {"failed": [], "interrupted": False, "exit_codes": {"router": 0, "learner": 0, "a0": 0},
+            "a0": {"episodes": 3, "unconfirmed_transitions": 0}}
+    for bad in ({"failed": ["a0"]}, {"interrupted": True}, {"exit_codes": {"a0": 1}}, {"a0": {"episodes": 2}},
+                {"a0": {"episodes": 3, "unconfirmed_transitions": 5}}):
+        (d / "summary.json").write_text(json.dumps({**good, **bad}))
+        assert not run_is_done(d, cfg), bad
+    (d / "summary.json").write_text(json.dumps(good))
+    assert run_is_done(d, cfg)
+    (d / "summary.json").write_text("{truncated")
+    assert not run_is_done(d, cfg)
+
+
+def _experiment(out, *extra, timeout=300):
+    argv = [sys.executable, "-m", "deploy.cli", "experiment", "--out", str(out), "--scenarios", "low_cov",
+            "--methods", "kgrl", "--seeds", "0", "--episodes", "2", "--no-progress", "--timeout", "240", *extra]
+    return subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(600)
+def test_experiment_runs_resumes_and_redoes_an_interrupted_run(tmp_path):
+    out = tmp_path / "exp"
+    first = _experiment(out)
+    assert first.returncode == 0, first.stdout + first.stderr
+    run = out / "low_cov-kgrl-seed0"
+    rows = (run / "actor-a0" / "episodes.csv").read_text().splitlines()
+    assert len(rows) == 3  # header + 2 episodes
+    doc = json.loads((out / "experiment.json").read_text())
+    assert doc["runs"]["low_cov-kgrl-seed0"]["status"] == "done" and doc["config"]["episodes"] == 2
+    assert "[a0] episode 2" in (run / "experiment.log").read_text()
+    stamp = (run / "summary.json").stat().st_mtime_ns
+    again = _experiment(out)  # finished: not redone
+    assert again.returncode == 0 and "finished before, not redone" in again.stdout
+    assert (run / "summary.json").stat().st_mtime_ns == stamp
+    # an interrupted run (no summary, leftovers): wiped and run again from scratch
+    (run / "summary.json").unlink()
+    (run / "leftover.txt").write_text("half a run")
+    third = _experiment(out)
+    assert third.returncode == 0, third.stdout + third.stderr
+    assert not (run / "leftover.txt").exists() and run_is_done(run, ExperimentConfig(episodes=2))
+
+
+def test_experiment_cli_reports_bad_config(tmp_path):
+    f = tmp_path / "bad.toml"
+    f.write_text("episodes = 'many'\n")
+    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "experiment", str(f), "--dry-run"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "khgrl experiment: error" in proc.stderr
