@@ -903,9 +903,24 @@ class ActorService:
                                    "p99": float(np.percentile(wl, 99) * 1e3) if wl.size else None,
                                    "max": float(wl.max() * 1e3) if wl.size else None, "n": int(wl.size)},
             "corrections": dict(self.arbiter.counts), "scale_updates": self.scale_updates,
-            "successes": int(sum(e.success for e in self.episodes)),
+            "successes": int(sum(e.success for e in self.episodes)), "realtime": getattr(self, "realtime", False),
             "rejects": self.rejects.by_kind(), "stream": self.stream,
         }
+
+
+def set_realtime(priority: int) -> bool:
+    """Run the calling thread -- the control loop; Zenoh's, the weights receiver's and TensorBoard's threads are
+    already started and keep the normal policy -- under SCHED_FIFO at ``priority`` (1-99), as robot control
+    loops are run, so that CPU-bound neighbours (a learner on the same machine) do not delay its wake-ups.
+    Linux only, needs CAP_SYS_NICE (root); without it, logs why and returns False (the loop runs as before).
+    The loop sleeps every period (``--rate`` is required), so it cannot starve the machine."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as exc:
+        log.warning("could not run the control loop under SCHED_FIFO %d (%s): normal scheduling", priority, exc)
+        return False
+    log.info("control loop thread runs under SCHED_FIFO priority %d", priority)
+    return True
 
 
 def run(args: argparse.Namespace) -> int:
@@ -941,6 +956,7 @@ def run(args: argparse.Namespace) -> int:
     with open_client(args.connect, args.lease_ms) as session:
         svc = ActorService(args, session, env, policy, flag, out_dir)
         svc.tb = tb
+        svc.realtime = set_realtime(args.rt_priority) if args.rt_priority > 0 else False
         try:
             rc = svc.run()
         finally:
@@ -974,6 +990,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-lead", type=int, default=8,
                    help="transitions the actor may be ahead of what the learner trained on (8 = single-process SB3)")
     p.add_argument("--rate", type=float, default=0.0, help="control rate in Hz (0: as fast as allowed)")
+    p.add_argument("--rt-priority", type=int, default=0,
+                   help="run the control loop under SCHED_FIFO at this priority (1-99; Linux, root/CAP_SYS_NICE; "
+                        "needs --rate). 0 (default): normal scheduling")
     p.add_argument("--batch", type=int, default=8, help="transitions per batch (cut at multiples of the running index)")
     p.add_argument("--learning-starts", type=int, default=100, help="uniform random actions for the first N transitions")
     p.add_argument("--correction-timeout", type=float, default=0.5, help="a silent correction client loses the robot after this (s)")
@@ -997,6 +1016,8 @@ def main(argv: list[str] | None = None) -> int:
             # the learner trains at multiples of 8 (train_freq): a smaller lead could wait forever after a
             # short end-of-episode batch
             raise ValueError("--max-lead must be >= 8 (the learner's train frequency)")
+        if args.rt_priority and not (1 <= args.rt_priority <= 99 and args.rate > 0):
+            raise ValueError("--rt-priority must be in 1..99 and needs --rate > 0 (a real-time loop must sleep)")
     except ValueError as exc:
         print(f"khgrl actor: error: {exc}", file=sys.stderr)
         return 2

@@ -500,8 +500,8 @@ def _episodes_logged(p: _Proc) -> int:
 
 
 def _measure_actor(procs: _Procs, ep: str, work: Path, *, scenario: str, episodes: int, rate: float, seed: int,
-                   report: Callable) -> dict:
-    tag = "actor"
+                   report: Callable, rt_priority: int = 0) -> dict:
+    tag = "actor-rt" if rt_priority else "actor"
     run = _run_id(tag)
     run_dir = work / tag
     learning_starts = 128
@@ -511,7 +511,8 @@ def _measure_actor(procs: _Procs, ep: str, work: Path, *, scenario: str, episode
     actor = procs.start("actor", "actor", [
         "--run", run, "--connect", ep, "--run-dir", str(run_dir), "--id", "a0", "--scenario", scenario,
         "--method", "kgrl", "--episodes", str(episodes), "--seed", str(seed), "--rate", str(rate),
-        "--max-lead", "1000000", "--learning-starts", str(learning_starts)])
+        "--max-lead", "1000000", "--learning-starts", str(learning_starts),
+        *(["--rt-priority", str(rt_priority)] if rt_priority else [])])
     try:
         deadline = time.monotonic() + 120 + episodes * 60
         while actor.poll() is None:
@@ -538,7 +539,7 @@ def _measure_actor(procs: _Procs, ep: str, work: Path, *, scenario: str, episode
         "rate_limit": summary["rate_limit"],
         "learner_iterations": state["iterations"], "learner_gradient_steps": state["gradient_steps"],
         "learner_pending_iterations_at_end": len(state["due"]),
-        "actor_wall_s": summary["wall_time_s"],
+        "actor_wall_s": summary["wall_time_s"], "realtime": summary.get("realtime", False),
     }
 
 
@@ -612,7 +613,7 @@ def run_runtime_benchmark(*, quick: bool = False, out: str | None = None, episod
                           actor_episodes: int | None = None, ingest_transitions: int | None = None,
                           ingest_checkpoint_transitions: int | None = None, batch: int = 256, inflight: int = 8,
                           train_seconds: float | None = None, rate: float = 50.0, scenario: str = "high_cov",
-                          loss_check: bool | None = None, seed: int = 0, keep: bool = False) -> dict:
+                          loss_check: bool | None = None, seed: int = 0, keep: bool = False, rt_priority: int = 20) -> dict:
     """Run the measurements (module docstring), print a table, write JSON to ``out``; returns the record."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
@@ -634,7 +635,7 @@ def run_runtime_benchmark(*, quick: bool = False, out: str | None = None, episod
     config = {"quick": quick, "episodes": episodes, "actor_episodes": actor_episodes,
               "ingest_transitions": ingest_transitions, "ingest_checkpoint_transitions": ingest_ckpt_n, "batch": batch,
               "inflight": inflight, "train_seconds": train_seconds, "train_rounds": rounds, "rate_hz": rate, "scenario": scenario,
-              "loss_check": loss_check, "seed": seed}
+              "loss_check": loss_check, "seed": seed, "rt_priority": rt_priority}
     machine = {"platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version(),
                "load_start": _load()}
     console.print(f"[bold]KhGRL runtime benchmark[/] ({'quick' if quick else 'default'} sizes; {os.cpu_count()} CPUs, "
@@ -644,7 +645,8 @@ def run_runtime_benchmark(*, quick: bool = False, out: str | None = None, episod
     procs = _Procs(work)
     t_start = time.perf_counter()
     ok = False
-    stages = ["ingest", "ingest_ckpt", "train", "actor", "reference"] + (["kill_resume"] if loss_check else [])
+    stages = (["ingest", "ingest_ckpt", "train", "actor"] + (["actor_rt"] if rt_priority else []) + ["reference"]
+              + (["kill_resume"] if loss_check else []))
     progress = Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[info]}"),
                         TimeElapsedColumn(), console=console, transient=False)
     try:
@@ -684,6 +686,18 @@ def run_runtime_benchmark(*, quick: bool = False, out: str | None = None, episod
             results["actor"] = res
             progress.update(task, completed=actor_episodes, info=f"period {_ms3(res['loop_period_ms'])}")
             progress.advance(overall)
+
+            # 3b. the same actor with its control loop under SCHED_FIFO (as robot control loops run)
+            if rt_priority:
+                task = stage("actor_rt", f"3b. actor at {rate:g} Hz under SCHED_FIFO {rt_priority}, learner training",
+                             actor_episodes)
+                res = _measure_actor(procs, ep, work, scenario=scenario, episodes=actor_episodes, rate=rate, seed=seed,
+                                     rt_priority=rt_priority,
+                                     report=lambda k, n_, t=task: progress.update(t, completed=k, info=f"episode {k}/{n_}"))
+                results["actor_rt"] = res
+                progress.update(task, completed=actor_episodes, info=f"period {_ms3(res['loop_period_ms'])}"
+                                + ("" if res["realtime"] else " (SCHED_FIFO refused: normal scheduling)"))
+                progress.advance(overall)
 
             # 3. single-process reference
             task = stage("reference", f"3. single-process SB3 reference, {episodes} episode(s)", 1)
@@ -731,6 +745,14 @@ def run_runtime_benchmark(*, quick: bool = False, out: str | None = None, episod
     lp = act["loop_period_ms"]
     table.add_row(f"3. actor loop period @ {rate:g} Hz (p50/p99/max)", _ms3(lp), f"target {1e3 / rate:.1f} ms",
                   f"{lp['n']} steps; learner trained {act['learner_gradient_steps']} gradient steps meanwhile")
+    if "actor_rt" in r:
+        rt = r["actor_rt"]
+        lpr = rt["loop_period_ms"]
+        table.add_row(f"3b. … control loop under SCHED_FIFO {rt_priority} (p50/p99/max)", _ms3(lpr),
+                      f"target {1e3 / rate:.1f} ms",
+                      (f"p99 {lpr['p99'] - 1e3 / rate:+.1f} ms from target (target ≤ +2 ms: "
+                       f"{'met' if lpr['p99'] - 1e3 / rate <= 2.0 else 'NOT met'})") if rt["realtime"]
+                      else "SCHED_FIFO refused (not root / no CAP_SYS_NICE): normal scheduling")
     gap = ref["step_gap_ms"]
     table.add_row("3. single-process SB3: env.step gap (p50/p99/max)", _ms3(gap), "",
                   f"pause p99 {gap['p99']:.0f} ms vs actor period p99 {lp['p99']:.1f} ms "

@@ -72,7 +72,8 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
                           ingest_transitions=args.ingest_transitions,
                           ingest_checkpoint_transitions=args.ingest_checkpoint_transitions, batch=args.batch,
                           inflight=args.inflight, train_seconds=args.train_seconds, rate=args.rate,
-                          scenario=args.scenario, loss_check=args.loss_check, seed=args.seed, keep=args.keep)
+                          scenario=args.scenario, loss_check=args.loss_check, seed=args.seed, keep=args.keep,
+                          rt_priority=args.rt_priority)
     return 0
 
 
@@ -164,6 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--loss-check", action=argparse.BooleanOptionalAction, default=None,
                    help="learner SIGKILL + resume, count lost/duplicated transitions (default: on, off with --quick)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rt-priority", type=int, default=20,
+                   help="also measure the 50 Hz actor with its control loop under SCHED_FIFO at this priority "
+                        "(needs root; 0: skip; default %(default)s)")
     p.add_argument("--keep", action="store_true", help="keep the work directory (logs, run dirs)")
     p.add_argument("--out", default=None, help="also write the results as JSON here")
     p.set_defaults(func=_cmd_bench_runtime)

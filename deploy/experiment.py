@@ -148,17 +148,22 @@ class _Runner:
     def __init__(self, cfg: ExperimentConfig, specs: list[RunSpec], progress) -> None:
         self.cfg, self.specs, self.progress = cfg, specs, progress
         self.out = Path(cfg.out)
-        self.status: dict[str, dict] = {}
+        self.status: dict[str, dict] = _previous_status(self.out)
         self.lock = threading.Lock()
         self.stopping = False
         self.procs: dict[str, subprocess.Popen] = {}
 
     def record(self, name: str, **info) -> None:
-        with self.lock:
-            self.status.setdefault(name, {}).update(info)
+        """Update one run's entry in ``experiment.json`` (merged under a file lock: several invocations on one
+        directory, e.g. one per scenario, keep each other's entries)."""
+        import fcntl
+
+        with self.lock, open(self.out / ".experiment.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            self.status = {**_previous_status(self.out), name: {**self.status.get(name, {}), **info}}
             doc = {"config": asdict(self.cfg), "machine": _machine(), "updated": time.strftime("%Y-%m-%dT%H:%M:%S"),
                    "runs": self.status}
-            tmp = self.out / "experiment.json.tmp"
+            tmp = self.out / f"experiment.json.{os.getpid()}.tmp"
             tmp.write_text(json.dumps(doc, indent=2))
             os.replace(tmp, self.out / "experiment.json")
 
@@ -209,6 +214,14 @@ class _Runner:
                 os.killpg(p.pid, signal.SIGINT)
             except ProcessLookupError:
                 pass
+
+
+def _previous_status(out: Path) -> dict[str, dict]:
+    """Run statuses recorded by earlier invocations on this directory (other seeds or scenarios, say)."""
+    try:
+        return dict(json.loads((out / "experiment.json").read_text()).get("runs", {}))
+    except (OSError, ValueError, AttributeError):
+        return {}
 
 
 def _machine() -> dict:
@@ -296,6 +309,9 @@ def run(args: argparse.Namespace) -> int:
             results = list(pool.map(runner.one, specs))
     finally:
         signal.signal(signal.SIGINT, previous)
+    for name, info in list(runner.status.items()):  # runs another invocation was still running when it last wrote
+        if info.get("status") == "running" and run_is_done(out / name, cfg):
+            runner.record(name, status="done")
     counts = {s: results.count(s) for s in sorted(set(results))}
     print(f"khgrl experiment: {counts} in {time.time() - t0:.0f} s; analyse with: khgrl report {out}", flush=True)
     if runner.stopping:

@@ -227,6 +227,7 @@ def run(args: argparse.Namespace) -> int:
             *common, "--run-dir", str(run_dir), "--id", aid, "--scenario", args.scenario, "--method", args.method,
             "--episodes", str(args.episodes), "--seed", str(args.seed + i), "--max-lead", str(args.max_lead),
             "--rate", str(args.rate), "--learning-starts", str(args.learning_starts),
+            *(["--rt-priority", str(args.actor_rt_priority)] if args.actor_rt_priority else []),
         ]), logs / f"{aid}.log"))
     if args.method == "khgrl" and args.human != "none":
         hargs = [args.human, *common, "--scenario", args.scenario, "--actor", "*", "--seed", str(args.seed)]
@@ -336,6 +337,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-lead", type=int, default=8, help="transitions an actor may run ahead of the learner's training")
     p.add_argument("--rate", type=float, default=0.0, help="actor control rate in Hz (0: as fast as allowed)")
     p.add_argument("--learning-starts", type=int, default=100)
+    p.add_argument("--actor-rt-priority", type=int, default=0,
+                   help="actors' control loops under SCHED_FIFO at this priority (needs --rate and root; default off)")
     p.add_argument("--learner-nice", type=int, default=5,
                    help="run the learner at this nice level so training yields the CPU to actor control loops (default %(default)s)")
     p.add_argument("--resume", action="store_true", help="resume the learner from RUN_DIR/learner/checkpoint")

@@ -300,3 +300,28 @@ def test_two_actors_feed_one_learner(two_actors):
         assert_exactly_once(state, arrays, a, n)
         total += n
     assert state["total_ingested"] == total
+
+
+def test_set_realtime_is_reported_truthfully():
+    """The control loop's SCHED_FIFO request either takes effect (root) or is refused and says so."""
+    import os
+    import threading
+
+    from actor.service import set_realtime
+
+    out = {}
+
+    def loop_thread():
+        before = os.sched_getscheduler(0)
+        out["ok"] = set_realtime(7)
+        out["policy"], out["prio"] = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
+        out["before"] = before
+
+    t = threading.Thread(target=loop_thread)
+    t.start()
+    t.join()
+    if out["ok"]:
+        assert out["policy"] == os.SCHED_FIFO and out["prio"] == 7
+    else:
+        assert out["policy"] == out["before"] != os.SCHED_FIFO
+    assert os.sched_getscheduler(0) != os.SCHED_FIFO  # only the calling thread changed
