@@ -268,9 +268,11 @@ def plot_scale(scales: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def analyse(exp_dirs: list[Path], out: Path) -> str:
-    """Read every run of the experiment directories, write the tables and figures into ``out``; return summary.md."""
-    found = [r for d in exp_dirs for r in find_runs(Path(d))]
+def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, scenarios: list[str] | None = None) -> str:
+    """Read every run of the experiment directories (optionally only some seeds / scenarios), write the tables and
+    figures into ``out``; return summary.md."""
+    found = [r for d in exp_dirs for r in find_runs(Path(d))
+             if (seeds is None or r[2] in seeds) and (scenarios is None or r[0] in scenarios)]
     if not found:
         raise FileNotFoundError(f"no run directories named <scenario>-<method>-seed<S> with results in {exp_dirs}")
     out.mkdir(parents=True, exist_ok=True)

@@ -93,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("runs", nargs="+", help="experiment directories (khgrl experiment) or run directories (khgrl up / reference)")
     p.add_argument("--out", default=None, help="experiments: output directory (default EXP/report); runs: the figure "
                                                 "(default runs/report.png; the table is written beside it as .md)")
+    p.add_argument("--seeds", type=int, nargs="+", default=None, help="experiments: only these seeds")
+    p.add_argument("--scenarios", nargs="+", default=None, choices=["high_cov", "low_cov"], help="experiments: only these")
     args = p.parse_args(argv)
     from deploy.analysis import analyse, find_runs
 
@@ -106,7 +108,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if experiments:
         out = Path(args.out or Path(experiments[0]) / "report")
-        print(analyse([Path(r) for r in experiments], out))
+        try:
+            print(analyse([Path(r) for r in experiments], out, seeds=args.seeds, scenarios=args.scenarios))
+        except FileNotFoundError as exc:
+            print(f"khgrl report: error: {exc}", file=sys.stderr)
+            return 2
         print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig4_high_cov.png, fig5_low_cov.png, "
               "fig6_scale.png (for the scenarios present)")
         return 0

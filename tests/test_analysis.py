@@ -92,8 +92,10 @@ def test_report_cli_dispatches_and_rejects_mixed_input(tmp_path, capsys):
     _write_run(single, [True], [0.0], actor=False)
     assert main([str(exp)]) == 0 and (exp / "report" / "fig4_high_cov.png").exists()
     assert main([str(single), "--out", str(tmp_path / "one.png")]) == 0 and (tmp_path / "one.md").exists()
+    assert main([str(exp), "--seeds", "0", "--out", str(tmp_path / "r0")]) == 0
+    assert main([str(exp), "--seeds", "5", "--out", str(tmp_path / "r5")]) == 2  # nothing left to analyse
     assert main([str(exp), str(single)]) == 2
     assert main([str(tmp_path / "missing")]) == 2
     err = capsys.readouterr().err
-    assert "not both" in err and "not a directory" in err
+    assert "not both" in err and "not a directory" in err and "no run directories" in err
     assert np.isfinite(float(next(csv.DictReader(open(exp / "report" / "per_run.csv")))["mean_return_last_10"]))
