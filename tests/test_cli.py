@@ -142,4 +142,6 @@ def test_report_missing_run_dir(tmp_path, capsys):
     from deploy.cli import main
 
     assert main(["report", str(tmp_path / "nope")]) == 2
+    assert "not a directory" in capsys.readouterr().err
+    assert main(["report", str(tmp_path)]) == 2  # a directory with neither runs nor episode results
     assert "no episodes.csv" in capsys.readouterr().err
