@@ -257,8 +257,12 @@ def plot_scale(scales: dict, path: Path) -> None:
                             label=f"{METHOD_LABEL[method]} ({len(items)} seeds)" if i == 0 else None)
                     if method == "khgrl" and corrected.size:
                         ax.axvspan(corrected.min(), corrected.max(), color="0.9", zorder=0, lw=0)
+        from common.scenarios import get_scenario
+
+        note = "grey: phases the human corrected" + ("" if get_scenario(scenario).learn_scale
+                                                      else "; L is not learned here, as in the paper")
         for d, ax in enumerate(axes[row]):
-            ax.set_title(f"{scenario}: L_{'xy'[d]} after 60 episodes (grey: phases the human corrected)", fontsize=9)
+            ax.set_title(f"{scenario}: L_{'xy'[d]} at the end of each run ({note})", fontsize=9)
             ax.set_xlabel("phase s")
             ax.set_yscale("log")
             ax.grid(alpha=0.3)
