@@ -399,6 +399,7 @@ class ActorService:
         self.episode = 0
         self.scale_updates = 0
         self.scale_history: list[tuple[int, np.ndarray]] = []  # (episode, L table over the grid) after each refit
+        self.realtime = False  # control loop under SCHED_FIFO (set_realtime)
         self._t_status = time.monotonic()
         self._ckpt_request_t = -1e9
         self._last_weights_get = -1e9
@@ -903,7 +904,7 @@ class ActorService:
                                    "p99": float(np.percentile(wl, 99) * 1e3) if wl.size else None,
                                    "max": float(wl.max() * 1e3) if wl.size else None, "n": int(wl.size)},
             "corrections": dict(self.arbiter.counts), "scale_updates": self.scale_updates,
-            "successes": int(sum(e.success for e in self.episodes)), "realtime": getattr(self, "realtime", False),
+            "successes": int(sum(e.success for e in self.episodes)), "realtime": self.realtime,
             "rejects": self.rejects.by_kind(), "stream": self.stream,
         }
 
