@@ -148,25 +148,31 @@ def _censored(v: int | None, episodes: int) -> int:
     return episodes + 1 if v is None else v
 
 
+def _median_text(values: list[int | None], episodes: int) -> str:
+    """Median over seeds with 'never' ranked last; a median between an episode and 'never' is shown as a range."""
+    x = sorted(_censored(v, episodes) for v in values)
+    lo, hi = x[(len(x) - 1) // 2], x[len(x) // 2]
+    name = lambda v: "never" if v > episodes else f"{v:g}"  # noqa: E731
+    if lo == hi or (lo <= episodes and hi <= episodes):
+        return name((lo + hi) / 2)
+    return f"{name(lo)}–{name(hi)}"
+
+
 def _fmt_episode(values: list[int | None], episodes: int) -> str:
-    reached = [v for v in values if v is not None]
-    if not reached:
-        return f"never (0/{len(values)})"
-    med = float(np.median([_censored(v, episodes) for v in values]))
-    med_s = "never" if med > episodes else f"{med:g}"
-    return f"{med_s} [{min(reached)}–{max(reached)}] ({len(reached)}/{len(values)})"
+    """'median (per seed: ...)', seeds in order; 'never' = not within the run."""
+    per_seed = ", ".join("never" if v is None else str(v) for v in values)
+    return f"{_median_text(values, episodes)} ({per_seed})"
 
 
-def _compare(a: list[int | None], b: list[int | None], episodes: int) -> tuple[float, float]:
-    """(median difference a - b, one-sided Mann-Whitney p that a is earlier), 'never' censored at episodes + 1."""
+def _compare(a: list[int | None], b: list[int | None], episodes: int) -> float:
+    """One-sided Mann-Whitney U p-value that the episodes in ``a`` come earlier than in ``b`` ('never' ranks last)."""
     from scipy.stats import mannwhitneyu
 
     xa = [_censored(v, episodes) for v in a]
     xb = [_censored(v, episodes) for v in b]
     if len(set(xa + xb)) == 1:
-        return 0.0, 1.0
-    p = float(mannwhitneyu(xa, xb, alternative="less").pvalue)
-    return float(np.median(xa) - np.median(xb)), p
+        return 1.0
+    return float(mannwhitneyu(xa, xb, alternative="less").pvalue)
 
 
 def _human_episodes(runs: list[list[dict]]) -> list[int]:
@@ -349,8 +355,9 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
     cols = ["scenario", "method", "seeds", "success, last 10 (mean ± std; per seed)", "first success",
             "first success w/o human", f"stable success ({STABLE_WINDOW} in a row)", "zero obstacle cost from",
             "collision episodes", "human episodes", "clipped / human steps", "return, last 10"]
-    lines = [f"Episodes per run: {episodes}. Episode criteria: median [min–max over seeds that reached it] "
-             f"(seeds that reached it / seeds); 'never' ranks after episode {episodes}.", "",
+    lines = [f"Episodes per run: {episodes}. Episode criteria: median over seeds ('never' = not within the run, ranked "
+             "last; a median between an episode and 'never' is shown as a range), then each seed's value in seed order.",
+             "",
              "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for (scenario, method), rs in sorted(groups.items()):
         rs = sorted(rs, key=lambda r: r.seed)
@@ -368,9 +375,9 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
             f"{np.mean([r.human_episodes for r in rs]):.1f} | "
             f"{sum(r.clipped_human_steps for r in rs)} / {iv} | "
             f"{np.mean([r.mean_return_last_10 for r in rs]):.1f} ± {np.std([r.mean_return_last_10 for r in rs]):.1f} |")
-    comp = ["", "KhGRL vs KGRL (episode criteria: median difference, KhGRL − KGRL, 'never' = "
-                f"{episodes + 1}; one-sided Mann–Whitney U p-value that KhGRL's episodes are earlier; success rate: "
-                "difference of means and one-sided p that KhGRL's is higher):", "",
+    comp = ["", "KhGRL vs KGRL (episode criteria: median KhGRL vs median KGRL over seeds, 'never' ranked last, and "
+                "the one-sided Mann–Whitney U p-value that KhGRL's episodes come earlier; success rate over the last 10: "
+                "mean KhGRL − mean KGRL and the one-sided p-value that KhGRL's is higher):", "",
             "| scenario | seeds (KhGRL/KGRL) | first success w/o human | stable success | zero obstacle cost from | "
             "success, last 10 |", "|---|---|---|---|---|---|"]
     from scipy.stats import mannwhitneyu
@@ -381,8 +388,9 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
             continue
         cells = []
         for attr in ("first_success_without_human", "stable_success", "zero_obstacle_cost_from"):
-            d, p = _compare([getattr(r, attr) for r in a], [getattr(r, attr) for r in b], episodes)
-            cells.append(f"{d:+g} (p = {p:.3f})")
+            va, vb = [getattr(r, attr) for r in a], [getattr(r, attr) for r in b]
+            p = _compare(va, vb, episodes)
+            cells.append(f"{_median_text(va, episodes)} vs {_median_text(vb, episodes)} (p = {p:.3f})")
         sa, sb = [r.success_last_10 for r in a], [r.success_last_10 for r in b]
         p = 1.0 if len(set(sa + sb)) == 1 else float(mannwhitneyu(sa, sb, alternative="greater").pvalue)
         cells.append(f"{np.mean(sa) - np.mean(sb):+.0%} (p = {p:.3f})")

@@ -80,7 +80,9 @@ def test_analyse_writes_tables_and_figures(tmp_path):
     scale = [r for r in csv.DictReader(open(out / "scale.csv")) if r["method"] == "kgrl"]
     assert {float(r["L_x"]) for r in scale} == {15.0}
     assert "| low_cov | KhGRL | 0, 1 | 90% ± 10% (100%, 80%)" in text and "| low_cov | 2/2 |" in text
-    assert "never (0/2)" in text  # KGRL's first success
+    assert "| never (never, never) |" in text  # KGRL never succeeds, on either seed
+    assert "| 3.5 (2, 5) |" in text  # KhGRL's first success: median of seeds 0 and 1, then each seed's
+    assert "| 4 vs never (p = " in text  # first success without human help: KhGRL (3, 5) vs KGRL (never, never)
 
 
 def test_report_cli_dispatches_and_rejects_mixed_input(tmp_path, capsys):
@@ -99,3 +101,13 @@ def test_report_cli_dispatches_and_rejects_mixed_input(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "not both" in err and "not a directory" in err and "no run directories" in err
     assert np.isfinite(float(next(csv.DictReader(open(exp / "report" / "per_run.csv")))["mean_return_last_10"]))
+
+
+def test_median_over_seeds_with_never():
+    from deploy.analysis import _fmt_episode, _median_text
+
+    assert _median_text([3, 5, None], 60) == "5"
+    assert _median_text([None, None, 22, 2], 60) == "22–never"  # between an episode and 'never': a range
+    assert _median_text([None, None], 60) == "never"
+    assert _median_text([2, 5], 60) == "3.5"
+    assert _fmt_episode([None, 7], 60) == "7–never (never, 7)"
