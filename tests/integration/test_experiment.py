@@ -9,7 +9,7 @@ import sys
 import pytest
 
 from deploy.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
-from proc_helpers import REPO
+from helpers import REPO
 
 
 def test_config_file_then_overrides(tmp_path):

@@ -23,7 +23,7 @@ import pygame  # noqa: E402
 import pytest  # noqa: E402
 
 from common.protocol import decode, encode  # noqa: E402
-from proc_helpers import REPO, ProcGroup, read_json, unique_run, wait_for  # noqa: E402
+from helpers import REPO, ProcGroup, read_json, unique_run, wait_for  # noqa: E402
 
 
 def _frame(actor="a0", episode=1, t=5, scenario="low_cov", intervening=False, scale=(15.0, 15.0), **kw) -> bytes:

@@ -8,7 +8,7 @@ import pytest
 from common.kernels import RBF, evaluate_kernel, kernel_diag
 from common.kmp import LCNSKMP
 
-from conftest import BETA, LAM
+from kmp_problems import BETA, LAM
 
 
 def _sqdist(a: np.ndarray, b: np.ndarray) -> np.ndarray:

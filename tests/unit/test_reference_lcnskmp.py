@@ -34,7 +34,7 @@ lc_ns_kmp = pytest.importorskip("lc_ns_kmp")
 
 from common.kernels import RBF  # noqa: E402
 from common.kmp import LCNSKMP  # noqa: E402
-from conftest import BETA, BOX_C, BOX_G, LAM, LOOSE_C, PRECISION  # noqa: E402
+from kmp_problems import BETA, BOX_C, BOX_G, LAM, LOOSE_C, PRECISION  # noqa: E402
 
 INACTIVE_G = np.array([[1.0, 0.0]])
 INACTIVE_C = np.array([-100.0])  # x >= -100 (or x <= 100 under the documented sign): never active

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from proc_helpers import ProcGroup, read_json, unique_run, wait_for
+from helpers import ProcGroup, read_json, unique_run, wait_for
 
 FAST = ["--scenario", "low_cov", "--method", "khgrl", "--learning-starts", "16"]
 TRAIN_FREQ = 8

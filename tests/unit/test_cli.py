@@ -130,7 +130,7 @@ def test_report_on_committed_reference_runs(tmp_path):
 
     from pathlib import Path
 
-    docs = Path(__file__).resolve().parents[1] / "docs" / "reference_runs"
+    docs = Path(__file__).resolve().parents[2] / "docs" / "reference_runs"
     out = tmp_path / "rep.png"
     assert main(["report", str(docs / "low_cov-kgrl-seed0"), str(docs / "low_cov-khgrl-seed0"), "--out", str(out)]) == 0
     assert out.stat().st_size > 10_000

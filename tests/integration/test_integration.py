@@ -27,7 +27,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from proc_helpers import (REPO, endpoint_pattern, free_port, kill_pids, pid_alive, pids_matching, read_json,
+from helpers import (REPO, endpoint_pattern, free_port, kill_pids, pid_alive, pids_matching, read_json,
                           unique_run, wait_for)
 
 UP = [sys.executable, "-m", "deploy.cli", "up"]

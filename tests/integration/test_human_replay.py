@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from proc_helpers import ProcGroup, unique_run
+from helpers import ProcGroup, unique_run
 
 
 def _rows(path: Path) -> list[dict]:

@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from proc_helpers import REPO, ProcGroup, read_json, unique_run
+from helpers import REPO, ProcGroup, read_json, unique_run
 
 CLIENT = REPO / "deploy" / "examples" / "drag_client.py"
 STEPS = 30

@@ -21,7 +21,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from proc_helpers import ProcGroup, read_json, unique_run
+from helpers import ProcGroup, read_json, unique_run
 
 TIMEOUT_S = 0.5
 
