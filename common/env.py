@@ -30,13 +30,13 @@ from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
-from gymnasium import spaces
 
 from common.kgrl import KGRLMapping
 from common.kmp import LCNSKMP
 from common.model import KMPConfig, box_constraints, fit_model
 from common.scale import ScaleModel
 from common.scenarios import Scenario, get_scenario, make_demos
+from common.spaces import action_space, observation_space
 
 __all__ = ["PassageEnv", "PassageWorld", "ENV_ID", "build_world"]
 
@@ -150,12 +150,8 @@ class PassageEnv(gym.Env):
         self.speed = float(speed)
         self.blocked_limit = int(blocked_limit)
         self.start_noise = float(start_noise)
-        self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-        self.observation_space = spaces.Box(
-            low=np.array([0.0, 0.0, 0.0, -1.0, -1.0], dtype=np.float32),
-            high=np.array([1.0, 1.0, 1.0, 1.0, 1.0], dtype=np.float32),
-            dtype=np.float32,
-        )
+        self.action_space = action_space()
+        self.observation_space = observation_space()
         self._correction: np.ndarray | None = None
         self._renderer = None
         self._window = None

@@ -1,0 +1,368 @@
+"""One class per message kind of the wire protocol (docs/protocol.md). Each knows its kind, its size limit
+and how to check a received map (``from_wire``); :mod:`common.protocol` does the envelope and msgpack.
+
+Optional fields are ``None`` when absent (and are then left out of the payload).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, get_type_hints
+
+import numpy as np
+
+from common.spaces import ACT_DIM, OBS_DIM
+from common.wire import ProtocolError, ident, opt, typ, unpack_array, vec
+
+__all__ = ["Message", "Transitions", "Ack", "Weights", "Correction", "Frame", "Scale", "EpisodeReport", "Status",
+           "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS"]
+
+MAX_BATCH = 4096  # transitions per batch message
+COMMANDS = ("pause", "resume", "stop", "checkpoint")
+
+
+@dataclass(frozen=True)
+class Message:
+    KIND: ClassVar[str] = ""
+    MAX_BYTES: ClassVar[int] = 4096
+    VECTORS: ClassVar[tuple[str, ...]] = ()  # fields sent as lists of numbers (the others' arrays as array maps)
+    envelope: Any = field(default=None, kw_only=True, compare=False, repr=False)
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def from_wire(cls, m: dict):
+        raise NotImplementedError
+
+
+_FLAG_FIELDS = ("terminated", "truncated", "intervened", "clipped")
+
+
+@dataclass(frozen=True, eq=False)
+class Transitions(Message):
+    """A batch of one actor's transitions, in order; ``seq`` (envelope) numbers the actor's batches."""
+
+    KIND: ClassVar[str] = "transitions"
+    MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
+    actor: str
+    first_step: int  # the actor's running index of the first transition
+    obs: np.ndarray  # (n, OBS_DIM) float32
+    next_obs: np.ndarray
+    action: np.ndarray  # (n, ACT_DIM) float32 in [-1, 1] (the human's a_h on intervened steps)
+    reward: np.ndarray  # (n,) float32
+    terminated: np.ndarray  # (n,) uint8 0/1
+    truncated: np.ndarray
+    intervened: np.ndarray
+    clipped: np.ndarray
+    base_seq: int | None = None  # the oldest batch the actor still holds
+    stream: str | None = None  # random id of the actor incarnation
+
+    @property
+    def n(self) -> int:
+        return int(self.reward.shape[0])
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "Transitions":
+        spec = {"obs": ("<f4", (None, OBS_DIM)), "next_obs": ("<f4", (None, OBS_DIM)),
+                "action": ("<f4", (None, ACT_DIM)), "reward": ("<f4", (None,))}
+        spec.update({f: ("|u1", (None,)) for f in _FLAG_FIELDS})
+        arrays = {name: unpack_array(m.get(name), name, dtype=dt, shape=shape) for name, (dt, shape) in spec.items()}
+        n = arrays["reward"].shape[0]
+        for name, arr in arrays.items():
+            if arr.shape[0] != n:
+                raise ProtocolError(f"{name}: {arr.shape[0]} rows, expected {n}")
+        if not 1 <= n <= MAX_BATCH:
+            raise ProtocolError(f"batch of {n} transitions outside [1, {MAX_BATCH}]")
+        if np.any(np.abs(arrays["action"]) > 1.0 + 1e-6):
+            raise ProtocolError("actions outside [-1, 1]")
+        for flag in _FLAG_FIELDS:
+            if np.any(arrays[flag] > 1):
+                raise ProtocolError(f"{flag}: flags must be 0/1")
+        base = opt(m, "base_seq", typ, int, low=0)
+        if base is not None and base > m.get("seq", 0):
+            raise ProtocolError(f"base_seq {base} > seq {m.get('seq')}")
+        return cls(actor=ident("actor", m.get("actor")), first_step=typ("first_step", m.get("first_step"), int, low=0),
+                   base_seq=base, stream=opt(m, "stream", ident), **arrays)
+
+
+@dataclass(frozen=True)
+class Ack(Message):
+    """What the learner holds of one actor's stream (docs/protocol.md, ``ack``)."""
+
+    KIND: ClassVar[str] = "ack"
+    actor: str
+    received: int  # highest batch seq received without a gap (-1: none)
+    durable: int  # highest seq held in a learner checkpoint
+    trained: int  # this actor's transitions covered by the latest weights
+    version: int  # latest weights version
+    epoch: str  # random per learner incarnation
+    stream: str | None = None  # the actor stream the ack is about
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "Ack":
+        return cls(actor=ident("actor", m.get("actor")), received=typ("received", m.get("received"), int, low=-1),
+                   durable=typ("durable", m.get("durable"), int, low=-1),
+                   trained=typ("trained", m.get("trained"), int, low=0),
+                   version=typ("version", m.get("version"), int, low=0), epoch=typ("epoch", m.get("epoch"), str),
+                   stream=opt(m, "stream", ident))
+
+
+@dataclass(frozen=True, eq=False)
+class Weights(Message):
+    """The TQC actor network's ``state_dict`` by version."""
+
+    KIND: ClassVar[str] = "weights"
+    MAX_BYTES: ClassVar[int] = 64 * 1024 * 1024
+    version: int
+    trained: dict  # {actor id: transitions covered}
+    tensors: dict  # {name: float32 array}
+    epoch: str | None = None
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "Weights":
+        trained = typ("trained", m.get("trained"), dict)
+        for k, v in trained.items():
+            ident("trained key", k)
+            typ(f"trained[{k}]", v, int, low=0)
+        tensors = typ("tensors", m.get("tensors"), dict)
+        if not tensors or len(tensors) > 256:
+            raise ProtocolError("tensors: expected 1..256 named arrays")
+        out = {}
+        for name, arr in tensors.items():
+            typ("tensor name", name, str)
+            ndim = len(arr.get("shape", [])) if isinstance(arr, dict) and isinstance(arr.get("shape"), list) else 0
+            out[name] = unpack_array(arr, f"tensors[{name}]", dtype="<f4", shape=(None,) * ndim)
+        return cls(version=typ("version", m.get("version"), int, low=0), trained=dict(trained), tensors=out,
+                   epoch=opt(m, "epoch", ident))
+
+
+@dataclass(frozen=True, eq=False)
+class Correction(Message):
+    """A human-input client's word for an actor: drag to ``p_h`` (active) or release."""
+
+    KIND: ClassVar[str] = "correction"
+    VECTORS: ClassVar[tuple[str, ...]] = ("p_h",)
+    client: str
+    actor: str
+    active: bool
+    p_h: np.ndarray | None = None  # (ACT_DIM,) workspace units; required when active
+    episode: int | None = None  # the frame reacted to (for the record)
+    t: int | None = None
+    step: int | None = None  # step-addressed: for this step of ``episode`` (lock-step)
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "Correction":
+        active = typ("active", m.get("active"), bool)
+        step = opt(m, "step", typ, int, low=0)
+        if step is not None and m.get("episode") is None:
+            raise ProtocolError("step: a step-addressed correction needs its episode")
+        return cls(client=ident("client", m.get("client")), actor=ident("actor", m.get("actor")), active=active,
+                   p_h=vec("p_h", m.get("p_h"), ACT_DIM) if active else None,
+                   episode=opt(m, "episode", typ, int, low=0), t=opt(m, "t", typ, int, low=0), step=step)
+
+
+@dataclass(frozen=True, eq=False)
+class Frame(Message):
+    """What an actor shows after each step (viewers and human-input clients draw and react to it)."""
+
+    KIND: ClassVar[str] = "frame"
+    VECTORS: ClassVar[tuple[str, ...]] = ("robot", "desired", "mean", "scale", "next_mean")
+    MAX_BYTES: ClassVar[int] = 64 * 1024
+    actor: str
+    episode: int  # 1-based, counted over the whole run (a resumed run continues)
+    t: int  # the step just taken, 0-based
+    phase: float
+    robot: np.ndarray
+    desired: np.ndarray
+    mean: np.ndarray
+    scale: np.ndarray
+    intervening: bool
+    scenario: str
+    ret: float | None = None
+    next_mean: np.ndarray | None = None  # KMP mean at step t + 1; absent after the horizon's last step
+    last: bool | None = None  # true on the episode's last frame (terminated or truncated)
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "Frame":
+        vecs = {f: vec(f, m.get(f), ACT_DIM) for f in ("robot", "desired", "mean", "scale")}
+        return cls(actor=ident("actor", m.get("actor")), episode=typ("episode", m.get("episode"), int, low=0),
+                   t=typ("t", m.get("t"), int, low=0),
+                   phase=float(typ("phase", m.get("phase"), (int, float), low=0.0, high=1.0)),
+                   intervening=typ("intervening", m.get("intervening"), bool),
+                   scenario=typ("scenario", m.get("scenario"), str), ret=opt(m, "ret", typ, (int, float)),
+                   next_mean=opt(m, "next_mean", vec, ACT_DIM), last=opt(m, "last", typ, bool), **vecs)
+
+
+@dataclass(frozen=True, eq=False)
+class Scale(Message):
+    """An actor's exploration-scale model after a refit, and its table of L over the KMP grid."""
+
+    KIND: ClassVar[str] = "scale"
+    MAX_BYTES: ClassVar[int] = 1024 * 1024
+    actor: str
+    model: dict  # ScaleModel.to_dict()
+    table: np.ndarray | None = None  # (N, ACT_DIM) float64
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "Scale":
+        table = m.get("table")
+        return cls(actor=ident("actor", m.get("actor")), model=typ("model", m.get("model"), dict),
+                   table=None if table is None else unpack_array(table, "table", dtype="<f8", shape=(None, ACT_DIM)))
+
+
+_STAT_NUMBERS = ("steps", "ret", "action_cost", "obstacle_cost", "passage_cost", "obstacle_steps", "interventions",
+                 "intervention_steps", "clipped_steps", "projected_steps", "mean_abs_xi_h", "wall_time")
+
+
+@dataclass(frozen=True)
+class EpisodeReport(Message):
+    """One finished episode's statistics (common.metrics.EpisodeStats as a map)."""
+
+    KIND: ClassVar[str] = "episode"
+    MAX_BYTES: ClassVar[int] = 16 * 1024
+    actor: str
+    stats: dict
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "EpisodeReport":
+        stats = typ("stats", m.get("stats"), dict)
+        typ("stats.episode", stats.get("episode"), int, low=1)
+        for f in _STAT_NUMBERS:
+            opt(stats, f, lambda n, v: typ(f"stats.{n}", v, (int, float)))
+        for f in ("success", "failure"):
+            opt(stats, f, lambda n, v: typ(f"stats.{n}", v, bool))
+        scale_max = stats.get("scale_max")
+        if scale_max is not None:
+            vec("stats.scale_max", scale_max, len(scale_max) if isinstance(scale_max, list) else -1)
+        return cls(actor=ident("actor", m.get("actor")), stats=dict(stats))
+
+
+# ------------------------------------------------------------------------------------ status
+_COUNTS = dict[str, int]
+
+
+def _check_info(cls, info: Any, where: str):
+    """A status info map checked against the dataclass ``cls``: every field present with its type (ints,
+    floats, bools, strings, optional floats, and {str: int} maps); unknown fields rejected."""
+    info = typ(where, info, dict)
+    hints = get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    extra = set(info) - names
+    if extra:
+        raise ProtocolError(f"{where}: unknown fields {sorted(extra)}")
+    kw = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in info:
+            raise ProtocolError(f"{where}.{f.name}: missing")
+        v, t, name = info[f.name], hints[f.name], f"{where}.{f.name}"
+        if t == _COUNTS:
+            typ(name, v, dict)
+            for k, n in v.items():
+                typ(f"{name} key", k, str)
+                typ(f"{name}[{k}]", n, int)
+        elif t == (float | None):
+            if v is not None:
+                typ(name, v, (int, float))
+        else:
+            typ(name, v, (int, float) if t is float else t)
+        kw[f.name] = v
+    return cls(**kw)
+
+
+@dataclass(frozen=True)
+class ActorInfo:
+    """``status/actor/<id>``: the actor's stream, flow control and corrections."""
+
+    id: str
+    episode: int
+    t: int
+    transitions: int
+    sent: int
+    next_seq: int
+    outbox: int
+    received: int
+    durable: int
+    trained: int
+    weights_version: int
+    ack_version: int
+    learner_alive: bool
+    waits: int
+    wait_s: float
+    resends: int
+    corrections: _COUNTS
+    intervening: bool
+    rejects: _COUNTS
+    paused: bool
+    period_ms_p50: float | None
+
+
+@dataclass(frozen=True)
+class LearnerInfo:
+    """``status/learner/<id>``: ingest, training, weights and checkpoints."""
+
+    id: str
+    epoch: str
+    ingested: int
+    iterations: int
+    gradient_steps: int
+    grad_steps_per_s: float
+    version: int
+    pending_iterations: int
+    queue_depth: int
+    rejects: _COUNTS
+    paused: bool
+    checkpoints: int
+    next_seq: _COUNTS
+    durable: _COUNTS
+    duplicates: _COUNTS
+    weights_queries: int
+
+
+@dataclass(frozen=True)
+class HumanInfo:
+    """``status/human/<id>``: a human-input client's traffic."""
+
+    frames: int
+    corrections: int
+    rejects: _COUNTS
+
+
+_INFO = {"actor": ActorInfo, "learner": LearnerInfo, "human": HumanInfo}
+
+
+@dataclass(frozen=True)
+class Status(Message):
+    """About once a second from every process: ``role`` and an ``info`` of that role's schema."""
+
+    KIND: ClassVar[str] = "status"
+    MAX_BYTES: ClassVar[int] = 16 * 1024
+    role: str
+    info: ActorInfo | LearnerInfo | HumanInfo
+
+    def __post_init__(self) -> None:
+        if self.role not in _INFO or not isinstance(self.info, _INFO[self.role]):
+            raise ProtocolError(f"status of role {self.role!r} needs a {_INFO.get(self.role, ActorInfo).__name__}")
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "Status":
+        role = typ("role", m.get("role"), str)
+        if role not in _INFO:
+            raise ProtocolError(f"role {role!r} not one of {sorted(_INFO)}")
+        return cls(role=role, info=_check_info(_INFO[role], m.get("info"), "info"))
+
+
+@dataclass(frozen=True)
+class Control(Message):
+    """``control/<target>``: pause, resume, stop or checkpoint."""
+
+    KIND: ClassVar[str] = "control"
+    command: str
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "Control":
+        command = typ("command", m.get("command"), str)
+        if command not in COMMANDS:
+            raise ProtocolError(f"unknown command {command!r}")
+        return cls(command=command)

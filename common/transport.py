@@ -1,0 +1,206 @@
+"""Zenoh for KhGRL processes (zenoh-python 1.x; see ../shared/design/zenoh-notes.md): configurations,
+opening a session that can be interrupted, and the one inbox pattern (callback -> bounded queue).
+
+Topology: one small router process (``khgrl router``) listens on loopback; the learner, actors and human-input
+clients connect to it as clients, with retry, so any of them can start first and a restarted router is
+rejoined automatically. Multicast scouting is always off and every endpoint explicit.
+
+Rules every process follows (measured pitfalls): one session per process, opened in ``main()`` and closed with
+a ``with`` block (a callback subscriber left open hangs interpreter exit); processes are spawned, never forked
+after ``zenoh.open()``; every ``get`` has a timeout; callbacks only hand bytes to an :class:`Inbox`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import socket
+import threading
+import time
+from typing import Any, Callable
+
+__all__ = ["DEFAULT_ENDPOINT", "client_config", "router_config", "free_port", "open_client", "open_router",
+           "wait_reachable", "Inbox", "undeclare_all", "endpoint_host_port"]
+
+log = logging.getLogger("khgrl.transport")
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+def _base_config(mode: str, listen: list[str], connect: list[str], lease_ms: int):
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false" if mode == "client" else "true")
+    conf.insert_json5("listen/endpoints", json.dumps(listen))
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    conf.insert_json5("transport/link/tx/lease", str(int(lease_ms)))
+    # a learner pausing to checkpoint must not get its link killed by BLOCK publishers (default 5 s)
+    conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", "60000000")
+    # keep queries/replies off shared memory (zenoh#2628: SHM can drop queries when an RX thread stalls)
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    return conf
+
+
+def client_config(connect: str = DEFAULT_ENDPOINT, lease_ms: int = 3000):
+    """A client that waits for (and re-joins) the router at ``connect``."""
+    conf = _base_config("client", [], [connect], lease_ms)
+    conf.insert_json5("connect/timeout_ms", "-1")
+    conf.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 1000, period_increase_factor: 2}")
+    return conf
+
+
+def router_config(listen: str = DEFAULT_ENDPOINT, lease_ms: int = 3000):
+    return _base_config("router", [listen], [], lease_ms)
+
+
+def free_port() -> int:
+    """A free TCP port on 127.0.0.1 (bind to port 0 and read it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def endpoint_host_port(endpoint: str) -> tuple[str, int] | None:
+    """(host, port) of a ``tcp/``, ``tls/`` or ``quic/`` endpoint; None for other kinds."""
+    proto, _, addr = endpoint.partition("/")
+    if proto not in ("tcp", "tls", "quic") or ":" not in addr:
+        return None
+    host, _, port = addr.split("#")[0].rpartition(":")
+    try:
+        return host.strip("[]"), int(port)
+    except ValueError:
+        return None
+
+
+def wait_reachable(endpoint: str, timeout: float, stop: Callable[[], bool] = lambda: False) -> None:
+    """Return once something accepts TCP connections at ``endpoint``; :class:`ConnectionError` naming it after
+    ``timeout`` s (or at once if ``stop()`` turns true). Endpoints that are not TCP-based are not probed."""
+    hp = endpoint_host_port(endpoint)
+    if hp is None:
+        return
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection(hp, timeout=0.5):
+                return
+        except OSError as exc:
+            last = exc
+        if stop():
+            raise ConnectionError(f"stopped while waiting for the Zenoh router at {endpoint}")
+        if time.monotonic() > deadline:
+            raise ConnectionError(f"no Zenoh router reachable at {endpoint} within {timeout:g} s ({last})")
+        time.sleep(0.2)
+
+
+def _open(conf, stop: Callable[[], bool], timeout: float | None, what: str):
+    """``zenoh.open(conf)`` in a helper thread, so that this thread keeps handling signals (a stop request or
+    Ctrl-C while Zenoh waits for a router) and can give up after ``timeout`` s."""
+    import zenoh
+
+    zenoh.init_log_from_env_or("error")
+    box: dict[str, Any] = {}
+
+    def target() -> None:
+        try:
+            box["session"] = zenoh.open(conf)
+        except Exception as exc:  # noqa: BLE001 - reported to the caller
+            box["error"] = exc
+
+    th = threading.Thread(target=target, name="zenoh-open", daemon=True)
+    th.start()
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while th.is_alive():
+        th.join(0.1)
+        if th.is_alive() and (stop() or (deadline is not None and time.monotonic() > deadline)):
+            why = "stopped" if stop() else f"not connected within {timeout:g} s"
+            raise ConnectionError(f"{why} while opening a Zenoh session ({what})")
+    if "error" in box:
+        raise ConnectionError(f"could not open a Zenoh session ({what}): {box['error']}")
+    return box["session"]
+
+
+def open_client(connect: str, lease_ms: int = 3000, *, stop: Callable[[], bool] = lambda: False,
+                timeout: float | None = None):
+    """A client session to the router at ``connect`` (use it as a context manager). Waits for the router
+    (it may start later) unless ``timeout`` is given; returns early with :class:`ConnectionError` when ``stop()``
+    turns true (e.g. a process's stop flag set by SIGTERM)."""
+    return _open(client_config(connect, lease_ms), stop, timeout, f"router {connect}")
+
+
+def open_router(listen: str, lease_ms: int = 3000):
+    return _open(router_config(listen, lease_ms), lambda: False, 30.0, f"router listening on {listen}")
+
+
+class Inbox:
+    """Zenoh callbacks put ``(kind, key, payload bytes, arrival)`` here and return at once; the process's own
+    loop takes them out. Bounded: when ``maxsize`` items wait, the overflow policy decides --
+    ``"drop_oldest"`` (keep the newest: frames, corrections) or ``"drop_newest"`` (keep what came first:
+    a stream whose sender re-sends what was not acknowledged). Dropped items are counted by kind."""
+
+    POLICIES = ("drop_oldest", "drop_newest")
+
+    def __init__(self, maxsize: int = 10_000, overflow: str = "drop_oldest") -> None:
+        if overflow not in self.POLICIES:
+            raise ValueError(f"overflow policy must be one of {self.POLICIES}")
+        self.q: queue.Queue = queue.Queue(maxsize=maxsize)
+        self.overflow = overflow
+        self.dropped: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def put(self, item: tuple) -> None:
+        try:
+            self.q.put_nowait(item)
+            return
+        except queue.Full:
+            pass
+        with self._lock:
+            self.dropped[item[0]] = self.dropped.get(item[0], 0) + 1
+            if self.overflow == "drop_oldest":
+                try:
+                    self.q.get_nowait()
+                except queue.Empty:
+                    pass
+                try:
+                    self.q.put_nowait(item)
+                except queue.Full:
+                    pass
+
+    def callback(self, kind: str) -> Callable:
+        """A Zenoh sample callback that files samples under ``kind``."""
+
+        def cb(sample) -> None:
+            self.put((kind, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic()))
+
+        return cb
+
+    def liveliness_callback(self, kind: str = "alive") -> Callable:
+        """A liveliness subscriber callback: ``(kind, key, appeared: bool, arrival)``."""
+        import zenoh
+
+        def cb(sample) -> None:
+            self.put((kind, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, time.monotonic()))
+
+        return cb
+
+    def get(self, timeout: float = 0.0) -> tuple | None:
+        """The next item, waiting up to ``timeout`` s (0: don't wait); None if there is none."""
+        try:
+            return self.q.get(timeout=timeout) if timeout > 0 else self.q.get_nowait()
+        except queue.Empty:
+            return None
+
+    def qsize(self) -> int:
+        return self.q.qsize()
+
+
+def undeclare_all(*decls) -> None:
+    """Undeclare publishers, subscribers, queryables and tokens, best effort (on the way out)."""
+    for d in decls:
+        try:
+            d.undeclare()
+        except Exception:  # noqa: BLE001 - a session already closing
+            pass
