@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from deploy.supervisor import Proc, ProcessGroup
+
 REPO = Path(__file__).resolve().parents[1]
 
 __all__ = ["REPO", "Proc", "ProcGroup", "free_endpoint", "unique_run", "wait_for", "wait_for_file", "read_json",
@@ -77,97 +79,24 @@ def read_json(path: str | Path) -> Any:
     return json.loads(Path(path).read_text())
 
 
-class Proc:
-    """One child process with its log file."""
-
-    def __init__(self, name: str, argv: list[str], log_path: Path, env: dict | None = None) -> None:
-        self.name = name
-        self.argv = argv
-        self.log_path = log_path
-        log_path.parent.mkdir(parents=True, exist_ok=True)
-        self._log = open(log_path, "ab")
-        self.popen = subprocess.Popen(argv, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT,
-                                      env=env, start_new_session=True)
-        self.returncode: int | None = None
-
-    @property
-    def pid(self) -> int:
-        return self.popen.pid
-
-    def poll(self) -> int | None:
-        if self.returncode is None:
-            self.returncode = self.popen.poll()
-        return self.returncode
-
-    def wait(self, timeout: float) -> int | None:
-        """Exit code, or None if still running after ``timeout`` s."""
-        try:
-            self.returncode = self.popen.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            return None
-        return self.returncode
-
-    def signal(self, sig: int) -> None:
-        if self.poll() is None:
-            try:
-                os.kill(self.pid, sig)
-            except ProcessLookupError:
-                pass
-
-    def kill(self) -> None:
-        """SIGKILL (a crash) and reap."""
-        self.signal(signal.SIGKILL)
-        self.wait(10)
-
-    def stop(self, timeout: float = 30.0) -> int | None:
-        """SIGTERM, wait, then SIGKILL if it is still there."""
-        self.signal(signal.SIGTERM)
-        rc = self.wait(timeout)
-        if rc is None:
-            self.kill()
-        return rc
-
-    def tail(self, n: int = 40) -> str:
-        try:
-            self._log.flush()
-            lines = self.log_path.read_text(errors="replace").splitlines()
-        except OSError:
-            return ""
-        return "\n".join(lines[-n:])
-
-    def close(self) -> None:
-        if self.poll() is None:
-            self.kill()
-        self._log.close()
-
-
-class ProcGroup:
-    """Starts KhGRL processes under ``base`` (logs in ``base/logs``) and kills leftovers on exit."""
+class ProcGroup(ProcessGroup):
+    """The supervisor of ``khgrl up`` (deploy.supervisor) with shortcuts for KhGRL processes: starts them under
+    ``base`` (logs in ``base/logs``) and kills leftovers by PID on exit."""
 
     def __init__(self, base: str | Path) -> None:
+        env = dict(os.environ)
+        env["PYTHONPATH"] = str(REPO) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        env.setdefault("RUST_LOG", "error")
+        super().__init__(Path(base) / "logs", env=env, cwd=REPO)
         self.base = Path(base)
-        self.procs: list[Proc] = []
-        self.env = dict(os.environ)
-        self.env["PYTHONPATH"] = str(REPO) + (os.pathsep + self.env["PYTHONPATH"] if self.env.get("PYTHONPATH") else "")
-        self.env.setdefault("RUST_LOG", "error")
-        self.env["PYTHONUNBUFFERED"] = "1"
 
-    def __enter__(self) -> "ProcGroup":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for p in reversed(self.procs):
-            p.close()
-
-    def start(self, name: str, argv: list[str]) -> Proc:
-        p = Proc(name, argv, self.base / "logs" / f"{name}-{len(self.procs)}.log", env=self.env)
-        self.procs.append(p)
-        return p
+    def start(self, name: str, argv: list[str], **kw) -> Proc:
+        return super().start(name, argv, log_name=f"{name}-{len(self.procs)}.log", **kw)
 
     def router(self, endpoint: str | None = None, timeout: float = 30.0) -> str:
         """Start a router; returns its endpoint once it accepts TCP connections."""
         endpoint = endpoint or free_endpoint()
-        p = self.start("router", python_main("common.session", "router_main") + ["--listen", endpoint])
+        p = self.start("router", python_main("deploy.router") + ["--listen", endpoint])
         host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
 
         def up() -> bool:
@@ -182,16 +111,16 @@ class ProcGroup:
 
     def learner(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
         run_dir = Path(run_dir or self.base / "run")
-        return self.start("learner", python_main("learner.service") + [
+        return self.start("learner", python_main("learner.main") + [
             "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
 
     def actor(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
         run_dir = Path(run_dir or self.base / "run")
-        return self.start("actor", python_main("actor.service") + [
+        return self.start("actor", python_main("actor.main") + [
             "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
 
     def human(self, run: str, endpoint: str, *extra: str) -> Proc:
-        return self.start("human", python_main("human_bridge.service") + [*extra[:1], "--run", run,
+        return self.start("human", python_main("human_bridge.main") + [*extra[:1], "--run", run,
                                                                             "--connect", endpoint, *extra[1:]])
 
 
