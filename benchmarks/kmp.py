@@ -54,7 +54,8 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
     demos = make_demos("high_cov", seed=seed)
     config = KMPConfig(seed=seed)
     G, c = box_constraints([0.02, 0.02], [0.98, 0.98])
-    console.print(f"[bold]LC-NS-KMP per-step benchmark[/] N=400, O=2, F=4, repeats={repeats} ({platform.processor() or platform.machine()})")
+    cpu = platform.processor() or platform.machine()
+    console.print(f"[bold]LC-NS-KMP per-step benchmark[/] N=400, O=2, F=4, repeats={repeats} ({cpu})")
 
     t0 = time.perf_counter()
     free, ref = fit_model(demos, config)
@@ -62,11 +63,12 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
     t0 = time.perf_counter()
     boxed, _ = fit_model(demos, config, (G, c))
     t_fit_boxed = time.perf_counter() - t0
-    from common.kmp import LCNSKMP
     from common.kernels import RBF
+    from common.kmp import LCNSKMP
 
     def build(_):
-        LCNSKMP(ref.s, ref.mu, ref.sigma, lam=config.lam, beta=config.beta, kernel=RBF(config.length_scale), constraints=(G, c))
+        LCNSKMP(ref.s, ref.mu, ref.sigma, lam=config.lam, beta=config.beta, kernel=RBF(config.length_scale),
+                constraints=(G, c))
 
     t_build = _median_time(build, 5)
 
@@ -79,7 +81,9 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
 
     results: dict[str, float] = {}
     results["grid step, no constraints"] = _median_time(lambda k: free.grid_step(int(steps[k]), small[k]), repeats)
-    results["grid step, inactive constraints"] = _median_time(lambda k: boxed.grid_step(int(steps[k]), small[k]), repeats)
+    results["grid step, inactive constraints"] = _median_time(
+        lambda k: boxed.grid_step(int(steps[k]), small[k]), repeats
+    )
     active_counts = []
 
     def active_step(k):
@@ -116,8 +120,12 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
         def lcns(k, xi, n):
             ref_kmp.predict_LCNS(s[n : n + 1], xi.reshape(2, 1), s[n].reshape(1, 1), s, ref.mu, ref.sigma)
 
-        results["lc-ns-kmp predict_LCNS, inactive constraints"] = _median_time(lambda k: lcns(k, small[k], int(steps[k])), 3)
-        results["lc-ns-kmp predict_LCNS, active constraints"] = _median_time(lambda k: lcns(k, push[k], int(sweep[k])), 3)
+        results["lc-ns-kmp predict_LCNS, inactive constraints"] = _median_time(
+            lambda k: lcns(k, small[k], int(steps[k])), 3
+        )
+        results["lc-ns-kmp predict_LCNS, active constraints"] = _median_time(
+            lambda k: lcns(k, push[k], int(sweep[k])), 3
+        )
 
     table = Table(title="median time per call")
     table.add_column("case")
@@ -136,7 +144,8 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
         ratio = f"{value / base[key]:,.0f}×" if key and not name.startswith("grid step") else ""
         table.add_row(name, _fmt(value), ratio)
     console.print(table)
-    console.print(f"active-constraint sweep: {np.mean(active_counts):.1f} active rows on average (max {max(active_counts)})")
+    console.print(f"active-constraint sweep: {np.mean(active_counts):.1f} active rows on average "
+                  f"(max {max(active_counts)})")
     record = {
         "config": config.to_dict(),
         "repeats": repeats,

@@ -27,7 +27,9 @@ def validate_demos(demos: np.ndarray, source: str = "demonstrations") -> np.ndar
     try:
         arr = np.asarray(demos, dtype=np.float64)
     except (ValueError, TypeError) as exc:  # ragged nested lists
-        raise DemoFormatError(f"{source}: not a rectangular numeric array ({exc}); all demonstrations need the same length") from exc
+        raise DemoFormatError(
+            f"{source}: not a rectangular numeric array ({exc}); all demonstrations need the same length"
+        ) from exc
     if arr.ndim != 3:
         raise DemoFormatError(f"{source}: expected shape (M demos, N steps, O outputs), got {arr.shape}")
     m, n, o = arr.shape
@@ -95,7 +97,9 @@ def _load_csv(path: Path) -> np.ndarray:
     uniq = np.unique(demo_ids)
     lengths = {int(d): int(np.sum(demo_ids == d)) for d in uniq}
     if len(set(lengths.values())) != 1:
-        raise DemoFormatError(f"{path}: ragged demonstrations (steps per demo: {lengths}); all must have the same length")
+        raise DemoFormatError(
+            f"{path}: ragged demonstrations (steps per demo: {lengths}); all must have the same length"
+        )
     m, n, o = len(uniq), next(iter(lengths.values())), cols.shape[1] - 2
     demos = np.empty((m, n, o))
     for k, d in enumerate(uniq):

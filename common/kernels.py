@@ -36,11 +36,14 @@ class RBF:
             raise ValueError(f"RBF variance must be finite and > 0, got {self.variance}")
 
     @classmethod
-    def from_precision(cls, l: float) -> "RBF":
-        """The ``lc-ns-kmp`` convention ``exp(-l ||a-b||^2)`` expressed as a length scale."""
-        if not (np.isfinite(l) and l > 0):
-            raise ValueError(f"RBF precision must be finite and > 0, got {l}")
-        return cls(length_scale=float(1.0 / np.sqrt(2.0 * l)), variance=1.0)
+    def from_precision(cls, precision: float) -> "RBF":
+        """The ``lc-ns-kmp`` convention ``exp(-l ||a-b||^2)`` (l = ``precision``) expressed as a length scale.
+
+        :param precision: l > 0.
+        """
+        if not (np.isfinite(precision) and precision > 0):
+            raise ValueError(f"RBF precision must be finite and > 0, got {precision}")
+        return cls(length_scale=float(1.0 / np.sqrt(2.0 * precision)), variance=1.0)
 
     @property
     def precision(self) -> float:

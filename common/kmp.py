@@ -17,7 +17,8 @@ Two ways to evaluate the model:
 
 Conventions: ``s`` (N, I) reference inputs, ``mu`` (N, O) GMR means, ``sigma`` (N, O, O) GMR
 covariances, stacked point-major. Constraints ``(G, c)`` mean ``G[n, f] @ eta(s_n) >= c[n, f]`` at every
-grid input; ``G`` is (F, O) (shared by all points) or (N, F, O), ``c`` is (F,) or (N, F).
+grid input; ``G`` is (F, O) (shared by all points) or (N, F, O), ``c`` is (F,) or (N, F). Their validation,
+feasibility check are in ``common/kmp_inputs.py``, the dual QP's tables in ``common/kmp_dual.py``.
 """
 
 from __future__ import annotations
@@ -26,16 +27,20 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 
 from common.kernels import RBF, Kernel, evaluate_kernel, kernel_diag
+from common.kmp_dual import dual_tables, gbar, gbar_t, least_distance_factor
+from common.kmp_inputs import (
+    InfeasibleConstraintsError,
+    as_2d,
+    check_feasible,
+    check_hyperparameters,
+    check_reference,
+    normalise_constraints,
+)
 from common.qp import QPError, solve_dual_qp, solve_least_distance_interior
 
 __all__ = ["LCNSKMP", "InfeasibleConstraintsError", "QPError"]
-
-
-class InfeasibleConstraintsError(ValueError):
-    """The linear constraints admit no point at some grid input."""
 
 
 @dataclass
@@ -44,18 +49,6 @@ class StepInfo:
 
     active_rows: int = 0  # constraint rows with alpha > 0 (0: KKT shortcut, the unconstrained step was feasible)
     qp_solved: bool = False
-
-
-def _as_2d(name: str, x: np.ndarray, cols: int | None = None) -> np.ndarray:
-    x = np.asarray(x, dtype=np.float64)
-    if x.ndim == 1 and cols is not None and cols == 1:
-        x = x[:, None]
-    if x.ndim != 2 or (cols is not None and x.shape[1] != cols):
-        want = f"(n, {cols})" if cols is not None else "(n, d)"
-        raise ValueError(f"{name} must have shape {want}, got {x.shape}")
-    if not np.all(np.isfinite(x)):
-        raise ValueError(f"{name} contains NaN or inf")
-    return x
 
 
 class LCNSKMP:
@@ -87,30 +80,10 @@ class LCNSKMP:
         kernel: Kernel | None = None,
         constraints: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:
-        self.s = _as_2d("s", s)
+        self.s, self.mu, sig = check_reference(s, mu, sigma)
         n, i = self.s.shape
-        self.mu = _as_2d("mu", mu)
-        if self.mu.shape[0] != n:
-            raise ValueError(f"mu has {self.mu.shape[0]} rows but s has {n}")
         o = self.mu.shape[1]
-        sig = np.asarray(sigma, dtype=np.float64)
-        if sig.shape != (n, o, o):
-            raise ValueError(f"sigma must have shape {(n, o, o)}, got {sig.shape}")
-        if not np.all(np.isfinite(sig)):
-            raise ValueError("sigma contains NaN or inf")
-        if not np.allclose(sig, np.swapaxes(sig, 1, 2), rtol=1e-8, atol=1e-12):
-            raise ValueError("sigma must be symmetric at every point")
-        sig = 0.5 * (sig + np.swapaxes(sig, 1, 2))
-        eig_min = np.linalg.eigvalsh(sig).min(axis=1)
-        if np.any(eig_min <= 0.0):
-            bad = int(np.argmin(eig_min))
-            raise ValueError(
-                f"sigma must be positive definite at every point (smallest eigenvalue {eig_min[bad]:.3g} at "
-                f"point {bad}); add jitter to the reference covariances"
-            )
-        for name, v in (("lam", lam), ("beta", beta)):
-            if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be finite and > 0, got {v}")
+        check_hyperparameters(lam, beta)
         self.sigma = sig
         self.lam, self.beta = float(lam), float(beta)
         self.gamma = self.lam + self.beta
@@ -167,7 +140,7 @@ class LCNSKMP:
         return np.kron(kvec, np.eye(self.out_dim))
 
     def _check_query(self, s_star: np.ndarray) -> np.ndarray:
-        return _as_2d("s_star", s_star, self.in_dim)
+        return as_2d("s_star", s_star, self.in_dim)
 
     @property
     def constrained(self) -> bool:
@@ -190,59 +163,18 @@ class LCNSKMP:
 
     # -------------------------------------------------------------- constraints
     def _setup_constraints(self, G: np.ndarray, c: np.ndarray) -> None:
-        n, o = self.n_points, self.out_dim
-        G = np.asarray(G, dtype=np.float64)
-        c = np.asarray(c, dtype=np.float64)
-        if G.ndim == 2:
-            if G.shape[1] != o or c.shape != (G.shape[0],):
-                raise ValueError(f"shared constraints need G (F, {o}) and c (F,), got {G.shape} and {c.shape}")
-            G = np.broadcast_to(G, (n, *G.shape)).copy()
-            c = np.broadcast_to(c, (n, c.shape[0])).copy()
-        elif G.ndim == 3:
-            if G.shape[0] != n or G.shape[2] != o or c.shape != G.shape[:2]:
-                raise ValueError(
-                    f"per-point constraints need G ({n}, F, {o}) and c ({n}, F), got {G.shape} and {c.shape}"
-                )
-        else:
-            raise ValueError(f"G must have shape (F, O) or (N, F, O), got {G.shape}")
-        if G.shape[1] == 0:
-            raise ValueError("constraints given with F = 0 rows; pass constraints=None instead")
-        if not (np.all(np.isfinite(G)) and np.all(np.isfinite(c))):
-            raise ValueError("constraints contain NaN or inf")
-        if np.any(np.linalg.norm(G, axis=2) == 0.0):
-            raise ValueError("constraint normals g must be non-zero")
-        self._check_feasible(G, c)
+        G, c = normalise_constraints(G, c, self.n_points, self.out_dim)
+        check_feasible(G, c)
         self._G, self._c = G, c
-        f = G.shape[1]
-        # P = M Gbar (NO x NF): the dual's linear term moves by (beta / k_nn) P[n-block]^T xi per step.
-        M4 = self._M.reshape(n, o, n, o)
-        self._P = np.einsum("aibj,bfj->aibf", M4, G, optimize=True).reshape(n * o, n * f)
-        # Q = Gbar^T M Gbar (NF x NF), the dual's Hessian (eq. 3, corrected).
-        Q = np.einsum("afi,aibg->afbg", G, self._P.reshape(n, o, n, f), optimize=True).reshape(n * f, n * f)
-        self._Q = 0.5 * (Q + Q.T)
-        self._q0 = self._gbar_t(self._eta0.reshape(-1)) - c.reshape(-1)
-
-    @staticmethod
-    def _check_feasible(G: np.ndarray, c: np.ndarray) -> None:
-        """Each grid point's polyhedron {eta : G_n eta >= c_n} must be non-empty (one LP per distinct set)."""
-        stacked = np.concatenate([G.reshape(G.shape[0], -1), c], axis=1)
-        _, first = np.unique(stacked, axis=0, return_index=True)
-        for idx in np.sort(first):
-            res = scipy.optimize.linprog(
-                np.zeros(G.shape[2]), A_ub=-G[idx], b_ub=-c[idx], bounds=[(None, None)] * G.shape[2], method="highs"
-            )
-            if res.status == 2:
-                raise InfeasibleConstraintsError(
-                    f"constraints at grid point {idx} admit no solution: G={G[idx].tolist()} c={c[idx].tolist()}"
-                )
+        self._P, self._Q, self._q0 = dual_tables(self._M, G, c, self._eta0)
 
     def _gbar_t(self, v: np.ndarray) -> np.ndarray:
         """Gbar^T v for a point-major (N*O,) vector -> (N*F,)."""
-        return np.einsum("nfo,no->nf", self._G, v.reshape(self.n_points, self.out_dim)).reshape(-1)
+        return gbar_t(self._G, v)
 
     def _gbar(self, alpha: np.ndarray) -> np.ndarray:
         """Gbar alpha for (N*F,) -> point-major (N*O,)."""
-        return np.einsum("nfo,nf->no", self._G, alpha.reshape(self.n_points, -1)).reshape(-1)
+        return gbar(self._G, alpha)
 
     def _dual(self, q: np.ndarray, warm: list[int] | None = None) -> np.ndarray:
         """alpha* = argmin_{alpha>=0} 1/2 alpha^T Q alpha + q^T alpha (eq. 3, corrected; math.md §3).
@@ -257,10 +189,7 @@ class LCNSKMP:
             return alpha
         except (QPError, np.linalg.LinAlgError):
             if self._H is None:
-                evals, evecs = np.linalg.eigh(self._M)
-                keep = evals > 1e-14 * evals[-1]
-                R3 = (evecs[:, keep] * np.sqrt(evals[keep])).reshape(self.n_points, self.out_dim, -1)
-                self._H = np.einsum("nfo,nor->nfr", self._G, R3).reshape(self._Q.shape[0], -1)
+                self._H = least_distance_factor(self._M, self._G)
             _, alpha = solve_least_distance_interior(self._H, -q)
             # feasibility, not complementarity: interior-point multipliers are large (~1e5) on such problems
             if np.min(self._Q @ alpha + q) < -1e-6 * max(1.0, float(np.max(np.abs(q)))):
@@ -277,8 +206,10 @@ class LCNSKMP:
         if xi.shape != (self.out_dim,) or not np.all(np.isfinite(xi)):
             raise ValueError(f"xi must be a finite ({self.out_dim},) vector, got {np.asarray(xi).shape}")
         if s_hat is None:
-            raise ValueError("xi given without s_hat: pass the secondary input s_hat (I,) (use projector() for s_hat = s*)")
-        s_hat = _as_2d("s_hat", np.asarray(s_hat, dtype=np.float64).reshape(1, -1), self.in_dim)
+            raise ValueError(
+                "xi given without s_hat: pass the secondary input s_hat (I,) (use projector() for s_hat = s*)"
+            )
+        s_hat = as_2d("s_hat", np.asarray(s_hat, dtype=np.float64).reshape(1, -1), self.in_dim)
         return xi, s_hat
 
     def predict(self, s_star: np.ndarray, xi: np.ndarray | None = None, s_hat: np.ndarray | None = None) -> np.ndarray:
@@ -343,7 +274,7 @@ class LCNSKMP:
         xi_h = N(s*)^-1 (P_h - k* A mu), solved as a symmetric O x O system per query.
         """
         s_star = self._check_query(s_star)
-        p_h = _as_2d("p_h", p_h, self.out_dim)
+        p_h = as_2d("p_h", p_h, self.out_dim)
         if p_h.shape[0] != s_star.shape[0]:
             raise ValueError(f"p_h has {p_h.shape[0]} rows, s_star has {s_star.shape[0]}")
         n, o = self.n_points, self.out_dim
@@ -428,7 +359,8 @@ class LCNSKMP:
                 break
             act = [i for i in self._last_active if self._last_alpha is not None and self._last_alpha[i] > 0]
             pa = rows[:, act]
-            jac = self._proj[n] - (self.beta / self._kdiag[n]) * pa @ np.linalg.lstsq(self._Q[np.ix_(act, act)], pa.T, rcond=1e-12)[0]
+            q_inv_pa = np.linalg.lstsq(self._Q[np.ix_(act, act)], pa.T, rcond=1e-12)[0]
+            jac = self._proj[n] - (self.beta / self._kdiag[n]) * pa @ q_inv_pa
             xi = xi + np.linalg.lstsq(jac, p_h - p, rcond=1e-12)[0]
         return best
 

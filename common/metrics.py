@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["EpisodeStats", "EpisodeAccumulator", "write_episodes"]
+__all__ = ["EpisodeStats", "EpisodeAccumulator", "write_episodes", "append_episode_row"]
 
 
 @dataclass
@@ -83,6 +83,22 @@ class EpisodeAccumulator:
         st.wall_time = wall_time
         self._open = None
         return st
+
+
+def append_episode_row(path: str | Path, st: EpisodeStats) -> None:
+    """Append one episode to an ``episodes.csv`` (the header first if the file is new or empty).
+
+    :param path: the CSV file.
+    :param st: the finished episode.
+    """
+    path = Path(path)
+    row = st.to_row()
+    header = not path.is_file() or path.stat().st_size == 0
+    with open(path, "a", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(row.keys()))
+        if header:
+            writer.writeheader()
+        writer.writerow(row)
 
 
 def write_episodes(run_dir: str | Path, episodes: list[EpisodeStats], config: dict) -> None:

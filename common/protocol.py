@@ -18,8 +18,7 @@ from typing import Any, TypeVar
 import msgpack
 import numpy as np
 
-from common.messages import (Ack, Control, Correction, EpisodeReport, Frame, Message, Scale, Status, Transitions,
-                             Weights)
+from common.messages import Ack, Control, Correction, EpisodeReport, Frame, Message, Scale, Status, Transitions, Weights
 from common.spaces import ACT_DIM, OBS_DIM
 from common.wire import MAX_ID_LEN, ProtocolError, RejectCounter, ident, pack_array, typ, unpack_array
 
@@ -30,8 +29,9 @@ __all__ = ["SCHEMA_VERSION", "Keys", "Envelope", "encode", "decode", "decode_any
 SCHEMA_VERSION = 1
 M = TypeVar("M", bound=Message)
 
-KINDS: dict[str, type[Message]] = {cls.KIND: cls for cls in
-                                   (Transitions, Ack, Weights, Correction, Frame, Scale, EpisodeReport, Status, Control)}
+KINDS: dict[str, type[Message]] = {
+    cls.KIND: cls for cls in (Transitions, Ack, Weights, Correction, Frame, Scale, EpisodeReport, Status, Control)
+}
 
 
 class Keys:

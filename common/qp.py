@@ -143,7 +143,10 @@ def solve_dual_qp(
                 if slack[p] >= -dep_eps:
                     skipped[p] = True
                     break
-                raise QPError(f"constraints are incompatible: row {p} (violated by {-slack[p]:.3g}) cannot hold with the active rows {active}")
+                raise QPError(
+                    f"constraints are incompatible: row {p} (violated by {-slack[p]:.3g}) cannot hold with the "
+                    f"active rows {active}"
+                )
             t = min(t1, t2)
             slack += t * step_dir
             if active:

@@ -8,9 +8,10 @@ Layout: the unit square [0, 1]^2 (y up) fills a ``size`` x ``size`` square at th
 a light grey text strip of ``strip_height`` pixels sits below it.
 
 Speed: everything that does not change within an episode (grid, walls, gaps, obstacle, demonstrations,
-KMP mean, goal, start) is drawn once, 2x supersampled and smooth-scaled down (cheap antialiasing), into a
-cached layer; the exploration band, which changes only when the scale L changes, is composited into that
-layer and cached by the band's content. A frame is then one blit plus a few small dynamic shapes.
+KMP mean, goal, start) is drawn once (``common/render_layers.py``) into a cached layer; the exploration
+band, which changes only when the scale L changes, is composited into that layer and cached by the band's
+content. A frame is then one blit plus a few small dynamic shapes. Colours, fonts and ``FrameState`` live in
+``common/render_style.py`` and are re-exported here.
 """
 
 from __future__ import annotations
@@ -18,116 +19,17 @@ from __future__ import annotations
 import hashlib
 import sys
 from collections import OrderedDict
-from dataclasses import dataclass, field
 
 import numpy as np
 import pygame
 
+from common.render_layers import band_layer, static_layers
+from common.render_style import COLORS, FrameState, get_font
 from common.scenarios import Scenario
 
-__all__ = ["FrameState", "SceneRenderer", "HumanWindow", "COLORS"]
+__all__ = ["FrameState", "SceneRenderer", "HumanWindow", "COLORS", "get_font"]
 
-# Colours (RGB). Matplotlib's tab palette where Fig. 3 / plots.py uses it.
-COLORS: dict[str, tuple[int, int, int]] = {
-    "background": (255, 255, 255),
-    "grid": (232, 232, 236),
-    "grid_major": (214, 214, 222),
-    "border": (150, 150, 160),
-    "wall": (0, 0, 0),
-    "gap": (255, 214, 40),
-    "obstacle": (150, 82, 36),
-    "obstacle_edge": (105, 52, 18),
-    "demo": (31, 119, 180),
-    "mean": (214, 39, 40),
-    "band": (120, 185, 245),
-    "desired": (255, 120, 0),
-    "robot": (128, 36, 150),
-    "robot_edge": (70, 10, 90),
-    "trail": (150, 70, 175),
-    "goal": (44, 160, 44),
-    "goal_edge": (30, 120, 30),
-    "start": (128, 36, 150),
-    "correction": (0, 0, 0),
-    "strip": (226, 226, 230),
-    "strip_line": (190, 190, 198),
-    "text": (25, 25, 30),
-    "human": (255, 140, 0),
-    "phase_bar": (120, 120, 135),
-}
-
-_SUPERSAMPLE = 2  # static layer is drawn at this factor and smooth-scaled down
-_BAND_ALPHA = 95  # 0..255, translucency of the exploration band
 _CACHE_SIZE = 8  # composited (static + band) layers kept
-
-
-@dataclass
-class FrameState:
-    """What changes from frame to frame."""
-
-    robot: np.ndarray  # (2,) robot position
-    desired: np.ndarray  # (2,) desired position P_t
-    phase: float = 0.0  # s in [0, 1]
-    trail: np.ndarray | None = None  # (k, 2) robot positions so far this episode
-    band: np.ndarray | None = None  # (N, 2, 2): per grid point [low(x, y), high(x, y)]
-    human_active: bool = False
-    correction: np.ndarray | None = None  # (2,) the human's P_h while intervening
-    text: list[str] = field(default_factory=list)  # status lines for the bottom strip
-
-
-_FONT_CACHE: dict[int, pygame.font.Font] = {}
-
-
-def _get_font(px: int) -> pygame.font.Font | None:
-    """A monospace font if the system has one, else pygame's bundled default font (works headless)."""
-    if px in _FONT_CACHE:
-        return _FONT_CACHE[px]
-    try:
-        if not pygame.font.get_init():
-            pygame.font.init()
-    except Exception:  # pragma: no cover - pygame built without SDL_ttf
-        return None
-    font = None
-    try:
-        path = pygame.font.match_font("dejavusansmono,liberationmono,couriernew,ubuntumono,monospace")
-        if path:
-            font = pygame.font.Font(path, px)
-    except Exception:
-        font = None
-    if font is None:
-        font = pygame.font.Font(None, px + 4)  # bundled freesansbold; its nominal size runs small
-    _FONT_CACHE[px] = font
-    return font
-
-
-def _dashed_runs(pts: np.ndarray, dash: float) -> list[np.ndarray]:
-    """Split a polyline (k, 2) into the 'on' pieces of a dash pattern of period 2*dash (arc length)."""
-    if len(pts) < 2:
-        return []
-    seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-    arc = np.concatenate([[0.0], np.cumsum(seg)])
-    total = arc[-1]
-    runs = []
-    start = 0.0
-    while start < total:
-        end = min(start + dash, total)
-        inside = (arc > start) & (arc < end)
-        p0 = pts[0] if start <= 0 else _interp_arc(pts, arc, start)
-        p1 = _interp_arc(pts, arc, end)
-        run = np.vstack([p0[None], pts[inside], p1[None]])
-        if len(run) >= 2:
-            runs.append(run)
-        start += 2 * dash
-    return runs
-
-
-def _fractions(steps: np.ndarray) -> np.ndarray:
-    """concatenate(arange(m) / m for m in steps), vectorised."""
-    starts = np.repeat(np.cumsum(steps) - steps, steps)
-    return (np.arange(int(steps.sum())) - starts) / np.repeat(steps, steps)
-
-
-def _interp_arc(pts: np.ndarray, arc: np.ndarray, a: float) -> np.ndarray:
-    return np.array([np.interp(a, arc, pts[:, 0]), np.interp(a, arc, pts[:, 1])])
 
 
 class SceneRenderer:
@@ -193,183 +95,23 @@ class SceneRenderer:
         out[..., 1] = 1.0 - px[..., 1] / self._span
         return out
 
-    # ------------------------------------------------------------------ static layers
+    # ------------------------------------------------------------------ cached layers
     def _static_layers(self, show_demos: bool, show_mean: bool) -> tuple[pygame.Surface, pygame.Surface]:
-        """(background, foreground), drawn 2x supersampled and smooth-scaled down. The background (grid)
-        is opaque; the foreground (obstacle, gaps, demos, mean, walls, start, goal, legend) has per-pixel
-        alpha, is premultiplied and goes on top of the band."""
+        """(background, foreground) of ``common.render_layers.static_layers``, cached per flag pair."""
         key = (show_demos, show_mean)
         if key in self._static:
             return self._static[key]
-        k = _SUPERSAMPLE
-        big = self.size * k
-        sc = self.scenario
-
-        bg = pygame.Surface((big, big))
-        bg.fill(COLORS["background"])
-        for i in range(1, 20):
-            v = i / 20.0
-            col = COLORS["grid_major"] if i % 2 == 0 else COLORS["grid"]
-            a = self._w2p(np.array([v, 0.0]), k)
-            b = self._w2p(np.array([v, 1.0]), k)
-            pygame.draw.line(bg, col, a, b, k)
-            a = self._w2p(np.array([0.0, v]), k)
-            b = self._w2p(np.array([1.0, v]), k)
-            pygame.draw.line(bg, col, a, b, k)
-        pygame.draw.rect(bg, COLORS["border"], pygame.Rect(0, 0, big, big), k)
-
-        fg = pygame.Surface((big, big), pygame.SRCALPHA)
-        fg.fill((0, 0, 0, 0))
-        if sc.obstacle is not None:
-            c = self._w2p(np.array(sc.obstacle.center), k)
-            r = sc.obstacle.radius * self._span * k
-            pygame.draw.circle(fg, COLORS["obstacle"], c, r)
-            pygame.draw.circle(fg, COLORS["obstacle_edge"], c, r, 2 * k)
-
-        wall_w = max(3, round(0.011 * self.size)) * k
-        gap_w = max(wall_w + 4 * k, round(0.026 * self.size) * k)
-        for wall in sc.walls:
-            x0, y_hi = self._w2p(np.array([wall.x, wall.gap_hi]), k)
-            _, y_lo = self._w2p(np.array([wall.x, wall.gap_lo]), k)
-            gap = pygame.Rect(0, 0, gap_w, y_lo - y_hi)
-            gap.center = (round(x0), round(0.5 * (y_lo + y_hi)))
-            pygame.draw.rect(fg, COLORS["gap"], gap)
-
-        if show_demos and self.demos is not None:
-            dash = 0.012  # world units
-            for d in self.demos:
-                for run in _dashed_runs(d, dash):
-                    pygame.draw.lines(fg, COLORS["demo"] + (220,), False, self._w2p(run, k), 2 * k)
-        if show_mean and self.mean is not None and len(self.mean) >= 2:
-            pts = self._w2p(self.mean, k)
-            pygame.draw.lines(fg, COLORS["mean"] + (255,), False, pts, 3 * k)
-            for p in (pts[0], pts[-1]):  # round caps
-                pygame.draw.circle(fg, COLORS["mean"] + (255,), p, 1.5 * k)
-
-        for wall in sc.walls:  # walls over the demonstrations (recorded before the walls were placed)
-            x0, y_hi = self._w2p(np.array([wall.x, wall.gap_hi]), k)
-            _, y_lo = self._w2p(np.array([wall.x, wall.gap_lo]), k)
-            rect_top = pygame.Rect(round(x0 - wall_w / 2), 0, wall_w, round(y_hi))
-            rect_bot = pygame.Rect(round(x0 - wall_w / 2), round(y_lo), wall_w, big - round(y_lo))
-            pygame.draw.rect(fg, COLORS["wall"] + (255,), rect_top)
-            pygame.draw.rect(fg, COLORS["wall"] + (255,), rect_bot)
-
-        s = self._w2p(np.array(sc.start), k)
-        pygame.draw.circle(fg, COLORS["start"] + (255,), s, 7 * k, 2 * k)
-        g = self._w2p(np.array(sc.goal), k)
-        gr = max(sc.goal_radius * self._span * k, 9 * k)
-        pygame.draw.circle(fg, COLORS["goal"] + (40,), g, gr)
-        pygame.draw.circle(fg, COLORS["goal_edge"] + (255,), g, gr, 2 * k)
-        pygame.draw.circle(fg, COLORS["goal"] + (255,), g, 7 * k)
-
-        if self.legend:
-            self._draw_legend(fg, k, show_demos and self.demos is not None, show_mean and self.mean is not None)
-
-        # fg is averaged down in premultiplied form (transparent = (0, 0, 0, 0) is then exact) and
-        # blitted with BLEND_PREMULTIPLIED
-        fg = fg.premul_alpha()
-        layers = (pygame.transform.smoothscale(bg, (self.size, self.size)),
-                  pygame.transform.smoothscale(fg, (self.size, self.size)))
+        layers = static_layers(
+            self.scenario,
+            self.demos if show_demos else None,
+            self.mean if show_mean else None,
+            size=self.size,
+            span=self._span,
+            w2p=self._w2p,
+            legend=self.legend,
+        )
         self._static[key] = layers
         return layers
-
-    def _draw_legend(self, fg: pygame.Surface, k: int, demos: bool, mean: bool) -> None:
-        """A small key in the top-left corner, drawn into the (supersampled) static foreground."""
-        font = _get_font(12 * k)
-        if font is None:
-            return
-        sc = self.scenario
-        entries: list[tuple[str, str]] = []
-        if demos:
-            entries.append(("demo", "demonstrations"))
-        if mean:
-            entries.append(("mean", "KMP mean"))
-        entries.append(("band", "exploration band"))
-        entries.append(("gap", "passage"))
-        if sc.obstacle is not None:
-            entries.append(("obstacle", "obstacle"))
-        entries += [("robot", "robot"), ("desired", "desired P_t"), ("goal", "goal")]
-        row = 16 * k
-        pad = 6 * k
-        sym = 22 * k
-        text_w = max(font.size(label)[0] for _, label in entries)
-        box = pygame.Rect(6 * k, 6 * k, pad * 3 + sym + text_w, pad * 2 + row * len(entries))
-        pygame.draw.rect(fg, (255, 255, 255, 225), box, border_radius=4 * k)
-        pygame.draw.rect(fg, COLORS["border"] + (255,), box, k, border_radius=4 * k)
-        for i, (kind, label) in enumerate(entries):
-            cy = box.top + pad + row * i + row // 2
-            x0 = box.left + pad
-            cx = x0 + sym // 2
-            if kind == "demo":
-                for j in range(3):
-                    a = x0 + j * 8 * k
-                    pygame.draw.line(fg, COLORS["demo"] + (255,), (a, cy), (a + 5 * k, cy), 2 * k)
-            elif kind == "mean":
-                pygame.draw.line(fg, COLORS["mean"] + (255,), (x0, cy), (x0 + sym, cy), 3 * k)
-            elif kind == "band":
-                col = tuple(round(255 + (c - 255) * _BAND_ALPHA / 255) for c in COLORS["band"])
-                pygame.draw.rect(fg, col + (255,), pygame.Rect(x0, cy - 5 * k, sym, 10 * k))
-            elif kind == "gap":
-                pygame.draw.rect(fg, COLORS["gap"] + (255,), pygame.Rect(cx - 5 * k, cy - 6 * k, 10 * k, 12 * k))
-            elif kind == "obstacle":
-                pygame.draw.circle(fg, COLORS["obstacle"] + (255,), (cx, cy), 6 * k)
-            elif kind == "robot":
-                pygame.draw.circle(fg, COLORS["robot"] + (255,), (cx, cy), 5 * k)
-            elif kind == "desired":
-                pygame.draw.circle(fg, COLORS["desired"] + (255,), (cx, cy), 6 * k, int(2.5 * k))
-            elif kind == "goal":
-                pygame.draw.circle(fg, COLORS["goal"] + (255,), (cx, cy), 5 * k)
-            img = font.render(label, True, COLORS["text"])
-            fg.blit(img, (x0 + sym + pad, cy - img.get_height() // 2))
-
-    def _band_layer(self, band: np.ndarray) -> pygame.Surface:
-        """The region swept by the per-point boxes [low, high] along the grid, as one uniform translucent
-        layer (colour-keyed surface + surface alpha, so overlaps do not darken).
-
-        The sweep between two consecutive boxes is their convex hull, which for axis-aligned boxes is the
-        union of the linearly interpolated boxes; the boxes are therefore resampled to move at most about
-        one pixel per sample and their union is rasterised (exact to a pixel)."""
-        band = np.asarray(band, dtype=np.float64)
-        if band.ndim != 3 or band.shape[1:] != (2, 2):
-            raise ValueError(f"band must be (N, 2, 2) [low, high] per point, got {band.shape}")
-        band = band[np.all(np.isfinite(band), axis=(1, 2))]
-        lo = np.minimum(band[:, 0], band[:, 1])
-        hi = np.maximum(band[:, 0], band[:, 1])
-        # pixel box per point: (left, top, right, bottom); y flips, so world hi.y is the pixel top
-        tl = self._w2p(np.c_[lo[:, 0], hi[:, 1]])
-        br = self._w2p(np.c_[hi[:, 0], lo[:, 1]])
-        boxes = np.c_[tl, br]  # (N, 4)
-        if len(boxes) >= 2:
-            move = np.abs(np.diff(boxes, axis=0)).max(axis=1)
-            steps = np.clip(np.ceil(move), 1, 256).astype(np.int64)
-            idx = np.repeat(np.arange(len(boxes) - 1), steps)
-            frac = _fractions(steps)
-            boxes = np.vstack([boxes[idx] + frac[:, None] * (boxes[idx + 1] - boxes[idx]), boxes[-1:]])
-        # rasterise the union of the boxes with a 2-D difference array (no overdraw, ~1 ms)
-        n = self.size
-        left = np.clip(np.floor(boxes[:, 0]).astype(np.int64), 0, n)
-        top = np.clip(np.floor(boxes[:, 1]).astype(np.int64), 0, n)
-        right = np.clip(np.ceil(boxes[:, 2]).astype(np.int64) + 1, 0, n)
-        bottom = np.clip(np.ceil(boxes[:, 3]).astype(np.int64) + 1, 0, n)
-        keep = (right > left) & (bottom > top)
-        left, top, right, bottom = left[keep], top[keep], right[keep], bottom[keep]
-        stride = n + 1
-        plus = np.concatenate([top * stride + left, bottom * stride + right])
-        minus = np.concatenate([top * stride + right, bottom * stride + left])
-        m = stride * stride
-        diff = (np.bincount(plus, minlength=m) - np.bincount(minus, minlength=m)).astype(np.int32)
-        diff = diff.reshape(stride, stride)
-        cover = np.cumsum(np.cumsum(diff, axis=0, dtype=np.int32), axis=1, dtype=np.int32)
-        mask = cover[:n, :n] > 0  # (rows = y, cols = x)
-        key_col = (255, 0, 255)
-        surf = pygame.Surface((n, n))
-        surf.fill(key_col)
-        surf.set_colorkey(key_col)
-        pixels = pygame.surfarray.pixels2d(surf)  # (x, y) view
-        pixels[mask.T] = surf.map_rgb(COLORS["band"])
-        del pixels  # unlock
-        surf.set_alpha(_BAND_ALPHA)
-        return surf
 
     def _composite(self, band: np.ndarray | None, show_demos: bool, show_mean: bool) -> pygame.Surface:
         if band is None or len(band) == 0:
@@ -385,7 +127,7 @@ class SceneRenderer:
         bg, fg = self._static_layers(show_demos, show_mean)
         surf = bg.copy()
         if digest is not None:
-            surf.blit(self._band_layer(band), (0, 0))
+            surf.blit(band_layer(band, self.size, self._w2p), (0, 0))
         surf.blit(fg, (0, 0), special_flags=pygame.BLEND_PREMULTIPLIED)
         self._composites[key] = surf
         while len(self._composites) > _CACHE_SIZE:
@@ -478,7 +220,7 @@ class SceneRenderer:
         phase = float(np.clip(state.phase, 0.0, 1.0))
         bar_h = 4
         pygame.draw.rect(surface, COLORS["phase_bar"], pygame.Rect(0, top + 1, round(phase * self.width), bar_h))
-        font = _get_font(15)
+        font = get_font(15)
         if font is None:
             return
         y = top + bar_h + 5

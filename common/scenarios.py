@@ -58,7 +58,8 @@ class Scenario:
     walls: tuple[Wall, ...]
     obstacle: Obstacle | None
     default_scale: float  # L (per dimension), paper: 20 in A, 15 in B
-    learn_scale: bool  # KhGRL refits L from the human here (paper: B only; in A "the exploration noise ... is kept equal")
+    # KhGRL refits L from the human here (paper: B only; in A "the exploration noise ... is kept equal")
+    learn_scale: bool
     # demonstration spread (half-width of the fan in y) as (phase, half_width) knots, linearly interpolated
     spread_knots: tuple[tuple[float, float], ...]
     arrive_phase: float = 0.92  # demonstrations reach the goal at this phase and dwell there
@@ -89,7 +90,8 @@ SCENARIOS: dict[str, Scenario] = {
         obstacle=None,
         default_scale=15.0,
         learn_scale=True,
-        spread_knots=((0.0, 0.0), (0.1, 0.02), (0.22, 0.12), (0.4, 0.12), (0.5, 0.006), (0.8, 0.006), (0.9, 0.002), (1.0, 0.0)),
+        spread_knots=((0.0, 0.0), (0.1, 0.02), (0.22, 0.12), (0.4, 0.12), (0.5, 0.006), (0.8, 0.006), (0.9, 0.002),
+                      (1.0, 0.0)),
         human_waypoints=((0.08, 0.5), (0.32, 0.5), (0.56, 0.585), (0.76, 0.585), (0.92, 0.5)),
         human_window=(0.5, 0.8),
     ),

@@ -7,6 +7,9 @@ import json
 import sys
 from pathlib import Path
 
+from common.config import METHODS, SCENARIOS
+from common.process import die_with_parent
+
 __all__ = ["main", "build_parser"]
 
 
@@ -78,99 +81,128 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
 
 
 def _cmd_reference(args: argparse.Namespace) -> int:
-    from learner.reference import ReferenceConfig, run_reference
+    from learner.baseline import ReferenceConfig, run_reference
 
     config = ReferenceConfig(scenario=args.scenario, method=args.method, episodes=args.episodes, seed=args.seed,
                              human_noise=args.human_noise)
     run_dir = Path(args.run_dir or f"runs/reference/{args.scenario}-{args.method}-seed{args.seed}")
     episodes = run_reference(config, run_dir, progress=not args.quiet)
     ok = [e.episode for e in episodes if e.success]
-    print(f"{len(ok)}/{len(episodes)} successful episodes; first success: {ok[0] if ok else 'none'}; results in {run_dir}")
+    print(f"{len(ok)}/{len(episodes)} successful episodes; first success: {ok[0] if ok else 'none'}; "
+          f"results in {run_dir}")
     return 0
 
 
-# Commands that are whole programs with their own argument parsers (each has --help): name -> (module, function)
+# Commands that are whole programs with their own argument parsers (each has --help):
+# name -> (module, function, one-line help)
 PROCESS_COMMANDS = {
     "up": ("deploy.launcher", "main", "launch router, learner, actor(s) and human-input process locally"),
-    "learner": ("learner.service", "main", "the learner process (TQC, replay buffer from the transition stream)"),
-    "actor": ("actor.service", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
-    "human": ("human_bridge.service", "main", "the human-input process (scripted client, ...)"),
-    "router": ("common.session", "router_main", "a Zenoh router (zenoh-python in router mode)"),
+    "router": ("deploy.router", "main", "a Zenoh router (zenoh-python in router mode)"),
+    "learner": ("learner.main", "main", "the learner process (TQC, replay buffer from the transition stream)"),
+    "actor": ("actor.main", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
+    "human": ("human_bridge.main", "main", "a human-input process (scripted, gui or replay client)"),
     "experiment": ("deploy.experiment", "main", "methods x scenarios x seeds through the real system (resumable)"),
     "report": ("deploy.report", "main", "per-episode results of runs: figure and markdown table"),
 }
+# the processes a supervisor starts: they die with it, from before their (slow) imports on
+SUPERVISED = ("router", "learner", "actor", "human")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="khgrl", description="KhGRL: kernelized human-guided RL (actor, learner and human-input processes over Zenoh)."
-    )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (_, _, help_text) in PROCESS_COMMANDS.items():
-        sub.add_parser(name, help=help_text, add_help=False)
-
-    demos = sub.add_parser("demos", help="demonstration files").add_subparsers(dest="action", required=True, metavar="ACTION")
+def _add_demos(sub) -> None:
+    demos = sub.add_parser("demos", help="demonstration files").add_subparsers(dest="action", required=True,
+                                                                                metavar="ACTION")
     p = demos.add_parser("make", help="generate the seeded demonstrations of a passage-world scenario")
-    p.add_argument("--scenario", default="high_cov", choices=["high_cov", "low_cov"])
-    p.add_argument("--out", required=True, help="output file (.npz or .csv)")
-    p.add_argument("--n-demos", type=int, default=9)
-    p.add_argument("--n-steps", type=int, default=400)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--scenario", default="high_cov", choices=SCENARIOS, help="scenario (default: %(default)s)")
+    p.add_argument("--out", required=True, help="output file (.npz or .csv; required)")
+    p.add_argument("--n-demos", type=int, default=9, help="demonstrations (default: %(default)s)")
+    p.add_argument("--n-steps", type=int, default=400, help="points per demonstration (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
     p.set_defaults(func=_cmd_demos_make)
 
+
+def _add_kmp(sub) -> None:
     kmp = sub.add_parser("kmp", help="LC-NS-KMP models").add_subparsers(dest="action", required=True, metavar="ACTION")
     p = kmp.add_parser("fit", help="fit GMM/GMR + LC-NS-KMP to a demonstration file and plot it")
     p.add_argument("demos", help="demonstrations (.npz with array 'demos' (M,N,O), or .csv 'demo,step,y0,...')")
-    p.add_argument("--out", default="runs/kmp.png", help="PNG to write (a .json summary is written beside it)")
-    p.add_argument("--lam", type=float, default=1.0, help="KMP regulariser lambda")
-    p.add_argument("--beta", type=float, default=10.0, help="null-space weight beta (gamma = lambda + beta)")
-    p.add_argument("--length-scale", type=float, default=0.02, help="RBF length scale in normalised time")
-    p.add_argument("--components", type=int, default=10, help="GMM components")
-    p.add_argument("--box", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None, help="hard box constraints on every output")
-    p.add_argument("--scenario", choices=["high_cov", "low_cov"], default=None, help="draw this passage world's walls and obstacle")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="runs/kmp.png",
+                   help="PNG to write (a .json summary is written beside it; default: %(default)s)")
+    p.add_argument("--lam", type=float, default=1.0, help="KMP regulariser lambda (default: %(default)s)")
+    p.add_argument("--beta", type=float, default=10.0,
+                   help="null-space weight beta (gamma = lambda + beta; default: %(default)s)")
+    p.add_argument("--length-scale", type=float, default=0.02,
+                   help="RBF length scale in normalised time (default: %(default)s)")
+    p.add_argument("--components", type=int, default=10, help="GMM components (default: %(default)s)")
+    p.add_argument("--box", type=float, nargs=2, metavar=("LOW", "HIGH"), default=None,
+                   help="hard box constraints on every output (default: none)")
+    p.add_argument("--scenario", choices=SCENARIOS, default=None,
+                   help="draw this passage world's walls and obstacle (default: none)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
     p.set_defaults(func=_cmd_kmp_fit)
 
+
+def _add_reference(sub) -> None:
     p = sub.add_parser("reference", help="single-process SB3 TQC baseline on the passage world (no Zenoh)")
-    p.add_argument("--scenario", default="high_cov", choices=["high_cov", "low_cov"])
-    p.add_argument("--method", default="khgrl", choices=["khgrl", "kgrl"], help="khgrl: scripted human at the paper's episodes")
-    p.add_argument("--episodes", type=int, default=60)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--human-noise", type=float, default=0.0, help="std of the scripted human's hand noise")
-    p.add_argument("--run-dir", default=None, help="output directory (default runs/reference/SCENARIO-METHOD-seedN)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--scenario", default="high_cov", choices=SCENARIOS, help="scenario (default: %(default)s)")
+    p.add_argument("--method", default="khgrl", choices=METHODS,
+                   help="khgrl: scripted human at the paper's episodes (default: %(default)s)")
+    p.add_argument("--episodes", type=int, default=60, help="episodes (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    p.add_argument("--human-noise", type=float, default=0.0,
+                   help="std of the scripted human's hand noise (default: %(default)s)")
+    p.add_argument("--run-dir", default=None,
+                   help="output directory (default: runs/reference/SCENARIO-METHOD-seedN)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (default: off)")
     p.set_defaults(func=_cmd_reference)
 
-    bench = sub.add_parser("bench", help="benchmarks that print numbers").add_subparsers(dest="action", required=True, metavar="ACTION")
+
+def _add_bench(sub) -> None:
+    bench = sub.add_parser("bench", help="benchmarks that print numbers").add_subparsers(dest="action", required=True,
+                                                                                         metavar="ACTION")
     p = bench.add_parser("kmp", help="per-step LC-NS-KMP cost: tables vs direct formula vs lc-ns-kmp (N=400, O=2, F=4)")
-    p.add_argument("--repeats", type=int, default=2000, help="timed calls per case (median reported)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="also write the results as JSON here")
+    p.add_argument("--repeats", type=int, default=2000,
+                   help="timed calls per case (median reported; default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
     p.set_defaults(func=_cmd_bench_kmp)
     p = bench.add_parser("runtime", help="distributed runtime: ingest rate, weights latency, actor loop period vs "
                                          "single-process SB3, learner gradient steps/s vs standalone TQC")
-    p.add_argument("--quick", action="store_true", help="small sizes for a smoke run (< 3 min)")
-    p.add_argument("--episodes", type=int, default=None, help="single-process reference episodes (default 2; quick 1)")
-    p.add_argument("--actor-episodes", type=int, default=None, help="episodes of the 50 Hz actor (default 10; quick 2)")
+    p.add_argument("--quick", action="store_true", help="small sizes for a smoke run (< 3 min; default: off)")
+    p.add_argument("--episodes", type=int, default=None,
+                   help="single-process reference episodes (default: 2; quick 1)")
+    p.add_argument("--actor-episodes", type=int, default=None,
+                   help="episodes of the 50 Hz actor (default: 10; quick 2)")
     p.add_argument("--ingest-transitions", type=int, default=None,
-                   help="transitions published for the ingest rate (default 200000; quick 50000)")
+                   help="transitions published for the ingest rate (default: 200000; quick 50000)")
     p.add_argument("--ingest-checkpoint-transitions", type=int, default=None,
-                   help="the same with checkpoints every 2000 (default 100000; quick 20000)")
-    p.add_argument("--batch", type=int, default=256, help="transitions per published batch")
-    p.add_argument("--inflight", type=int, default=8, help="unacknowledged batches at most")
+                   help="the same with checkpoints every 2000 (default: 100000; quick 20000)")
+    p.add_argument("--batch", type=int, default=256, help="transitions per published batch (default: %(default)s)")
+    p.add_argument("--inflight", type=int, default=8, help="unacknowledged batches at most (default: %(default)s)")
     p.add_argument("--train-seconds", type=float, default=None,
-                   help="learner and standalone train() time, each, in alternating slices (default 30 s in 3 rounds; quick 10 s in 2)")
-    p.add_argument("--rate", type=float, default=50.0, help="actor control rate in Hz")
-    p.add_argument("--scenario", default="high_cov", choices=["high_cov", "low_cov"])
+                   help="learner and standalone train() time, each, in alternating slices "
+                        "(default: 30 s in 3 rounds; quick 10 s in 2)")
+    p.add_argument("--rate", type=float, default=50.0, help="actor control rate in Hz (default: %(default)s)")
+    p.add_argument("--scenario", default="high_cov", choices=SCENARIOS, help="scenario (default: %(default)s)")
     p.add_argument("--loss-check", action=argparse.BooleanOptionalAction, default=None,
                    help="learner SIGKILL + resume, count lost/duplicated transitions (default: on, off with --quick)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
     p.add_argument("--rt-priority", type=int, default=20,
                    help="also measure the 50 Hz actor with its control loop under SCHED_FIFO at this priority "
-                        "(needs root; 0: skip; default %(default)s)")
-    p.add_argument("--keep", action="store_true", help="keep the work directory (logs, run dirs)")
-    p.add_argument("--out", default=None, help="also write the results as JSON here")
+                        "(needs root; 0: skip; default: %(default)s)")
+    p.add_argument("--keep", action="store_true", help="keep the work directory (logs, run dirs; default: off)")
+    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
     p.set_defaults(func=_cmd_bench_runtime)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="khgrl", description="KhGRL: kernelized human-guided RL (actor, learner "
+                                                                "and human-input processes over Zenoh).")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (_, _, help_text) in PROCESS_COMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    _add_demos(sub)
+    _add_kmp(sub)
+    _add_reference(sub)
+    _add_bench(sub)
     return parser
 
 
@@ -180,6 +212,8 @@ def main(argv: list[str] | None = None) -> int:
         import importlib
 
         module, func, _ = PROCESS_COMMANDS[argv[0]]
+        if argv[0] in SUPERVISED:
+            die_with_parent()
         return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
     parser = build_parser()
     args = parser.parse_args(argv)

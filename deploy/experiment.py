@@ -31,12 +31,10 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from human_bridge.scripted import PAPER_EPISODES
+from common.config import METHODS, PAPER_EPISODES, SCENARIOS, TQCSettings
 
 __all__ = ["ExperimentConfig", "RunSpec", "load_config", "plan_runs", "run_is_done", "main", "build_parser"]
 
-SCENARIOS = ("high_cov", "low_cov")
-METHODS = ("khgrl", "kgrl")
 SYSTEMS = ("distributed", "reference")
 _EPISODE_LINE = re.compile(r"\[a0\] episode (\d+):|^\s*(\d+)/(\d+) episodes")
 
@@ -64,8 +62,10 @@ class ExperimentConfig:
             raise ValueError(f"system must be one of {SYSTEMS}, not {self.system!r}")
         if not self.seeds or any(int(s) < 0 for s in self.seeds) or len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"seeds must be distinct non-negative integers, got {self.seeds}")
-        if self.episodes < 1 or self.jobs < 1 or self.max_lead < 1:
-            raise ValueError("episodes, jobs and max_lead must be >= 1")
+        if self.episodes < 1 or self.jobs < 1:
+            raise ValueError("episodes and jobs must be >= 1")
+        if self.max_lead < TQCSettings().train_freq:
+            raise ValueError(f"max_lead must be >= the learner's train frequency ({TQCSettings().train_freq})")
         if any(e < 1 for e in self.human_episodes):
             raise ValueError("human_episodes are 1-based episode numbers")
         return self
@@ -132,7 +132,8 @@ def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
         return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
                 "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]
     argv = [*khgrl, "up", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
-            "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead), "--no-progress"]
+            "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead),
+            "--no-progress"]
     if spec.method == "khgrl":
         argv += ["--human", "scripted", "--human-episodes", *map(str, cfg.human_episodes)]
     else:
@@ -324,19 +325,24 @@ def build_parser() -> argparse.ArgumentParser:
                                 epilog="Options override the config file; the defaults are the paper's grid.")
     p.add_argument("config", nargs="?", default=None, help="config file (.toml or .json) with ExperimentConfig keys")
     p.add_argument("--out", default=None, help="output directory (default runs/experiment)")
-    p.add_argument("--scenarios", nargs="+", default=None, choices=SCENARIOS)
-    p.add_argument("--methods", nargs="+", default=None, choices=METHODS)
+    p.add_argument("--scenarios", nargs="+", default=None, choices=SCENARIOS,
+                   help=f"scenarios (default: {' '.join(SCENARIOS)})")
+    p.add_argument("--methods", nargs="+", default=None, choices=METHODS,
+                   help=f"methods (default: {' '.join(METHODS)})")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default 0 1 2 3 4)")
     p.add_argument("--episodes", type=int, default=None, help="episodes per run (default 60)")
     p.add_argument("--human-episodes", type=int, nargs="+", default=None,
-                   help="1-based episodes with scripted corrections for KhGRL (default: the paper's 4 5 10 19 20 28 29)")
+                   help="1-based episodes with scripted corrections for KhGRL "
+                        "(default: the paper's 4 5 10 19 20 28 29)")
     p.add_argument("--system", default=None, choices=SYSTEMS,
                    help="distributed (khgrl up, the default) or reference (single-process SB3)")
-    p.add_argument("--jobs", type=int, default=None, help="runs at a time (default 1; each run's learner uses one core)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="runs at a time (default 1; each run's learner uses one core)")
     p.add_argument("--max-lead", type=int, default=None, help="khgrl up --max-lead (default 8)")
     p.add_argument("--timeout", type=float, default=None, help="fail a run after this many seconds (default: none)")
-    p.add_argument("--dry-run", action="store_true", help="list the runs, their state and commands; run nothing")
-    p.add_argument("--no-progress", action="store_true", help="plain lines instead of progress bars")
+    p.add_argument("--dry-run", action="store_true",
+                   help="list the runs, their state and commands; run nothing (default: off)")
+    p.add_argument("--no-progress", action="store_true", help="plain lines instead of progress bars (default: off)")
     p.set_defaults(func=run)
     return p
 

@@ -1,16 +1,15 @@
-"""``khgrl up``: start a Zenoh router, the learner, one or more actors and the human-input process as
-separate OS processes (spawned with ``subprocess``, never forked from a process with an open session),
-show one live progress view, and stop everything cleanly when the actors finish, on Ctrl-C, or when a
-process dies (reported with its exit code and the tail of its log; the run then fails).
+"""``khgrl up``: one run on this machine -- a Zenoh router, the learner, the actors and (KhGRL) a human-input
+client, each its own OS process reading the run's resolved configuration (``RUN_DIR/config.json``) -- with a
+live progress view, stopped cleanly when the actors finish, on Ctrl-C/SIGTERM, on a stop command, at
+``--timeout``, or when a process fails (reported with its exit code and the tail of its log).
 
-Run directory layout::
+The run directory (layout: :mod:`deploy.rundir`) is refused if it already holds a run, unless ``--resume``
+(continue it: episode numbering, episodes.csv, corrections.csv and the learner's checkpoint carry on) or
+``--overwrite`` (delete the earlier run first). Children are spawned by :class:`deploy.supervisor.ProcessGroup`
+and die with the launcher (parent-death signal), even if it is killed.
 
-    RUN_DIR/config.json          the launch configuration
-    RUN_DIR/logs/<process>.log   each process's stdout/stderr
-    RUN_DIR/learner/...          checkpoints, TensorBoard scalars
-    RUN_DIR/actor-<id>/...       episodes.csv/json, summary.json, corrections.csv (applied human
-                                 corrections, replayable), tb/ (per-episode TensorBoard scalars)
-    RUN_DIR/summary.json         exit codes, wall time, per-actor results
+Exit codes: 0 the actors finished; 1 a process failed, the router was unreachable, ``--timeout`` or a stop
+command from elsewhere; 2 a bad configuration or run directory; 128 + signal number on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -18,340 +17,343 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import queue
-import secrets
-import signal
-import socket
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from common.config import RunConfig, add_config_flags, resolve, write_run_config
+from common.messages import Control, EpisodeReport, Status
+from common.process import StopFlag, install_stop_handlers
 from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
-from common.session import StopFlag, free_port, install_stop_handlers, open_client
+from common.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
+from deploy.progress import ProgressView
+from deploy.rundir import (
+    RunDirError,
+    archive_part,
+    clear_run,
+    has_checkpoint,
+    make_run_id,
+    previous_runtime,
+    results_in,
+    write_pids,
+)
+from deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "RunPlan", "plan_run"]
 
-
-@dataclass
-class Child:
-    name: str
-    argv: list[str]
-    log_path: Path
-    proc: subprocess.Popen | None = None
-    essential: bool = True  # the run fails if it exits non-zero
-    returncode: int | None = None
-    log_fh: object = field(default=None, repr=False)
-
-    def start(self, env: dict) -> None:
-        self.log_path.parent.mkdir(parents=True, exist_ok=True)
-        self.log_fh = open(self.log_path, "ab")
-        self.proc = subprocess.Popen(self.argv, stdout=self.log_fh, stderr=subprocess.STDOUT, env=env, start_new_session=True)
-
-    def poll(self) -> int | None:
-        if self.proc is not None and self.returncode is None:
-            self.returncode = self.proc.poll()
-        return self.returncode
-
-    def signal(self, sig: int) -> None:
-        if self.proc is not None and self.poll() is None:
-            try:
-                os.kill(self.proc.pid, sig)
-            except ProcessLookupError:
-                pass
-
-    def wait(self, timeout: float) -> int | None:
-        if self.proc is None:
-            return None
-        try:
-            self.returncode = self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            pass
-        return self.returncode
-
-    def tail(self, n: int = 15) -> str:
-        try:
-            lines = self.log_path.read_text(errors="replace").splitlines()
-        except OSError:
-            return ""
-        return "\n".join(lines[-n:])
-
-    def close(self) -> None:
-        if self.log_fh is not None:
-            self.log_fh.close()
-
-
-def _module_argv(module: str, args: list[str]) -> list[str]:
-    return [sys.executable, "-m", "deploy.cli", module, *args]
-
-
-def _wait_listening(host: str, port: int, timeout: float, child: Child) -> None:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        if child.poll() is not None:
-            raise RuntimeError(f"router exited with code {child.returncode}:\n{child.tail()}")
-        with socket.socket() as s:
-            s.settimeout(0.2)
-            if s.connect_ex((host, port)) == 0:
-                return
-        time.sleep(0.05)
-    raise RuntimeError(f"router did not listen on {host}:{port} within {timeout} s")
-
-
-def _make_run_id(run_dir: Path) -> str:
-    stem = "".join(c if c.isalnum() or c in "-_" else "-" for c in run_dir.name)[:40] or "run"
-    return f"{stem}-{secrets.token_hex(3)}"
-
-
-def _num(value, default: float = 0.0) -> float:
-    """A finite number from a (validated, but free-form in places) message field, else ``default``."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return default
-    value = float(value)
-    return value if value == value and abs(value) != float("inf") else default
-
-
-class ProgressView:
-    """Live table of episodes, success, return, interventions (count, human steps, fraction of clipped human actions,
-    mean |xi_h|), learner updates and weight version."""
-
-    def __init__(self, actors: list[str], episodes: int, enabled: bool) -> None:
-        self.actors = {a: self._row() for a in actors}
-        self.episodes = episodes
-        self.learner: dict = {}
-        self.enabled = enabled
-        self._live = None
-
-    @staticmethod
-    def _row() -> dict:
-        return {"done": 0, "success": 0, "last_return": None, "interventions": 0, "count": 0, "clipped": 0,
-                "xi_sum": 0.0}
-
-    def __enter__(self):
-        if self.enabled:
-            from rich.live import Live
-
-            self._live = Live(self._table(), refresh_per_second=4, transient=False)
-            self._live.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        if self._live is not None:
-            self._live.update(self._table())
-            self._live.__exit__(*exc)
-
-    def episode(self, msg: dict) -> None:
-        st = msg["stats"]
-        row = self.actors.setdefault(msg["actor"], self._row())
-        steps = int(_num(st.get("intervention_steps")))
-        clipped = int(_num(st.get("clipped_steps")))
-        count = int(_num(st.get("interventions")))
-        xi = _num(st.get("mean_abs_xi_h"))
-        row["done"] = max(row["done"], int(_num(st.get("episode"))))
-        row["success"] += int(st.get("success") is True)
-        row["last_return"] = _num(st.get("ret"))
-        row["interventions"] += steps
-        row["count"] += count
-        row["clipped"] += clipped
-        row["xi_sum"] += xi * steps
-        if not self.enabled:
-            frac = f"{clipped / steps:.0%}" if steps else "-"
-            print(f"[{msg['actor']}] episode {st.get('episode')}: return {_num(st.get('ret')):.1f} "
-                  f"success={st.get('success')} interventions={steps} "
-                  f"(count {count}, clipped {frac}, mean |xi_h| {xi:.3g})", flush=True)
-        self.refresh()
-
-    def status(self, msg: dict) -> None:
-        if msg.get("role") == "learner":
-            # status info is free-form: keep only the numbers the view shows
-            info = msg["info"]
-            self.learner = {k: info[k] for k in ("ingested", "gradient_steps", "grad_steps_per_s", "version")
-                            if isinstance(info.get(k), (int, float)) and not isinstance(info.get(k), bool)}
-            self.refresh()
-
-    def refresh(self) -> None:
-        if self._live is not None:
-            self._live.update(self._table())
-
-    def _table(self):
-        from rich.table import Table
-
-        t = Table(title="KhGRL run")
-        for col in ("actor", "episodes", "successes", "last return", "interventions", "human steps", "clipped",
-                    "mean |xi_h|"):
-            t.add_column(col, justify="right")
-        for a, r in self.actors.items():
-            ret = "-" if r["last_return"] is None else f"{r['last_return']:.1f}"
-            n = r["interventions"]
-            clipped = f"{r['clipped']} ({r['clipped'] / n:.0%})" if n else str(r["clipped"])
-            xi = f"{r['xi_sum'] / n:.3g}" if n else "-"
-            t.add_row(a, f"{r['done']}/{self.episodes}", str(r["success"]), ret, str(r["count"]), str(n), clipped, xi)
-        li = self.learner
-        t.caption = (f"learner: {li.get('ingested', 0)} transitions, {li.get('gradient_steps', 0)} gradient steps "
-                     f"({li.get('grad_steps_per_s', 0):.0f}/s), weights v{li.get('version', 0)}") if li else "learner: waiting"
-        return t
-
-
-def run(args: argparse.Namespace) -> int:
-    run_dir = Path(args.run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    run_id = args.run or _make_run_id(run_dir)
-    keys = Keys(run_id)
-    actors = [f"a{i}" for i in range(args.actors)]
-    if args.connect:
-        endpoint = args.connect
-    else:
-        port = args.port or free_port()
-        endpoint = f"tcp/127.0.0.1:{port}"
-    config = {k: v for k, v in vars(args).items() if k != "func"}
-    config.update(run=run_id, endpoint=endpoint, actors_ids=actors, argv=sys.argv, started=time.strftime("%Y-%m-%dT%H:%M:%S"))
-    (run_dir / "config.json").write_text(json.dumps(config, indent=2, default=str))
-
-    env = dict(os.environ)
-    env.setdefault("PYTHONUNBUFFERED", "1")
-    logs = run_dir / "logs"
-    common = ["--run", run_id, "--connect", endpoint]
-    children: list[Child] = []
-    router = None
-    if not args.connect:
-        router = Child("router", _module_argv("router", ["--listen", endpoint]), logs / "router.log")
-        children.append(router)
-    learner_args = [*common, "--run-dir", str(run_dir), "--seed", str(args.seed), "--learning-starts", str(args.learning_starts),
-                    "--nice", str(args.learner_nice)]
-    if args.resume:
-        learner_args.append("--resume")
-    children.append(Child("learner", _module_argv("learner", learner_args), logs / "learner.log"))
-    for i, aid in enumerate(actors):
-        children.append(Child(aid, _module_argv("actor", [
-            *common, "--run-dir", str(run_dir), "--id", aid, "--scenario", args.scenario, "--method", args.method,
-            "--episodes", str(args.episodes), "--seed", str(args.seed + i), "--max-lead", str(args.max_lead),
-            "--rate", str(args.rate), "--learning-starts", str(args.learning_starts),
-            *(["--rt-priority", str(args.actor_rt_priority)] if args.actor_rt_priority else []),
-        ]), logs / f"{aid}.log"))
-    if args.method == "khgrl" and args.human != "none":
-        hargs = [args.human, *common, "--scenario", args.scenario, "--actor", "*", "--seed", str(args.seed)]
-        if args.human_episodes:
-            hargs += ["--episodes", *map(str, args.human_episodes)]
-        children.append(Child(f"human-{args.human}", _module_argv("human", hargs), logs / f"human-{args.human}.log"))
-
-    flag = StopFlag()
-    install_stop_handlers(flag)
-    t0 = time.time()
-    failed: list[str] = []
-    inbox: queue.Queue = queue.Queue()
-    rejects = RejectCounter("launcher")
-    try:
-        if router is not None:
-            router.start(env)
-            host, port = endpoint.split("/")[1].rsplit(":", 1)
-            _wait_listening(host, int(port), 15.0, router)
-        for ch in children:
-            if ch is not router:
-                ch.start(env)
-        print(f"khgrl up: run {run_id} on {endpoint}; logs in {logs}", flush=True)
-        with open_client(endpoint) as session, ProgressView(actors, args.episodes, not args.no_progress) as view:
-            subs = [
-                session.declare_subscriber(keys.episode("*"), lambda s: inbox.put(("episode", s.payload.to_bytes()))),
-                session.declare_subscriber(keys.status("learner", "*"), lambda s: inbox.put(("status", s.payload.to_bytes()))),
-            ]
-            try:
-                deadline = t0 + args.timeout if args.timeout > 0 else None
-                while not flag:
-                    try:
-                        kind, payload = inbox.get(timeout=0.25)
-                        msg = decode(kind, payload)
-                        view.episode(msg) if kind == "episode" else view.status(msg)
-                    except queue.Empty:
-                        pass
-                    except ProtocolError as exc:
-                        rejects.reject(kind, kind, exc)
-                    for ch in children:
-                        rc = ch.poll()
-                        if rc not in (None, 0) and ch.name not in failed:
-                            failed.append(ch.name)
-                    if failed:
-                        break
-                    if all(ch.poll() == 0 for ch in children if ch.name in actors):
-                        break
-                    if deadline is not None and time.time() > deadline:
-                        print(f"khgrl up: timeout after {args.timeout} s", flush=True)
-                        failed.append("timeout")
-                        break
-                # ask everyone left to stop (the learner checkpoints first); after a failure a process may not
-                # have subscribed yet, so wait less before falling back to signals
-                session.put(keys.control("all"), encode("control", "launcher", 0, command="stop"))
-                grace = args.stop_timeout if not failed else min(args.stop_timeout, 5.0)
-                stop_deadline = time.time() + grace
-                while time.time() < stop_deadline and any(ch.poll() is None for ch in children if ch is not router):
-                    time.sleep(0.1)
-            finally:
-                for s in subs:
-                    s.undeclare()
-    finally:
-        # signal everything still running at once, then wait jointly: SIGINT (clean stop), SIGKILL after 10 s
-        for sig, grace in ((signal.SIGINT, 10.0), (signal.SIGKILL, 5.0)):
-            alive = [ch for ch in children if ch.poll() is None]
-            for ch in alive:
-                ch.signal(sig)
-            deadline = time.time() + grace
-            while alive and time.time() < deadline:
-                time.sleep(0.05)
-                alive = [ch for ch in alive if ch.poll() is None]
-        for ch in children:
-            ch.close()
-    wall = time.time() - t0
-    codes = {ch.name: ch.returncode for ch in children}
-    for name in failed:
-        if name == "timeout":
-            continue
-        ch = next(c for c in children if c.name == name)
-        print(f"khgrl up: process {name} exited with code {ch.returncode}; last lines of {ch.log_path}:\n{ch.tail()}", file=sys.stderr)
-    summary = {"run": run_id, "wall_time_s": wall, "exit_codes": codes, "failed": failed, "interrupted": bool(flag),
-               "launcher_rejects": rejects.by_kind()}
-    for aid in actors:
-        p = run_dir / f"actor-{aid}" / "summary.json"
-        if p.exists():
-            summary[aid] = json.loads(p.read_text())
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
-    print(f"khgrl up: finished in {wall:.0f} s; exit codes {codes}; results in {run_dir}", flush=True)
-    if flag:
-        return 130
-    return 1 if failed else 0
+FAILURE_GRACE_S = 5.0  # after a failure or an interrupt: how long children get for the stop command
+SIGNAL_GRACE_S = 10.0  # then SIGINT, and SIGKILL after this many seconds more
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="khgrl up", description="Launch router, learner, actor(s) and human-input process locally.")
-    p.add_argument("--scenario", default="high_cov", choices=["high_cov", "low_cov"])
-    p.add_argument("--method", default="khgrl", choices=["khgrl", "kgrl"])
-    p.add_argument("--episodes", type=int, default=60, help="episodes per actor")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--run-dir", default="runs/demo")
-    p.add_argument("--run", default=None, help="run id (key prefix khgrl/<run>/); default: derived from the run dir")
-    p.add_argument("--actors", type=int, default=1)
-    p.add_argument("--human", default="scripted", choices=["scripted", "gui", "none"],
-                   help="human-input client (khgrl only): scripted, gui (a pygame window to drag the robot), none")
-    p.add_argument("--human-episodes", type=int, nargs="+", default=None, help="episodes with corrections (default: the paper's)")
-    p.add_argument("--connect", default=None, help="join the router at tcp/HOST:PORT instead of starting one")
-    p.add_argument("--port", type=int, default=0, help="router port on 127.0.0.1 (default: a free one)")
-    p.add_argument("--max-lead", type=int, default=8, help="transitions an actor may run ahead of the learner's training")
-    p.add_argument("--rate", type=float, default=0.0, help="actor control rate in Hz (0: as fast as allowed)")
-    p.add_argument("--learning-starts", type=int, default=100)
-    p.add_argument("--actor-rt-priority", type=int, default=0,
-                   help="actors' control loops under SCHED_FIFO at this priority (needs --rate and root; default off)")
-    p.add_argument("--learner-nice", type=int, default=5,
-                   help="run the learner at this nice level so training yields the CPU to actor control loops (default %(default)s)")
-    p.add_argument("--resume", action="store_true", help="resume the learner from RUN_DIR/learner/checkpoint")
-    p.add_argument("--timeout", type=float, default=0.0, help="fail the run after this many seconds (0: none)")
-    p.add_argument("--stop-timeout", type=float, default=60.0, help="seconds to wait for processes to stop")
-    p.add_argument("--no-progress", action="store_true", help="print episode lines instead of the live table")
-    p.set_defaults(func=run)
+    p = argparse.ArgumentParser(
+        prog="khgrl up", description="Launch router, learner, actor(s) and human-input process locally.",
+        epilog="Settings: defaults < --config FILE < flags. The resolved configuration is written to "
+               "RUN_DIR/config.toml; khgrl up --config RUN_DIR/config.toml runs it again.")
+    p.add_argument("--config", default=None, metavar="FILE",
+                   help="run configuration (TOML, e.g. an earlier RUN_DIR/config.toml; default: none)")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue the run in RUN_DIR from its learner checkpoint and episode count; without "
+                            "--config its config.toml is the base configuration (default: off)")
+    again.add_argument("--overwrite", action="store_true",
+                       help="delete an earlier run in RUN_DIR first (default: off: such a directory is refused)")
+    p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
+                   help="live progress table; --no-progress: one line per episode (default: on)")
+    add_config_flags(p)
     return p
 
 
+# ------------------------------------------------------------------------------------ the plan
+@dataclass
+class RunPlan:
+    """What a start of ``khgrl up`` runs: the resolved settings and the run's runtime facts."""
+
+    cfg: RunConfig
+    run_dir: Path
+    run_id: str
+    endpoint: str
+    resume: bool = False
+    overwrite: bool = False
+    progress: bool = True
+    argv: list[str] = field(default_factory=list)
+    previous: dict = field(default_factory=dict)  # runtime of the part before (resume)
+
+    @property
+    def config_json(self) -> Path:
+        return self.run_dir / "config.json"
+
+
+def _resolve_config(args: argparse.Namespace) -> RunConfig:
+    """Defaults < --config < flags; on ``--resume`` without ``--config``: RUN_DIR/config.toml is the file."""
+    cfg = resolve(args.config, args)
+    if not args.resume or args.config:
+        return cfg
+    base = Path(cfg.run_dir) / "config.toml"
+    if not base.is_file():
+        raise RunDirError(f"--resume: nothing to resume in {cfg.run_dir}: it has no config.toml")
+    return resolve(base, args, overrides={"run_dir": cfg.run_dir})
+
+
+def _check_run_dir(run_dir: Path, args: argparse.Namespace) -> None:
+    found = results_in(run_dir)
+    if args.resume:
+        if not (run_dir / "config.toml").is_file():
+            raise RunDirError(f"--resume: nothing to resume in {run_dir}: it has no config.toml")
+        if not has_checkpoint(run_dir):
+            raise RunDirError(f"--resume: nothing to resume in {run_dir}: no learner checkpoint "
+                              f"(learner/checkpoint/state.json); start it again with --overwrite")
+    elif found and not args.overwrite:
+        raise RunDirError(f"run directory {run_dir} already holds a run ({', '.join(found)}): give --resume to "
+                          f"continue it, --overwrite to delete it and start again, or another --run-dir")
+
+
+def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
+    """Resolve the configuration and check the run directory (nothing is written yet).
+
+    :param args: parsed ``khgrl up`` arguments
+    :param argv: the command line, recorded in config.json
+    :raises RunDirError: the run directory cannot be used as asked
+    :raises ValueError: a bad setting
+    """
+    cfg = _resolve_config(args)
+    run_dir = Path(cfg.run_dir)
+    _check_run_dir(run_dir, args)
+    previous = previous_runtime(run_dir) if args.resume else {}
+    run_id = cfg.run or str(previous.get("run") or "") or make_run_id(run_dir)
+    Keys(run_id)  # a valid key chunk (ValueError otherwise)
+    endpoint = cfg.connect or f"tcp/127.0.0.1:{cfg.port or free_port()}"
+    return RunPlan(cfg=cfg, run_dir=run_dir, run_id=run_id, endpoint=endpoint, resume=args.resume,
+                   overwrite=args.overwrite, progress=args.progress, argv=argv, previous=previous)
+
+
+def prepare_run_dir(plan: RunPlan) -> None:
+    """Clear (``--overwrite``) or archive the part before (``--resume``), then write the configuration files.
+
+    :param plan: the run's plan
+    """
+    started = time.strftime("%Y-%m-%dT%H:%M:%S")
+    part = 1
+    if plan.overwrite:
+        deleted = clear_run(plan.run_dir)
+        if deleted:
+            print(f"khgrl up: --overwrite: deleted the earlier run in {plan.run_dir} ({', '.join(deleted)})",
+                  flush=True)
+    if plan.resume:
+        part = int(plan.previous.get("part", 1)) + 1
+        archive_part(plan.run_dir, part - 1)
+    runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "actor_ids": plan.cfg.actor_ids(),
+               "argv": plan.argv, "started": started, "resumed": plan.resume, "part": part,
+               "first_started": plan.previous.get("first_started", plan.previous.get("started", started))}
+    write_run_config(plan.run_dir, plan.cfg, runtime)
+
+
+# ------------------------------------------------------------------------------------ the run
+@dataclass
+class Outcome:
+    """How a run ended."""
+
+    failed: list[str] = field(default_factory=list)  # process names, or "timeout"
+    stopped_by: str = ""  # a stop command from elsewhere
+    error: str = ""  # e.g. the router unreachable
+    rejects: dict = field(default_factory=dict)
+
+
+class Run:
+    """Starts the processes, shows progress, and stops them: one start of ``khgrl up``.
+
+    :param plan: the run's plan (configuration files already written)
+    :param group: the process group the children are started in
+    :param flag: set by SIGINT/SIGTERM
+    """
+
+    def __init__(self, plan: RunPlan, group: ProcessGroup, flag: StopFlag) -> None:
+        self.plan, self.cfg, self.group, self.flag = plan, plan.cfg, group, flag
+        self.keys = Keys(plan.run_id)
+        self.inbox = Inbox(maxsize=10_000, overflow="drop_oldest")
+        self.rejects = RejectCounter("launcher")
+        self.out = Outcome()
+        self.actors: list[Proc] = []
+
+    def execute(self) -> Outcome:
+        """Run until done, then stop every process (the group's SIGINT/SIGKILL fallback included)."""
+        try:
+            self._start_router()
+            self._start_children()
+            print(f"khgrl up: run {self.plan.run_id} on {self.plan.endpoint}; logs in {self.group.log_dir}",
+                  flush=True)
+            with open_client(self.plan.endpoint, self.cfg.stream.lease_ms, stop=lambda: bool(self.flag),
+                             timeout=self.cfg.connect_timeout) as session:
+                self._supervise(session)
+        except ConnectionError as exc:
+            if not self.flag:
+                self.out.error = str(exc)
+        finally:
+            self.group.stop_all(grace=SIGNAL_GRACE_S, kill_after=5.0)
+        self.out.rejects = self.rejects.by_kind()
+        return self.out
+
+    def _start_router(self) -> None:
+        if self.cfg.connect:
+            return
+        router = self.group.start("router", khgrl_argv("router", "--listen", self.plan.endpoint,
+                                                       "--lease-ms", str(self.cfg.stream.lease_ms)))
+        try:
+            wait_reachable(self.plan.endpoint, self.cfg.connect_timeout,
+                           stop=lambda: bool(self.flag) or router.poll() is not None)
+        except ConnectionError:
+            if router.poll() is not None:
+                self.out.failed.append("router")
+            raise
+
+    def _start_children(self) -> None:
+        if self.flag:
+            raise ConnectionError("stopped before the processes started")
+        config = str(self.plan.config_json)
+        resume = ["--resume"] if self.plan.resume else []
+        self.group.start("learner", khgrl_argv("learner", "--config", config, *resume))
+        for aid in self.cfg.actor_ids():
+            self.actors.append(self.group.start(aid, khgrl_argv("actor", "--config", config, "--id", aid, *resume)))
+        if self.cfg.method == "khgrl" and self.cfg.human != "none":
+            self.group.start(f"human-{self.cfg.human}", khgrl_argv("human", self.cfg.human, "--config", config))
+        write_pids(self.plan.run_dir, os.getpid(), {p.name: p.pid for p in self.group.procs})
+
+    def _supervise(self, session) -> None:
+        subs = [session.declare_subscriber(self.keys.episode("*"), self.inbox.callback("episode")),
+                session.declare_subscriber(self.keys.status("learner", "*"), self.inbox.callback("status")),
+                session.declare_subscriber(self.keys.control("all"), self.inbox.callback("control"))]
+        try:
+            with ProgressView(self.cfg.actor_ids(), self.cfg.episodes, self.plan.progress) as view:
+                self._watch(view)
+            self._stop_children(session)
+        finally:
+            undeclare_all(*subs)
+
+    def _watch(self, view: ProgressView) -> None:
+        deadline = time.monotonic() + self.cfg.timeout if self.cfg.timeout > 0 else None
+        while not self.flag:
+            item = self.inbox.get(timeout=0.25)
+            if item is not None:
+                self._handle(item, view)
+            if self._finished() or self.out.stopped_by:
+                return
+            if deadline is not None and time.monotonic() > deadline:
+                print(f"khgrl up: timeout after {self.cfg.timeout:g} s", flush=True)
+                self.out.failed.append("timeout")
+                return
+
+    def _handle(self, item: tuple, view: ProgressView) -> None:
+        kind, key, payload, _ = item
+        try:
+            if kind == "episode":
+                view.episode(decode(EpisodeReport, payload))
+            elif kind == "status":
+                view.status(decode(Status, payload))
+            else:
+                self._control(decode(Control, payload), key)
+        except ProtocolError as exc:
+            self.rejects.reject(kind, key, exc)
+
+    def _control(self, msg: Control, key: str) -> None:
+        if msg.command == "stop" and msg.envelope.sender != "launcher":
+            self.out.stopped_by = f"a stop command from {msg.envelope.sender!r} on {key}"
+            print(f"khgrl up: stopped by {self.out.stopped_by}", file=sys.stderr, flush=True)
+
+    def _finished(self) -> bool:
+        """Whether to stop: a process failed, or every actor finished."""
+        for p in self.group.procs:
+            if p.essential and p.poll() not in (None, 0) and p.name not in self.out.failed:
+                self.out.failed.append(p.name)
+        return bool(self.out.failed) or all(p.poll() == 0 for p in self.actors)
+
+    def _stop_children(self, session) -> None:
+        """``control/all stop``, repeated each second (a process still starting subscribes late), until every
+        process but the router exited or the grace is over (then :meth:`execute` signals them)."""
+        abrupt = bool(self.out.failed) or bool(self.flag)
+        grace = min(self.cfg.stop_timeout, FAILURE_GRACE_S) if abrupt else self.cfg.stop_timeout
+        procs = [p for p in self.group.procs if p.name != "router"]
+        deadline = time.monotonic() + grace
+        seq = 0
+        while True:
+            session.put(self.keys.control("all"), encode(Control(command="stop"), "launcher", seq))
+            seq += 1
+            left = deadline - time.monotonic()
+            if self.group.wait_all(max(0.0, min(1.0, left)), procs) or left <= 0:
+                return
+
+
+# ------------------------------------------------------------------------------------ the end
+def write_summary(plan: RunPlan, group: ProcessGroup, out: Outcome, wall: float, interrupted: bool) -> dict:
+    """``RUN_DIR/summary.json``: exit codes, failures, wall time and each actor's own summary.
+
+    :param plan: the run's plan
+    :param group: the run's processes (exited)
+    :param out: how the run ended
+    :param wall: wall time in seconds
+    :param interrupted: stopped by SIGINT/SIGTERM
+    """
+    summary = {"run": plan.run_id, "wall_time_s": wall, "exit_codes": {p.name: p.returncode for p in group.procs},
+               "failed": out.failed, "interrupted": interrupted, "stopped_by": out.stopped_by or None,
+               "error": out.error or None, "resumed": plan.resume, "launcher_rejects": out.rejects}
+    for aid in plan.cfg.actor_ids():
+        path = plan.run_dir / f"actor-{aid}" / "summary.json"
+        try:
+            summary[aid] = json.loads(path.read_text())
+        except (OSError, ValueError):
+            pass
+    (plan.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
+
+
+def report_failures(group: ProcessGroup, out: Outcome) -> None:
+    """Each failed process's exit code and the tail of its log, on stderr."""
+    for p in group.procs:
+        if p.name in out.failed:
+            print(f"khgrl up: process {p.name} exited with code {p.returncode}; last lines of {p.log_path}:\n"
+                  f"{p.tail(20)}", file=sys.stderr)
+    if out.error:
+        print(f"khgrl up: error: {out.error}", file=sys.stderr)
+
+
+def exit_code(out: Outcome, flag: StopFlag) -> int:
+    """0 done, 1 failed or stopped from elsewhere, 128 + signal on SIGINT/SIGTERM."""
+    if flag:
+        return 143 if flag.reason == "SIGTERM" else 130
+    return 1 if out.failed or out.stopped_by or out.error else 0
+
+
+def _wait_for_router(plan: RunPlan, flag: StopFlag) -> None:
+    """With ``--connect``: fail fast (ConnectionError naming it) if nothing listens there."""
+    if plan.cfg.connect:
+        wait_reachable(plan.endpoint, plan.cfg.connect_timeout, stop=lambda: bool(flag))
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
-    if args.actors < 1 or args.episodes < 1:
-        print("khgrl up: --actors and --episodes must be >= 1", file=sys.stderr)
+    flag = StopFlag()
+    install_stop_handlers(flag)
+    try:
+        plan = plan_run(args, ["khgrl", "up", *argv])
+        _wait_for_router(plan, flag)
+        prepare_run_dir(plan)
+    except (RunDirError, ValueError, FileNotFoundError) as exc:
+        print(f"khgrl up: error: {exc}", file=sys.stderr)
         return 2
-    return run(args)
+    except ConnectionError as exc:
+        print(f"khgrl up: error: {exc}", file=sys.stderr)
+        return exit_code(Outcome(error=str(exc)), flag)
+    t0 = time.monotonic()
+    with ProcessGroup(plan.run_dir / "logs") as group:
+        out = Run(plan, group, flag).execute()
+        wall = time.monotonic() - t0
+        write_summary(plan, group, out, wall, bool(flag))
+        report_failures(group, out)
+    codes = {p.name: p.returncode for p in group.procs}
+    print(f"khgrl up: finished in {wall:.0f} s; exit codes {codes}; results in {plan.run_dir}", flush=True)
+    return exit_code(out, flag)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -20,7 +20,9 @@ __all__ = ["main", "load_series", "summarize"]
 def load_series(run_dir: Path) -> dict[str, list[dict]]:
     """{label: episode rows} for a run directory."""
     run_dir = Path(run_dir)
-    files = [run_dir / "episodes.csv"] if (run_dir / "episodes.csv").exists() else sorted(run_dir.glob("actor-*/episodes.csv"))
+    files = [run_dir / "episodes.csv"]
+    if not files[0].exists():
+        files = sorted(run_dir.glob("actor-*/episodes.csv"))
     if not files:
         raise FileNotFoundError(f"{run_dir}: no episodes.csv (expected RUN/episodes.csv or RUN/actor-*/episodes.csv)")
     out = {}
@@ -38,7 +40,9 @@ def summarize(rows: list[dict]) -> dict:
         "episodes": len(rows),
         "successes": sum(succ),
         "first_success": next((int(r["episode"]) for r, s in zip(rows, succ) if s), None),
-        "first_success_without_human": next((int(r["episode"]) for r, s, h in zip(rows, succ, human) if s and not h), None),
+        "first_success_without_human": next(
+            (int(r["episode"]) for r, s, h in zip(rows, succ, human) if s and not h), None
+        ),
         "success_last_10": sum(succ[-10:]),
         "episodes_with_collision": sum(float(r["obstacle_cost"]) < 0 for r in rows),
         "human_episodes": sum(human),
@@ -82,19 +86,22 @@ def markdown_table(series: dict[str, list[dict]]) -> str:
     for label, rows in series.items():
         s = summarize(rows)
         lines.append(f"| {label} | {s['successes']}/{s['episodes']} | {s['first_success'] or '-'} | "
-                     f"{s['first_success_without_human'] or '-'} | {s['success_last_10']}/10 | {s['episodes_with_collision']} | "
-                     f"{s['human_episodes']} | {s['clipped_human_steps']} | {s['mean_return_last_10']:.1f} |")
+                     f"{s['first_success_without_human'] or '-'} | {s['success_last_10']}/10 | "
+                     f"{s['episodes_with_collision']} | {s['human_episodes']} | {s['clipped_human_steps']} | "
+                     f"{s['mean_return_last_10']:.1f} |")
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="khgrl report", description="Results of experiments (statistics across seeds, "
                                 "Fig. 4-6) or of single runs (per-episode curves and a table).")
-    p.add_argument("runs", nargs="+", help="experiment directories (khgrl experiment) or run directories (khgrl up / reference)")
+    p.add_argument("runs", nargs="+",
+                   help="experiment directories (khgrl experiment) or run directories (khgrl up / reference)")
     p.add_argument("--out", default=None, help="experiments: output directory (default EXP/report); runs: the figure "
                                                 "(default runs/report.png; the table is written beside it as .md)")
     p.add_argument("--seeds", type=int, nargs="+", default=None, help="experiments: only these seeds")
-    p.add_argument("--scenarios", nargs="+", default=None, choices=["high_cov", "low_cov"], help="experiments: only these")
+    p.add_argument("--scenarios", nargs="+", default=None, choices=["high_cov", "low_cov"],
+                   help="experiments: only these")
     args = p.parse_args(argv)
     from deploy.analysis import analyse, find_runs
 
@@ -113,8 +120,8 @@ def main(argv: list[str] | None = None) -> int:
         except FileNotFoundError as exc:
             print(f"khgrl report: error: {exc}", file=sys.stderr)
             return 2
-        print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig4_high_cov.png, fig5_low_cov.png, "
-              "fig6_scale.png (for the scenarios present)")
+        print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig4_high_cov.png, "
+              "fig5_low_cov.png, fig6_scale.png (for the scenarios present)")
         return 0
     args.out = args.out or "runs/report.png"
     series: dict[str, list[dict]] = {}

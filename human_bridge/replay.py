@@ -1,7 +1,7 @@
 """``khgrl human replay FILE``: feed a recorded correction session into a new run.
 
 The actor records every correction it applies to ``RUN_DIR/actor-ID/corrections.csv`` (one row per intervened
-step: run, actor, episode, step, time, client, P_h, projected, clipped; see ``actor.service.CorrectionRecord``).
+step: run, actor, episode, step, time, client, P_h, projected, clipped).
 This client watches the new run's frames and, in every episode that has recorded corrections, answers the frame
 of step (episode, t) with a step-addressed correction for step t + 1: the P_h recorded for (episode, t + 1), or a
 release when that step was not corrected. The actor waits for that word before taking the step (lock-step, see
@@ -18,24 +18,29 @@ from __future__ import annotations
 
 import argparse
 import csv
-import queue
+import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from common.config import ProcessConfig
+from common.process import StopFlag, install_stop_handlers
+from common.protocol import Frame
+from human_bridge.client import CorrectionPublisher, connected
 
-__all__ = ["load_record", "ReplayPlan", "add_parser", "run_replay"]
+__all__ = ["load_record", "ReplayPlan", "ReplayAnswers", "add_arguments", "run"]
 
 
 def load_record(path: str | Path) -> list[dict]:
-    """Rows of a corrections.csv (or .jsonl), typed: episode, step (int), p_h (2,), actor, client."""
+    """Rows of a corrections.csv (or .jsonl), typed: episode, step (int), p_h (2,), actor, client.
+
+    :param path: the record file.
+    """
     path = Path(path)
     rows = []
     if path.suffix == ".jsonl":
-        import json
-
         raw = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     else:
         with open(path, newline="") as fh:
@@ -51,7 +56,11 @@ def load_record(path: str | Path) -> list[dict]:
 
 
 class ReplayPlan:
-    """What to send for each frame: P_h for (episode, t + 1) if recorded, else a release."""
+    """What to send for each frame: P_h for (episode, t + 1) if recorded, else a release.
+
+    :param rows: the record's rows (:func:`load_record`).
+    :param actor: whose rows to replay (default: the first recorded actor).
+    """
 
     def __init__(self, rows: list[dict], actor: str | None = None) -> None:
         actors = sorted({r["actor"] for r in rows})
@@ -69,89 +78,80 @@ class ReplayPlan:
         return (episode, t) >= self.last
 
 
-def run_replay(args: argparse.Namespace) -> int:
-    from common.session import StopFlag, install_stop_handlers, open_client
-    from human_bridge.service import CorrectionPublisher
+class ReplayAnswers:
+    """The replay client's answer to each frame of the driven actor.
 
-    plan = ReplayPlan(load_record(args.file), args.from_actor)
+    :param plan: the recorded corrections.
+    :param pub: the correction stream to publish on.
+    :param target: the actor to drive.
+    """
+
+    def __init__(self, plan: ReplayPlan, pub: CorrectionPublisher, target: str) -> None:
+        self.plan, self.pub, self.target = plan, pub, target
+        self.announced: set[int] = set()
+        self.sent_steps = 0
+
+    def frame(self, f: Frame) -> bool:
+        """Answer the frame of step (episode, t); True once the record is done and nothing is held.
+
+        :param f: the driven actor's frame.
+        """
+        ep, t = f.episode, f.t
+        p_h = self.plan.correction(ep, t)
+        if ep + 1 in self.plan.episodes and ep + 1 not in self.announced:
+            self.announced.add(ep + 1)  # announce lock-step for the next episode with its step 0's word
+            self.pub.send(self.target, self.plan.steps.get((ep + 1, 0)), ep + 1, t, step=0)
+        if ep in self.plan.episodes:
+            self.pub.send(self.target, p_h, ep, t, step=t + 1)  # step-addressed: the actor waits for it
+        else:
+            self.pub.send(self.target, None, ep, t)  # releases a hold, if any
+        self.sent_steps += p_h is not None
+        return self.plan.finished(ep, t) and p_h is None and not self.pub.active.get(self.target, False)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The replay client's own flags."""
+    parser.add_argument("file", help="RUN_DIR/actor-ID/corrections.csv of the recorded run (or .jsonl)")
+    parser.add_argument("--from-actor", default=None, help="which recorded actor's rows to replay (default: the first)")
+    parser.add_argument("--actor", default=None, help="actor to drive (default: the recorded actor's id)")
+    parser.add_argument("--id", default="replay", help="client id (default: %(default)s)")
+    parser.add_argument("--wait", type=float, default=120.0,
+                        help="give up if no frame arrives within this many seconds (default: %(default)s)")
+
+
+def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
+    """``khgrl human replay FILE``: exit 0 once the record is replayed, 1 if no frame came within ``--wait``.
+
+    :param args: the parsed command line (:func:`add_arguments`).
+    :param proc: the resolved run settings (run id, endpoint, scenario, seed, human_episodes, human_noise).
+    """
+    try:
+        plan = ReplayPlan(load_record(args.file), args.from_actor)
+    except (OSError, ValueError, KeyError) as exc:
+        print(f"khgrl human replay: cannot read {args.file}: {exc}", file=sys.stderr, flush=True)
+        return 2
     target = args.actor or plan.source
-    keys = Keys(args.run)
     flag = StopFlag()
     install_stop_handlers(flag)
-    rejects = RejectCounter(f"human/{args.id}")
-    inbox: queue.Queue = queue.Queue(maxsize=4096)
-
-    def cb(kind):
-        return lambda s: inbox.put((kind, str(s.key_expr), s.payload.to_bytes()))
-
     print(f"khgrl human replay ({args.id}): {len(plan.steps)} corrected steps of actor {plan.source} from {args.file} "
           f"-> actor {target}, last at episode {plan.last[0]} step {plan.last[1]}", flush=True)
-    sent_steps = 0
-    with open_client(args.connect) as session:
-        subs = [session.declare_subscriber(keys.frame(target), cb("frame")),
-                session.declare_subscriber(keys.control("human"), cb("control")),
-                session.declare_subscriber(keys.control("all"), cb("control"))]
-        token = session.liveliness().declare_token(keys.alive("human", args.id))
-        pub = CorrectionPublisher(session, keys, args.id)
-        deadline = time.monotonic() + args.wait
-        got_frame = False
-        announced: set[int] = set()
-        try:
+    try:
+        with connected(proc, args.id, flag, target) as link:
+            answers = ReplayAnswers(plan, link.pub, target)
+            deadline = time.monotonic() + args.wait
             while not flag:
-                try:
-                    kind, key, payload = inbox.get(timeout=0.2)
-                except queue.Empty:
-                    if not got_frame and time.monotonic() > deadline:
-                        print(f"khgrl human replay: no frame from actor {target} within {args.wait} s", flush=True)
-                        return 1
-                    continue
-                try:
-                    msg = decode(kind, payload)
-                except ProtocolError as exc:
-                    rejects.reject(kind, key, exc)
-                    continue
-                if kind == "control":
-                    if msg["command"] == "stop":
-                        flag.set("stop command")
-                    continue
-                got_frame = True
-                ep, t = msg["episode"], msg["t"]
-                p_h = plan.correction(ep, t)
-                if ep + 1 in plan.episodes and ep + 1 not in announced:
-                    announced.add(ep + 1)  # announce lock-step for the next episode with its step 0's word
-                    pub.send(target, plan.steps.get((ep + 1, 0)), ep + 1, t, step=0)
-                if ep in plan.episodes:
-                    pub.send(target, p_h, ep, t, step=t + 1)  # step-addressed: the actor waits for it
-                else:
-                    pub.send(target, None, ep, t)  # releases a hold, if any
-                sent_steps += p_h is not None
-                if plan.finished(ep, t) and p_h is None and not pub.active.get(target, False):
+                got = link.next(timeout=0.2)
+                link.publish_status()
+                if got is not None and answers.frame(got[1]):
                     break
-        finally:
-            for actor, active in list(pub.active.items()):
-                if active:
-                    pub.send(actor, None)
-            pub.close()
-            for s in subs:
-                s.undeclare()
-            token.undeclare()
-    print(f"khgrl human replay: sent {sent_steps} corrections for recorded steps, {pub.sent} messages, "
-          f"{rejects.total} rejected", flush=True)
+                if link.frames == 0 and time.monotonic() > deadline:
+                    print(f"khgrl human replay: no frame from actor {target} within {args.wait} s", flush=True)
+                    return 1
+    except ConnectionError as exc:
+        if flag:
+            return 0
+        print(f"khgrl human replay: {exc}", file=sys.stderr, flush=True)
+        return 1
+    print(f"khgrl human replay: sent {answers.sent_steps} corrections for recorded steps, {link.pub.sent} messages, "
+          f"{link.rejects.total} rejected", flush=True)
     return 0
-
-
-def add_parser(sub, default_endpoint: str) -> argparse.ArgumentParser:
-    p = sub.add_parser("replay", help="feed a recorded corrections.csv into a new run at the same episodes and steps")
-    p.add_argument("file", help="RUN_DIR/actor-ID/corrections.csv of the recorded run (or .jsonl)")
-    p.add_argument("--run", required=True, help="run id of the new run")
-    p.add_argument("--connect", default=default_endpoint, help="router endpoint (default %(default)s)")
-    p.add_argument("--from-actor", default=None, help="which recorded actor's rows to replay (default: the first)")
-    p.add_argument("--actor", default=None, help="actor to drive (default: the recorded actor's id)")
-    p.add_argument("--id", default="replay", help="client id")
-    p.add_argument("--wait", type=float, default=120.0, help="give up if no frame arrives within this many seconds")
-    p.add_argument("--scenario", default=None, help=argparse.SUPPRESS)
-    p.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
-    p.add_argument("--episodes", type=int, nargs="+", default=None, help=argparse.SUPPRESS)
-    p.add_argument("--run-dir", default=None, help=argparse.SUPPRESS)
-    p.set_defaults(func=run_replay)
-    return p

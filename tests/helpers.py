@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+from common.transport import free_port
 from deploy.supervisor import Proc, ProcessGroup
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,9 +39,8 @@ def unique_run(prefix: str = "t") -> str:
 
 
 def free_endpoint() -> str:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    """A loopback endpoint on a port the OS gives."""
+    return f"tcp/127.0.0.1:{free_port()}"
 
 
 def python_main(module: str, func: str = "main") -> list[str]:
@@ -125,11 +125,6 @@ class ProcGroup(ProcessGroup):
 
 
 # ------------------------------------------------------------------ additions for tests/test_integration.py
-def free_port() -> int:
-    """A free TCP port on 127.0.0.1 (bind to port 0 and read it)."""
-    return int(free_endpoint().rsplit(":", 1)[1])
-
-
 def pids_matching(pattern: str) -> list[int]:
     """PIDs of processes whose full command line matches the regex ``pattern`` (``pgrep -f``), not this one."""
     out = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True, timeout=10)

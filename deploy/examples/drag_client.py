@@ -2,7 +2,8 @@
 
 It joins a run through its router, watches one actor's frames and "drags" the robot: from step ``--start`` of
 episode ``--episode`` on it holds the desired position P_h a little above the KMP mean (``--dy``), one
-correction per frame, for ``--steps`` frames, then releases and exits. See docs/protocol.md ("Write your own
+correction per frame, for ``--steps`` frames, then releases and exits. A live hold ends with its episode: if
+the episode's last frame (``last: true``) comes first, it releases there. See docs/protocol.md ("Write your own
 client").
 
     python deploy/examples/drag_client.py --connect tcp/127.0.0.1:7447 --run RUN --actor a0 --steps 40
@@ -39,7 +40,7 @@ def parse_frame(payload):
             isinstance(v, (int, float)) and math.isfinite(v) for v in mean)
     except (KeyError, TypeError):
         return None
-    return {"episode": ep, "t": t, "mean": [float(v) for v in mean]} if ok else None
+    return {"episode": ep, "t": t, "mean": [float(v) for v in mean], "last": m.get("last") is True} if ok else None
 
 
 def main(argv=None):
@@ -86,6 +87,8 @@ def main(argv=None):
                     continue
                 if sent == 0 and (f["episode"] != args.episode or f["t"] < args.start):
                     continue
+                if f["last"]:  # the episode ended, and a live hold ends with it (the actor ends it too)
+                    break
                 p_h = [f["mean"][0], f["mean"][1] + args.dy]
                 pub.put(envelope("correction", args.client, seq, client=args.client, actor=args.actor, active=True,
                                  p_h=p_h, episode=f["episode"], t=f["t"]))

@@ -49,6 +49,28 @@ def test_plan_is_seed_major_and_commands_match_the_method(tmp_path):
     assert "reference" in ref and ref[ref.index("--seed") + 1] == "2"
 
 
+def test_run_argv_is_a_valid_khgrl_up_command(tmp_path):
+    """The command of a distributed run resolves (khgrl up's parser and common.config) to the planned run."""
+    from common.config import resolve
+    from deploy.cli import build_parser as cli_parser
+    from deploy.launcher import build_parser
+
+    cfg = ExperimentConfig(seeds=[3], scenarios=["low_cov"], episodes=7, human_episodes=[2, 3], timeout=99)
+    for spec in plan_runs(cfg):
+        argv = run_argv(spec, cfg, tmp_path / spec.name)
+        args = build_parser().parse_args(argv[argv.index("up") + 1:])
+        run = resolve(args.config, args)
+        assert (run.scenario, run.method, run.seed, run.episodes, run.timeout) == ("low_cov", spec.method, 3, 7, 99.0)
+        assert run.run_dir == str(tmp_path / spec.name) and run.stream.max_lead == 8 and not args.progress
+        if spec.method == "khgrl":
+            assert (run.human, run.human_episodes) == ("scripted", (2, 3))
+        else:
+            assert run.human == "none"
+    ref = run_argv(RunSpec("low_cov", "kgrl", 2), ExperimentConfig(system="reference", episodes=4), tmp_path / "r")
+    args = cli_parser().parse_args(ref[ref.index("reference"):])
+    assert (args.scenario, args.method, args.seed, args.episodes, args.quiet) == ("low_cov", "kgrl", 2, 4, True)
+
+
 def test_run_is_done_only_for_a_complete_clean_run(tmp_path):
     cfg = ExperimentConfig(episodes=3)
     d = tmp_path / "run"

@@ -47,6 +47,44 @@ def test_plan_leads_by_one_step(tmp_path):
         load_record(bad)
 
 
+class _Stream:
+    """Records what a CorrectionPublisher would send (same rules: a live release only after a hold)."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple] = []
+        self.active: dict[str, bool] = {}
+
+    def send(self, actor, p_h, episode=0, t=0, step=None) -> None:
+        if p_h is None and step is None and not self.active.get(actor, False):
+            return
+        self.sent.append((actor, None if p_h is None else tuple(p_h), episode, t, step))
+        self.active[actor] = p_h is not None
+
+
+def _frame(episode: int, t: int):
+    from common.protocol import Frame
+
+    p = np.array([0.5, 0.5])
+    return Frame(actor="a0", episode=episode, t=t, phase=0.5, robot=p, desired=p, mean=p, scale=np.array([1.0, 1.0]),
+                 intervening=False, scenario="low_cov")
+
+
+def test_replay_answers_each_frame_with_the_recorded_word_for_the_next_step():
+    from human_bridge.replay import ReplayAnswers, ReplayPlan
+
+    rows = [{"actor": "a0", "episode": 2, "step": s, "p_h": np.array([0.1 * s, 0.5]), "client": "x"} for s in (0, 1, 3)]
+    stream = _Stream()
+    answers = ReplayAnswers(ReplayPlan(rows), stream, "a1")
+    assert not answers.frame(_frame(1, 7))  # episode 1: announce episode 2 with its step 0's word
+    addressed = [m for m in stream.sent if m[4] is not None]  # (live words only release a hold, if any)
+    assert addressed == [("a1", (0.0, 0.5), 2, 7, 0)]
+    done = [answers.frame(_frame(2, t)) for t in range(5)]
+    addressed = [m[1:] for m in stream.sent if m[4] is not None]
+    assert addressed[1:] == [((0.1, 0.5), 2, 0, 1), (None, 2, 1, 2), ((0.1 * 3, 0.5), 2, 2, 3), (None, 2, 3, 4),
+                             (None, 2, 4, 5)]
+    assert done == [False, False, False, True, True] and answers.sent_steps == 2
+
+
 # as fast as allowed (no --rate): step-addressed corrections keep the record and the replay on their steps
 ACTOR = ["--scenario", "low_cov", "--method", "khgrl", "--episodes", "2",
          "--learning-starts", "100000", "--flush-timeout", "0.5"]
@@ -61,7 +99,7 @@ def test_replay_reproduces_the_recorded_interventions(tmp_path):
         ep = g.router()
         # run 1: the scripted human corrects in episode 2
         actor = g.actor(run1, ep, *ACTOR, run_dir=dir1)
-        human = g.human(run1, ep, "scripted", "--scenario", "low_cov", "--actor", "*", "--episodes", "2")
+        human = g.human(run1, ep, "scripted", "--scenario", "low_cov", "--actor", "*", "--human-episodes", "2")
         assert actor.wait(150) == 3, actor.tail()  # no learner: the flush times out, everything else is done
         human.stop(10)
         record = dir1 / "actor-a0" / "corrections.csv"

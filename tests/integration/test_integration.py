@@ -3,11 +3,12 @@ Zenoh router, started as a user starts them.
 
 Every run gets an explicit free port (``khgrl up --port``), a unique run id (``--run``), multicast scouting off
 (the processes' session config), hard timeouts, and whatever is left at the end is killed by PID (the launcher's
-Popen handle, and the children found by their ``--listen/--connect`` endpoint).
+Popen handle, and its children from ``RUN_DIR/pids.json``).
 
 Costs on a 2-core box: one ``khgrl up`` of 3 low_cov episodes is ~55 s (process start-up, then the actor in
 lock-step with the learner after ``--learning-starts 64``); it is shared by the end-to-end and the correction tests
-(module fixture). The tests that show bugs are at the end of the file (``-x`` stops at the first of them).
+(module fixture). The launcher's own defects (unreachable router, signals, orphans, run directories, resume,
+no display) are tested in test_launcher.py.
 """
 
 from __future__ import annotations
@@ -27,8 +28,15 @@ import msgpack
 import numpy as np
 import pytest
 
-from helpers import (REPO, endpoint_pattern, free_port, kill_pids, pid_alive, pids_matching, read_json,
-                          unique_run, wait_for)
+from helpers import (
+    REPO,
+    free_port,
+    kill_pids,
+    pid_alive,
+    read_json,
+    unique_run,
+    wait_for,
+)
 
 UP = [sys.executable, "-m", "deploy.cli", "up"]
 FAST = ["--scenario", "low_cov", "--method", "khgrl", "--learning-starts", "64"]
@@ -46,12 +54,18 @@ def _up_argv(run_dir: Path, port: int, run: str, *args: str) -> list[str]:
     return [*UP, *args, "--run-dir", str(run_dir), "--port", str(port), "--run", run]
 
 
-def _cleanup(launcher: subprocess.Popen | None, endpoint: str) -> None:
-    """Kill the launcher (if still there) and every process started with its endpoint, by PID."""
+def _children(run_dir: Path) -> list[int]:
+    """The PIDs of the launcher's children (``RUN_DIR/pids.json``) still alive."""
+    path = run_dir / "pids.json"
+    return [p for p in read_json(path)["children"].values() if pid_alive(p)] if path.exists() else []
+
+
+def _cleanup(launcher: subprocess.Popen | None, run_dir: Path) -> None:
+    """Kill the launcher (if still there) and its children, by PID."""
     if launcher is not None and launcher.poll() is None:
         launcher.kill()
         launcher.wait(10)
-    kill_pids(pids_matching(endpoint_pattern(endpoint)))
+    kill_pids(_children(run_dir))
 
 
 def _episodes_csv(run_dir: Path, actor: str = "a0") -> list[dict]:
@@ -60,7 +74,7 @@ def _episodes_csv(run_dir: Path, actor: str = "a0") -> list[dict]:
 
 
 def _checkpoint(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    from learner.service import load_checkpoint_arrays
+    from learner.checkpoint import load_checkpoint_arrays
 
     ck = run_dir / "learner" / "checkpoint"
     return read_json(ck / "state.json"), load_checkpoint_arrays(ck)
@@ -112,9 +126,9 @@ def up_run(tmp_path_factory):
     leftover = None
     try:
         proc = subprocess.run(argv, cwd=REPO, env=_env(), capture_output=True, text=True, timeout=200)
-        leftover = pids_matching(endpoint_pattern(endpoint))
+        leftover = _children(run_dir)
     finally:
-        _cleanup(None, endpoint)  # children of a launcher killed by the timeout
+        _cleanup(None, run_dir)  # children of a launcher killed by the timeout
     return {"proc": proc, "run_dir": run_dir, "run": run, "endpoint": endpoint, "wall": time.monotonic() - t0,
             "leftover": leftover}
 
@@ -127,7 +141,8 @@ def test_up_runs_to_completion_and_writes_the_run_dir(up_run):
     assert f"khgrl up: run {up_run['run']} on {up_run['endpoint']}" in proc.stdout
     assert up_run["leftover"] == [], "processes of the run still alive after khgrl up exited"
     config = read_json(run_dir / "config.json")
-    assert config["run"] == up_run["run"] and config["endpoint"] == up_run["endpoint"]
+    assert config["runtime"]["run"] == up_run["run"] and config["runtime"]["endpoint"] == up_run["endpoint"]
+    assert config["episodes"] == 3 and config["human_episodes"] == [HUMAN_EPISODE]  # the resolved settings
     summary = read_json(run_dir / "summary.json")
     assert summary["exit_codes"] == {"router": 0, "learner": 0, "a0": 0, "human-scripted": 0}, summary
     assert summary["failed"] == [] and summary["interrupted"] is False
@@ -323,7 +338,6 @@ def test_env_correction_stores_clipped_inverse_of_the_scripted_p_h(low_cov_env):
 @pytest.mark.timeout(200)
 def test_ctrl_c_stops_khgrl_up_and_every_child(tmp_path):
     run_dir, port, run = tmp_path / "run", free_port(), unique_run("int")
-    endpoint = f"tcp/127.0.0.1:{port}"
     argv = _up_argv(run_dir, port, run, *FAST, "--episodes", "1000", "--human-episodes", "2", "--max-lead", "100000",
                     "--rate", "100", "--no-progress")
     err_path = tmp_path / "up.stderr"
@@ -348,7 +362,7 @@ def test_ctrl_c_stops_khgrl_up_and_every_child(tmp_path):
                     seen.append(lines.get(timeout=0.5))
                 except queue.Empty:
                     pass
-            children = pids_matching(endpoint_pattern(endpoint))
+            children = _children(run_dir)
             assert len(children) == 4, f"expected router, learner, a0, human: {children}"
             # Ctrl-C in a terminal: SIGINT to the foreground process group (the launcher's; children have their own)
             t0 = time.monotonic()
@@ -357,10 +371,9 @@ def test_ctrl_c_stops_khgrl_up_and_every_child(tmp_path):
             took = time.monotonic() - t0
         out = "".join(seen) + "".join(lines.get_nowait() for _ in range(lines.qsize()))
         assert rc == 130, f"exit code {rc}\n{out}\n{err_path.read_text()}"
-        assert took < 60, f"took {took:.0f} s to stop"
+        assert took < 20, f"took {took:.0f} s to stop"
         alive = [p for p in children if pid_alive(p)]
         assert not alive, f"children still alive after Ctrl-C: {alive}"
-        assert not pids_matching(endpoint_pattern(endpoint))
         summary = read_json(run_dir / "summary.json")
         assert summary["interrupted"] is True
         assert all(c is not None for c in summary["exit_codes"].values()), summary
@@ -370,44 +383,7 @@ def test_ctrl_c_stops_khgrl_up_and_every_child(tmp_path):
         assert "stopping (stop command): final checkpoint" in (run_dir / "logs" / "learner.log").read_text()
         assert (run_dir / "learner" / "checkpoint" / "state.json").exists()
     finally:
-        _cleanup(launcher, endpoint)
-
-
-# ============================================================================ a process that dies: fail loudly
-STOP_TIMEOUT = 20
-
-
-@pytest.fixture(scope="module")
-def dead_actor_run(tmp_path_factory):
-    """``khgrl up --max-lead 1``: the launcher passes it on, the actor rejects it and exits 2 at once."""
-    base = tmp_path_factory.mktemp("dead")
-    run_dir, port, run = base / "run", free_port(), unique_run("dead")
-    endpoint = f"tcp/127.0.0.1:{port}"
-    # --stop-timeout 20 instead of the default 60 keeps the suite short; the default makes it 60 s per process
-    argv = _up_argv(run_dir, port, run, *FAST, "--episodes", "3", "--max-lead", "1", "--no-progress",
-                    "--stop-timeout", str(STOP_TIMEOUT))
-    t0 = time.monotonic()
-    leftover = None
-    try:
-        proc = subprocess.run(argv, cwd=REPO, env=_env(), capture_output=True, text=True, timeout=240)
-        wall = time.monotonic() - t0
-        leftover = pids_matching(endpoint_pattern(endpoint))
-    finally:
-        _cleanup(None, endpoint)
-    return {"proc": proc, "run_dir": run_dir, "wall": wall, "leftover": leftover}
-
-
-@pytest.mark.integration
-@pytest.mark.timeout(300)
-def test_up_fails_loudly_when_a_process_dies(dead_actor_run):
-    proc, run_dir = dead_actor_run["proc"], dead_actor_run["run_dir"]
-    assert proc.returncode == 1, f"exit code {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
-    assert "khgrl up: process a0 exited with code 2" in proc.stderr, proc.stderr
-    assert "--max-lead must be >= 8" in proc.stderr  # the tail of the actor's log comes with it
-    summary = read_json(run_dir / "summary.json")
-    assert summary["failed"] == ["a0"] and summary["exit_codes"]["a0"] == 2
-    assert dead_actor_run["leftover"] == [], "children left running after khgrl up exited"
-
+        _cleanup(launcher, run_dir)
 
 
 # ================================================================================= hostile messages on every topic
@@ -432,16 +408,19 @@ def _padded(msg: dict, size: int) -> bytes:
 
 def _generic(kind: str, valid: dict, other_kind: str) -> list[tuple[str, bytes, str]]:
     """Malformed envelopes of any kind: (label, payload, the reason the receiver logs)."""
-    from common.protocol import MAX_BYTES
+    from common.protocol import KINDS
+
+    limit = KINDS[kind].MAX_BYTES
 
     return [
         ("garbage", b"\xc1\xc1\xc1 not msgpack \x00\xff", "not msgpack"),
         ("empty", b"", "not msgpack"),
         ("not a map", _pack([1, 2, 3]), "message is not a map"),
-        ("schema version", _pack(dict(valid, v=2)), "schema version 2, expected 1"),
+        ("schema version", _pack(dict(valid, v=2)), "schema version 2, expected the integer 1"),
+        ("schema version 1.0", _pack(dict(valid, v=1.0)), "schema version 1.0, expected the integer 1"),
         ("wrong kind", _pack(dict(valid, kind=other_kind)), f"kind '{other_kind}' on a {kind} topic"),
         ("bad sender", _pack(dict(valid, sender="a/b")), "sender: bad identifier"),
-        ("oversize", _padded(valid, MAX_BYTES[kind] + 1), f"{MAX_BYTES[kind] + 1} bytes exceeds the {kind} limit"),
+        ("oversize", _padded(valid, limit + 1), f"{limit + 1} bytes exceeds the {kind} limit"),
     ]
 
 
@@ -478,8 +457,9 @@ def _hostile_transitions() -> list[tuple[str, bytes, str]]:
     v("rows mismatch", "intervened: 3 rows, expected 4", intervened=pack_array(np.zeros(3, np.uint8)))
     v("action out of box", "actions outside [-1, 1]", action=pack_array(np.full((4, 2), 1.5, np.float32)))
     v("flag not 0/1", "terminated: flags must be 0/1", terminated=pack_array(np.full(4, 2, np.uint8)))
+    flags = ("terminated", "truncated", "intervened", "clipped")
     empty = {k: pack_array(np.zeros((0, 5) if k in ("obs", "next_obs") else (0, 2) if k == "action" else (0,),
-                                    np.uint8 if k in ("terminated", "truncated", "intervened", "clipped") else np.float32))
+                                    np.uint8 if k in flags else np.float32))
              for k in base if k not in ("actor", "first_step")}
     v("empty batch", "batch of 0 transitions", **empty)
     v("base_seq > seq", "base_seq 9 > seq 1", base_seq=9)
@@ -488,12 +468,240 @@ def _hostile_transitions() -> list[tuple[str, bytes, str]]:
     return bad
 
 
+def _hostile_acks() -> list[tuple[str, bytes, str]]:
+    ack = _env_msg("ack", sender="learner", actor="a0", received=0, durable=0, trained=0, epoch="e", version=0)
+    return _generic("ack", ack, "weights") + [
+        ("received str", _pack(dict(ack, received="x")), "received: expected"),
+        ("trained < 0", _pack(dict(ack, trained=-5)), "trained: -5 < 0"),
+        ("bad stream", _pack(dict(ack, stream="a/b")), "stream: bad identifier"),
+        ("missing epoch", _pack({k: v for k, v in ack.items() if k != "epoch"}), "epoch: expected"),
+    ]
+
+
+def _hostile_corrections(spoof_key: str) -> list[tuple[str, bytes, str]]:
+    corr = _env_msg("correction", sender="evil", client="evil", actor="a0", active=True, p_h=[0.6, 0.58])
+    return _generic("correction", corr, "frame") + [
+        ("p_h NaN", _pack(dict(corr, p_h=[float("nan"), 0.5])), "p_h[0]: not finite"),
+        ("p_h inf", _pack(dict(corr, p_h=[0.5, float("inf")])), "p_h[1]: not finite"),
+        ("p_h shape", _pack(dict(corr, p_h=[0.5])), "p_h: expected a list of 2 numbers"),
+        ("active str", _pack(dict(corr, active="yes")), "active: expected"),
+        ("episode < 0", _pack(dict(corr, episode=-1)), "episode: -1 < 0"),
+        ("bad actor id", _pack(dict(corr, actor="a 0")), "actor: bad identifier"),
+        # a valid correction claiming to be the scripted client, on another client's key
+        ("spoofed client", _pack(dict(corr, client="scripted", sender="scripted")),
+         f"client 'scripted' published on {spoof_key}"),
+    ]
+
+
+def _hostile_frames() -> list[tuple[str, bytes, str]]:
+    frame = _env_msg("frame", sender="a0", actor="a0", episode=HUMAN_EPISODE, t=10, phase=0.5, robot=[0.6, 0.5],
+                     desired=[0.6, 0.5], mean=[0.6, 0.5], scale=[15.0, 15.0], intervening=False, scenario="low_cov")
+    return _generic("frame", frame, "episode") + [
+        ("robot NaN", _pack(dict(frame, robot=[float("nan"), 0.5])), "robot[0]: not finite"),
+        ("mean inf", _pack(dict(frame, mean=[float("inf"), 0.5])), "mean[0]: not finite"),
+        ("phase > 1", _pack(dict(frame, phase=2.0)), "phase: 2.0 > 1.0"),
+        ("mean shape", _pack(dict(frame, mean=[0.5, 0.5, 0.5])), "mean: expected a list of 2 numbers"),
+        ("intervening str", _pack(dict(frame, intervening="no")), "intervening: expected"),
+        ("episode < 0", _pack(dict(frame, episode=-1)), "episode: -1 < 0"),
+    ]
+
+
+def _hostile_controls() -> list[tuple[str, bytes, str]]:
+    stop = _env_msg("control", sender="evil", command="stop")
+    return _generic("control", stop, "ack") + [
+        ("unknown command", _pack(dict(stop, command="reboot")), "unknown command 'reboot'"),
+        ("command int", _pack(dict(stop, command=7)), "command: expected"),
+        ("seq < 0", _pack(dict(stop, seq=-1)), "seq: -1 < 0"),
+        ("ts str", _pack(dict(stop, ts="now")), "ts: expected"),
+        ("ts NaN", _pack(dict(stop, ts=float("nan"))), "ts: "),  # logged reason "ts", as the str's
+    ]
+
+
+# who receives a control message on each target: (process, kind)
+CONTROL_TARGETS = {"all": [("learner", "control"), ("actor", "control"), ("human", "control"), ("launcher", "control")],
+                   "learner": [("learner", "control")], "actor": [("actor", "control")],
+                   "a0": [("actor", "control")], "human": [("human", "control")]}
+
+
+def _hostile_weights(real) -> list[tuple[str, bytes, str]]:
+    """Weights messages the actor must refuse, built on the shapes of the learner's real weights ``real``."""
+    from common.protocol import pack_array
+
+    names = sorted(real.tensors)
+    shapes = {k: tuple(v.shape) for k, v in real.tensors.items()}
+    zeros = {k: pack_array(np.zeros(v, np.float32)) for k, v in shapes.items()}
+    w = _env_msg("weights", sender="learner", version=10**6, epoch="evil", trained={"a0": 0}, tensors=zeros)
+    first, second, third = names[0], names[1], names[2]  # distinct fields: distinct logged reasons
+    wider = shapes[first][:-1] + (shapes[first][-1] + 1,)
+
+    def tensors(**over) -> bytes:
+        return _pack(dict(w, tensors=dict(zeros, **over)))
+
+    return _generic("weights", w, "transitions") + [
+        ("wrong tensor names", _pack(dict(w, tensors={f"evil.{k}": v for k, v in zeros.items()})),
+         "do not match the actor network"),
+        ("missing tensor", _pack(dict(w, tensors={k: v for k, v in zeros.items() if k != first})),
+         "do not match the actor network"),
+        ("wrong tensor shape", tensors(**{first: pack_array(np.zeros(wider, np.float32))}), "the actor network has"),
+        ("NaN tensor", tensors(**{second: pack_array(np.full(shapes[second], np.nan, np.float32))}),
+         f"tensors[{second}]: contains NaN or inf"),
+        ("float64 tensor", tensors(**{third: pack_array(np.zeros(shapes[third], np.float64))}),
+         f"tensors[{third}]: dtype '<f8' not in"),
+        ("no tensors", _pack(dict(w, tensors={})), "tensors: "),  # same logged reason as the names
+        ("version < 0", _pack(dict(w, version=-1)), "version: -1 < 0"),
+        ("bad trained key", _pack(dict(w, trained={"a/0": 1})), "trained key: bad identifier"),
+    ]
+
+
+class _Observer:
+    """A test client's view of the run: every process's latest status info and the number of a0's frames."""
+
+    def __init__(self, keys) -> None:
+        self.keys = keys
+        self.status: dict[str, object] = {}
+        self.frames = 0
+        self.lock = threading.Lock()
+
+    def on_status(self, sample) -> None:
+        from common.messages import Status
+        from common.protocol import ProtocolError, decode
+
+        try:
+            msg = decode(Status, sample.payload.to_bytes())
+        except ProtocolError:  # our own hostile status messages
+            return
+        with self.lock:
+            self.status[str(sample.key_expr)] = msg.info
+
+    def on_frame(self, sample) -> None:
+        self.frames += 1
+
+    def rejects(self, role: str, ident: str) -> dict:
+        with self.lock:
+            info = self.status.get(self.keys.status(role, ident))
+            return dict(info.rejects) if info is not None else {}
+
+    def running(self) -> bool:
+        """Frames from a0, and statuses of learner and actor that report no rejects."""
+        seen = self.keys.status("learner", "learner") in self.status and self.keys.status("actor", "a0") in self.status
+        return self.frames > 0 and seen and self.rejects("learner", "learner") == {} and \
+            self.rejects("actor", "a0") == {}
+
+    def all_rejects(self) -> dict[str, dict]:
+        return {"learner": self.rejects("learner", "learner"), "actor": self.rejects("actor", "a0"),
+                "human": self.rejects("human", "scripted")}
+
+
+class _Attacker:
+    """Sends hostile payloads and keeps what each receiving process must count and log."""
+
+    def __init__(self, session, keys) -> None:
+        self.s, self.keys = session, keys
+        self.count: dict[tuple[str, str], int] = {}  # (process, kind) -> rejects
+        self.reasons: set[tuple[str, str, str]] = set()  # (process, kind, logged reason)
+        self.weights_sent = 0
+
+    def send(self, key: str, payload: bytes, receivers: list[tuple[str, str]], reason: str,
+             pause: float = 0.01) -> None:
+        import zenoh
+
+        self.s.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        for proc, kind in receivers:
+            self.count[(proc, kind)] = self.count.get((proc, kind), 0) + 1
+            if reason:
+                self.reasons.add((proc, kind, reason))
+        time.sleep(pause)
+
+    def every_topic(self, real) -> None:
+        k = self.keys
+        for _, payload, reason in _hostile_transitions():  # the learner: on a0's key and on another actor's
+            for actor in ("a0", "evil"):
+                self.send(k.transitions(actor), payload, [("learner", "transitions")], reason)
+        valid_tr = _pack(_env_msg("transitions", sender="a0", seq=0, **_transitions_fields()))
+        self.send(k.transitions("evil"), valid_tr, [("learner", "transitions")],
+                  f"actor 'a0' published on {k.transitions('evil')}")
+        for _, payload, reason in _hostile_acks():
+            self.send(k.ack("a0"), payload, [("actor", "ack")], reason)
+        for _, payload, reason in _hostile_corrections(k.correction("evil")):
+            self.send(k.correction("evil"), payload, [("actor", "correction")], reason)
+        for _, payload, reason in _hostile_frames():  # the human subscribes to every actor's frames
+            for actor in ("a0", "evil"):
+                self.send(k.frame(actor), payload, [("human", "frame")], reason)
+        for _, payload, reason in _hostile_controls():  # nothing here may stop, pause or checkpoint anything
+            for target, receivers in CONTROL_TARGETS.items():
+                self.send(k.control(target), payload, receivers, reason)
+        self._launcher_topics()
+        # weights (actor a0; RingChannel(1): spaced, and each sent twice, so none is overwritten unseen)
+        for _, payload, reason in _hostile_weights(real):
+            for _ in range(2):
+                self.send(k.weights, payload, [], "", pause=0.25)
+            self.weights_sent += 2
+            self.reasons.add(("actor", "weights", reason))
+
+    def _launcher_topics(self) -> None:
+        """Malformed status and episode messages (the launcher's progress view)."""
+        st = _env_msg("status", sender="evil", role="learner", info={"ingested": 1})
+        for _, payload, _ in _generic("status", st, "control") + [("info not a map", _pack(dict(st, info="x")), "")]:
+            self.send(self.keys.status("learner", "evil"), payload, [("launcher", "status")], "")
+        epi = _env_msg("episode", sender="evil", actor="evil", stats={"episode": 1})
+        for _, payload, _ in _generic("episode", epi, "status") + [
+                ("episode 0", _pack(dict(epi, stats={"episode": 0})), "")]:
+            self.send(self.keys.episode("evil"), payload, [("launcher", "episode")], "")
+
+    def weight_reasons(self) -> int:
+        return len({r for _, k, r in self.reasons if k == "weights"})
+
+    def reported(self, got: dict[str, dict]) -> bool:
+        """Whether the processes' status reports every reject sent to them (weights: at least one per reason)."""
+        ok = all(got[p].get(k, 0) == c for (p, k), c in self.count.items() if p != "launcher")
+        return ok and self.weight_reasons() <= got["actor"].get("weights", 0) <= self.weights_sent
+
+
+def _learner_final_rejects(learner_log: str) -> dict:
+    """The rejects by kind in the learner's last log line (``learner ID done: {...}; inbox dropped ...``)."""
+    done = [ln for ln in learner_log.splitlines() if " done: {" in ln and "rejected" in ln]
+    assert done, learner_log[-2000:]
+    return ast.literal_eval(done[-1].split(" done: ", 1)[1].rsplit("; inbox dropped", 1)[0])["rejected"]
+
+
+def _check_harmless(run_dir: Path, attack: _Attacker, err_text: str) -> None:
+    """The run completed as if nothing had been sent, and every reject is counted and logged with its reason."""
+    summary = read_json(run_dir / "summary.json")
+    assert summary["exit_codes"] == {"router": 0, "learner": 0, "a0": 0, "human-scripted": 0}, summary
+    launcher = {k: c for (p, k), c in attack.count.items() if p == "launcher"}
+    assert summary["launcher_rejects"] == launcher, summary["launcher_rejects"]
+    rows = _episodes_csv(run_dir)
+    n = sum(int(r["steps"]) for r in rows)
+    actor = read_json(run_dir / "actor-a0" / "summary.json")
+    assert actor["episodes"] == 3 and actor["stopped_by"] is None and actor["unconfirmed_transitions"] == 0
+    assert actor["corrections"]["holds"] == sum(int(r["interventions"]) for r in rows), actor["corrections"]
+    assert int(next(r for r in rows if int(r["episode"]) == 1)["intervention_steps"]) == 0
+    state, arrays = _checkpoint(run_dir)
+    slots = _assert_exactly_once(state, arrays, "a0", n)  # nothing hostile got into the replay buffer
+    assert state["total_ingested"] == n
+    assert int(arrays["intervened"][slots].sum()) == sum(int(r["intervention_steps"]) for r in rows)
+    # final counts by kind: the actor's summary and the learner's last log line
+    for kind in ("ack", "correction", "control"):
+        assert actor["rejects"].get(kind) == attack.count[("actor", kind)], (kind, actor["rejects"])
+    assert attack.weight_reasons() <= actor["rejects"].get("weights", 0) <= attack.weights_sent, actor["rejects"]
+    learner_log = (run_dir / "logs" / "learner.log").read_text()
+    assert _learner_final_rejects(learner_log) == {"transitions": attack.count[("learner", "transitions")],
+                                                   "control": attack.count[("learner", "control")]}
+    # every category sent is visible, with its reason, in the receiving process's log (the launcher's: stderr)
+    logs = {"learner": learner_log, "actor": (run_dir / "logs" / "a0.log").read_text(),
+            "human": (run_dir / "logs" / "human-scripted.log").read_text(), "launcher": err_text}
+    missing = [(p, k, r) for p, k, r in sorted(attack.reasons)
+               if not any(f"rejected {k} message" in ln and r in ln for ln in logs[p].splitlines())]
+    assert not missing, f"rejections not logged: {missing}"
+    assert "Traceback" not in "".join(logs.values())
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(300)
 def test_hostile_messages_on_every_topic_are_rejected_counted_and_harmless(tmp_path):
-    from common.protocol import Keys, decode, pack_array
-    from common.session import open_client
-    import zenoh
+    from common.messages import Weights
+    from common.protocol import Keys, decode
+    from common.transport import open_client
 
     run_dir, port, run = tmp_path / "run", free_port(), unique_run("evil")
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -502,236 +710,57 @@ def test_hostile_messages_on_every_topic_are_rejected_counted_and_harmless(tmp_p
                     "--no-progress")
     out_path, err_path = tmp_path / "up.stdout", tmp_path / "up.stderr"
     launcher = None
-    status: dict[str, dict] = {}
-    status_lock = threading.Lock()
-    frames = {"n": 0}
-
-    def on_status(sample):
-        try:
-            msg = decode("status", sample.payload.to_bytes())
-        except Exception:  # noqa: BLE001 - our own hostile status messages
-            return
-        with status_lock:
-            status[str(sample.key_expr)] = msg["info"]
-
-    def on_frame(sample):
-        frames["n"] += 1
-
-    def rejects(role: str, ident: str) -> dict:
-        with status_lock:
-            return dict(status.get(keys.status(role, ident), {}).get("rejects", {}))
-
-    # what each process must report: (process, kind) -> count; and (log, kind, reason) lines
-    expect_count: dict[tuple[str, str], int] = {}
-    expect_reason: set[tuple[str, str, str]] = set()
-    sent_labels: list[str] = []
+    view = _Observer(keys)
     try:
         with open(out_path, "w") as out, open(err_path, "w") as err:
             launcher = subprocess.Popen(argv, cwd=REPO, env=_env(), stdout=out, stderr=err, start_new_session=True)
-        with open_client(endpoint) as s:
-            subs = [s.declare_subscriber(keys.status("*", "*"), on_status),
-                    s.declare_subscriber(keys.frame("a0"), on_frame)]
+        with open_client(endpoint, timeout=60) as s:
+            subs = [s.declare_subscriber(keys.status("*", "*"), view.on_status),
+                    s.declare_subscriber(keys.frame("a0"), view.on_frame)]
             try:
-                # everyone up and the actor stepping (its frames; statuses of learner and actor; human's token)
-                wait_for(lambda: frames["n"] > 0 and rejects("learner", "learner") == {} and rejects("actor", "a0") == {}
-                         and keys.status("learner", "learner") in status and keys.status("actor", "a0") in status,
-                         120, "learner and actor running")
+                wait_for(view.running, 120, "learner and actor running")
                 wait_for(lambda: any(r.ok for r in s.liveliness().get(keys.alive("human", "*"), timeout=1.0)), 60,
                          "the human-input process")
                 assert launcher.poll() is None, err_path.read_text()
                 replies = [r.ok for r in s.get(keys.weights, timeout=5.0) if r.ok]
                 assert replies, "no weights from the learner's queryable"
-                real = decode("weights", replies[0].payload.to_bytes())
-                names = sorted(real["tensors"])
-
-                def send(key: str, payload: bytes, label: str, receivers: list[tuple[str, str]], reason: str,
-                         pause: float = 0.01) -> None:
-                    s.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
-                    sent_labels.append(f"{key.split('/', 2)[2]}: {label}")
-                    for proc, kind in receivers:
-                        expect_count[(proc, kind)] = expect_count.get((proc, kind), 0) + 1
-                        expect_reason.add((proc, kind, reason))
-                    time.sleep(pause)
-
-                # ---- transitions (learner): on another actor's key and on a0's
-                for label, payload, reason in _hostile_transitions():
-                    send(keys.transitions("a0"), payload, label, [("learner", "transitions")], reason)
-                    send(keys.transitions("evil"), payload, label, [("learner", "transitions")], reason)
-                valid_tr = _pack(_env_msg("transitions", sender="a0", seq=0, **_transitions_fields()))
-                send(keys.transitions("evil"), valid_tr, "a0's batch on evil's key", [("learner", "transitions")],
-                     f"actor 'a0' published on {keys.transitions('evil')}")
-
-                # ---- acks (actor a0)
-                ack = _env_msg("ack", sender="learner", actor="a0", received=0, durable=0, trained=0, epoch="e",
-                               version=0)
-                bad = _generic("ack", ack, "weights") + [
-                    ("received str", _pack(dict(ack, received="x")), "received: expected"),
-                    ("trained < 0", _pack(dict(ack, trained=-5)), "trained: -5 < 0"),
-                    ("bad stream", _pack(dict(ack, stream="a/b")), "stream: bad identifier"),
-                    ("missing epoch", _pack({k: v for k, v in ack.items() if k != "epoch"}), "epoch: expected"),
-                ]
-                for label, payload, reason in bad:
-                    send(keys.ack("a0"), payload, label, [("actor", "ack")], reason)
-
-                # ---- corrections (actor a0)
-                corr = _env_msg("correction", sender="evil", client="evil", actor="a0", active=True, p_h=[0.6, 0.58])
-                bad = _generic("correction", corr, "frame") + [
-                    ("p_h NaN", _pack(dict(corr, p_h=[float("nan"), 0.5])), "p_h[0]: not finite"),
-                    ("p_h inf", _pack(dict(corr, p_h=[0.5, float("inf")])), "p_h[1]: not finite"),
-                    ("p_h shape", _pack(dict(corr, p_h=[0.5])), "p_h: expected a list of 2 numbers"),
-                    ("active str", _pack(dict(corr, active="yes")), "active: expected"),
-                    ("episode < 0", _pack(dict(corr, episode=-1)), "episode: -1 < 0"),
-                    ("bad actor id", _pack(dict(corr, actor="a 0")), "actor: bad identifier"),
-                    # a valid correction claiming to be the scripted client, on another client's key
-                    ("spoofed client", _pack(dict(corr, client="scripted", sender="scripted")),
-                     f"client 'scripted' published on {keys.correction('evil')}"),
-                ]
-                for label, payload, reason in bad:
-                    send(keys.correction("evil"), payload, label, [("actor", "correction")], reason)
-
-                # ---- frames (the human subscribes to every actor's)
-                frame = _env_msg("frame", sender="a0", actor="a0", episode=HUMAN_EPISODE, t=10, phase=0.5,
-                                 robot=[0.6, 0.5], desired=[0.6, 0.5], mean=[0.6, 0.5], scale=[15.0, 15.0],
-                                 intervening=False, scenario="low_cov")
-                bad = _generic("frame", frame, "episode") + [
-                    ("robot NaN", _pack(dict(frame, robot=[float("nan"), 0.5])), "robot[0]: not finite"),
-                    ("mean inf", _pack(dict(frame, mean=[float("inf"), 0.5])), "mean[0]: not finite"),
-                    ("phase > 1", _pack(dict(frame, phase=2.0)), "phase: 2.0 > 1.0"),
-                    ("mean shape", _pack(dict(frame, mean=[0.5, 0.5, 0.5])), "mean: expected a list of 2 numbers"),
-                    ("intervening str", _pack(dict(frame, intervening="no")), "intervening: expected"),
-                    ("episode < 0", _pack(dict(frame, episode=-1)), "episode: -1 < 0"),
-                ]
-                for label, payload, reason in bad:
-                    send(keys.frame("a0"), payload, label, [("human", "frame")], reason)
-                    send(keys.frame("evil"), payload, label, [("human", "frame")], reason)
-
-                # ---- control: nothing here may stop, pause or checkpoint anything
-                stop = _env_msg("control", sender="evil", command="stop")
-                bad = _generic("control", stop, "ack") + [
-                    ("unknown command", _pack(dict(stop, command="reboot")), "unknown command 'reboot'"),
-                    ("command int", _pack(dict(stop, command=7)), "command: expected"),
-                    ("seq < 0", _pack(dict(stop, seq=-1)), "seq: -1 < 0"),
-                    ("ts str", _pack(dict(stop, ts="now")), "ts: expected"),
-                    ("ts NaN", _pack(dict(stop, ts=float("nan"))), "ts: "),  # logged reason "ts", as the str's
-                ]
-                targets = {"all": [("learner", "control"), ("actor", "control"), ("human", "control")],
-                           "learner": [("learner", "control")], "actor": [("actor", "control")],
-                           "a0": [("actor", "control")], "human": [("human", "control")]}
-                for label, payload, reason in bad:
-                    for target, receivers in targets.items():
-                        send(keys.control(target), payload, label, receivers, reason)
-
-                # ---- status and episode (the launcher's progress view): malformed ones
-                st = _env_msg("status", sender="evil", role="learner", info={"ingested": 1})
-                for label, payload, _ in _generic("status", st, "control") + [
-                        ("info not a map", _pack(dict(st, info="x")), "info: expected")]:
-                    send(keys.status("learner", "evil"), payload, label, [], "")
-                epi = _env_msg("episode", sender="evil", actor="evil", stats={"episode": 1})
-                for label, payload, _ in _generic("episode", epi, "status") + [
-                        ("episode 0", _pack(dict(epi, stats={"episode": 0})), "episode: 0 < 1")]:
-                    send(keys.episode("evil"), payload, label, [], "")
-
-                # ---- weights (actor a0; RingChannel(1): spaced, and each sent twice, so none is overwritten unseen)
-                w = _env_msg("weights", sender="learner", version=10**6, epoch="evil",
-                             trained={"a0": 0}, tensors={k: pack_array(np.zeros(v.shape, np.float32))
-                                                         for k, v in real["tensors"].items()})
-                first = names[0]
-                shapes = {k: tuple(v.shape) for k, v in real["tensors"].items()}
-                renamed = {f"evil.{k}": v for k, v in w["tensors"].items()}
-                reshaped = dict(w["tensors"], **{first: pack_array(np.zeros(shapes[first][:-1] + (shapes[first][-1] + 1,),
-                                                                            np.float32))})
-                second, third = names[1], names[2]  # distinct fields: distinct logged reasons
-                nan = dict(w["tensors"], **{second: pack_array(np.full(shapes[second], np.nan, np.float32))})
-                f64 = dict(w["tensors"], **{third: pack_array(np.zeros(shapes[third], np.float64))})
-                bad = _generic("weights", w, "transitions") + [
-                    ("wrong tensor names", _pack(dict(w, tensors=renamed)), "do not match the actor network"),
-                    ("missing tensor", _pack(dict(w, tensors={k: v for k, v in w["tensors"].items() if k != first})),
-                     "do not match the actor network"),
-                    ("wrong tensor shape", _pack(dict(w, tensors=reshaped)), "the actor network has"),
-                    ("NaN tensor", _pack(dict(w, tensors=nan)), f"tensors[{second}]: contains NaN or inf"),
-                    ("float64 tensor", _pack(dict(w, tensors=f64)), f"tensors[{third}]: dtype '<f8' not in"),
-                    ("no tensors", _pack(dict(w, tensors={})), "tensors: "),  # same logged reason as the names
-                    ("version < 0", _pack(dict(w, version=-1)), "version: -1 < 0"),
-                    ("bad trained key", _pack(dict(w, trained={"a/0": 1})), "trained key: bad identifier"),
-                ]
-                n_weights = 0
-                for label, payload, reason in bad:
-                    for _ in range(2):
-                        s.put(keys.weights, payload, congestion_control=zenoh.CongestionControl.BLOCK)
-                        time.sleep(0.25)
-                    n_weights += 2
-                    sent_labels.append(f"learner/weights: {label}")
-                    expect_reason.add(("actor", "weights", reason))
+                real = decode(Weights, replies[0].payload.to_bytes())
+                attack = _Attacker(s, keys)
+                attack.every_topic(real)
                 # the learner's weights queryable still answers (a query with a garbage payload)
                 replies = [r.ok for r in s.get(keys.weights, payload=b"\xc1garbage", timeout=5.0) if r.ok]
-                assert replies and decode("weights", replies[0].payload.to_bytes())["version"] >= real["version"]
-                n_weight_reasons = len({r for p, k, r in expect_reason if k == "weights"})
-
-                # ---- the processes report them in their status, by kind, while the run goes on
-                def reported() -> bool:
-                    got = {"learner": rejects("learner", "learner"), "actor": rejects("actor", "a0"),
-                           "human": rejects("human", "scripted")}
-                    ok = all(got[p].get(k, 0) == c for (p, k), c in expect_count.items())
-                    return ok and n_weight_reasons <= got["actor"].get("weights", 0) <= n_weights
-
+                assert replies and decode(Weights, replies[0].payload.to_bytes()).version >= real.version
+                # the processes report them in their status, by kind, while the run goes on
                 try:
-                    wait_for(reported, 90, "rejects reported in status")
+                    wait_for(lambda: attack.reported(view.all_rejects()), 90, "rejects reported in status")
                 except AssertionError as exc:
-                    raise AssertionError(f"{exc}\nexpected {expect_count}, weights {n_weight_reasons}..{n_weights}\n"
-                                         f"status: learner {rejects('learner', 'learner')}, actor "
-                                         f"{rejects('actor', 'a0')}, human {rejects('human', 'scripted')}") from None
+                    raise AssertionError(f"{exc}\nexpected {attack.count}, weights {attack.weight_reasons()}.."
+                                         f"{attack.weights_sent}\nstatus: {view.all_rejects()}") from None
                 rc = launcher.wait(timeout=200)
             finally:
                 for sub in subs:
                     sub.undeclare()
-        out_text, err_text = out_path.read_text(), err_path.read_text()
-        assert rc == 0, f"khgrl up exited {rc}\n{out_text}\n{err_text}"
-        summary = read_json(run_dir / "summary.json")
-        assert summary["exit_codes"] == {"router": 0, "learner": 0, "a0": 0, "human-scripted": 0}, summary
-        # the run completed as if nothing had been sent
-        rows = _episodes_csv(run_dir)
-        n = sum(int(r["steps"]) for r in rows)
-        actor = read_json(run_dir / "actor-a0" / "summary.json")
-        assert actor["episodes"] == 3 and actor["stopped_by"] is None and actor["unconfirmed_transitions"] == 0
-        assert actor["corrections"]["holds"] == sum(int(r["interventions"]) for r in rows), actor["corrections"]
-        assert int(next(r for r in rows if int(r["episode"]) == 1)["intervention_steps"]) == 0
-        state, arrays = _checkpoint(run_dir)
-        slots = _assert_exactly_once(state, arrays, "a0", n)  # nothing hostile got into the replay buffer
-        assert state["total_ingested"] == n
-        assert int(arrays["intervened"][slots].sum()) == sum(int(r["intervention_steps"]) for r in rows)
-        # final counts by kind: the actor's summary and the learner's last log line
-        for kind in ("ack", "correction", "control"):
-            assert actor["rejects"].get(kind) == expect_count[("actor", kind)], (kind, actor["rejects"])
-        assert n_weight_reasons <= actor["rejects"].get("weights", 0) <= n_weights, actor["rejects"]
-        learner_log = (run_dir / "logs" / "learner.log").read_text()
-        done = [ln for ln in learner_log.splitlines() if "done:" in ln and "rejected" in ln]
-        assert done, learner_log[-2000:]
-        final = ast.literal_eval(done[-1].rsplit("rejected ", 1)[1])
-        assert final == {"transitions": expect_count[("learner", "transitions")],
-                         "control": expect_count[("learner", "control")]}, final
-        # every category sent is visible, with its reason, in the receiving process's log
-        logs = {"learner": learner_log, "actor": (run_dir / "logs" / "a0.log").read_text(),
-                "human": (run_dir / "logs" / "human-scripted.log").read_text()}
-        missing = [(p, k, r) for p, k, r in sorted(expect_reason)
-                   if not any(f"rejected {k} message" in ln and r in ln for ln in logs[p].splitlines())]
-        assert not missing, f"rejections not logged: {missing}"
-        assert "Traceback" not in "".join(logs.values()) + err_text
+        err_text = err_path.read_text()
+        assert rc == 0, f"khgrl up exited {rc}\n{out_path.read_text()}\n{err_text}"
+        _check_harmless(run_dir, attack, err_text)
     finally:
-        _cleanup(launcher, endpoint)
+        _cleanup(launcher, run_dir)
 
 
-# ====================================================================== bugs: these tests fail (see the messages)
+# ============================================================== schema-valid but odd messages to the launcher
 @pytest.mark.integration
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("kind,progress", [("episode", False), ("status", True)],
                          ids=["episode-no-progress", "status-progress-view"])
-def test_launcher_survives_schema_valid_but_hostile_episode_and_status(tmp_path, kind, progress):
-    """``khgrl up`` subscribes to every actor's episode messages and the learner's status; a message that passes
-    the protocol's validator but carries a string where the progress view wants a number must not crash it
-    (docs/protocol.md: a receiver "never crashes on input"). Episode messages are formatted in both modes, the
-    learner's status only by the live table (the default)."""
-    from common.protocol import Keys, decode, encode
-    from common.session import open_client
+def test_launcher_survives_odd_and_malformed_episode_and_status(tmp_path, kind, progress):
+    """``khgrl up`` subscribes to every actor's episode messages and the learner's status. A malformed one is
+    rejected (a string where a number belongs), and a schema-valid one with odd values (an unknown actor,
+    huge or negative numbers) is shown as it is: neither crashes the launcher (docs/protocol.md: a receiver
+    "never crashes on input"). Episode messages are formatted in both modes, the learner's status only by
+    the live table (the default)."""
+    from common.messages import EpisodeReport, LearnerInfo, Status
+    from common.protocol import Keys, encode
+    from common.transport import open_client
 
     run_dir, port, run = tmp_path / "run", free_port(), unique_run("evil")
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -739,20 +768,24 @@ def test_launcher_survives_schema_valid_but_hostile_episode_and_status(tmp_path,
     argv = _up_argv(run_dir, port, run, *FAST, "--episodes", "3", "--stop-timeout", "2",
                     *([] if progress else ["--no-progress"]))
     out_path, err_path = tmp_path / "up.stdout", tmp_path / "up.stderr"
-    hostile = {  # free-form status info passes decode; episode stats with non-numbers are rejected by decode
-        "status": encode("status", "evil", 0, role="learner",
-                         info={"ingested": "lots", "grad_steps_per_s": "fast", "version": "v"}),
-        "episode": encode("episode", "evil", 0, actor="evil",
-                          stats={"episode": 1, "ret": "much", "success": "no", "intervention_steps": "x"}),
-    }[kind]
     if kind == "status":
-        decode(kind, hostile)  # valid per schema: the launcher itself must cope with it
-    key = keys.episode("evil") if kind == "episode" else keys.status("learner", "evil")
+        info = LearnerInfo(id="evil", epoch="e", ingested=-5, iterations=10**15, gradient_steps=-1,
+                           grad_steps_per_s=1e300, version=-7, pending_iterations=0, queue_depth=0, rejects={},
+                           paused=True, checkpoints=0, next_seq={}, durable={}, duplicates={}, weights_queries=0)
+        odd = encode(Status(role="learner", info=info), "evil", 0)
+        malformed = _pack(_env_msg("status", role="learner", info={"ingested": "lots"}))
+        key = keys.status("learner", "evil")
+    else:
+        odd = encode(EpisodeReport(actor="evil", stats={"episode": 10**12, "ret": -1e300, "success": True,
+                                                        "intervention_steps": -4, "clipped_steps": 10**9,
+                                                        "interventions": -1, "mean_abs_xi_h": 1e300}), "evil", 0)
+        malformed = _pack(_env_msg("episode", actor="evil", stats={"episode": 1, "ret": "much", "success": "no"}))
+        key = keys.episode("evil")
     launcher = None
     try:
         with open(out_path, "w") as out, open(err_path, "w") as err:
             launcher = subprocess.Popen(argv, cwd=REPO, env=_env(), stdout=out, stderr=err, start_new_session=True)
-        with open_client(endpoint) as s:
+        with open_client(endpoint, timeout=60) as s:
             pub = s.declare_publisher(key)
             try:
                 def matching() -> bool:
@@ -761,7 +794,8 @@ def test_launcher_survives_schema_valid_but_hostile_episode_and_status(tmp_path,
 
                 wait_for(matching, 60, "the launcher's subscriber")
                 assert launcher.poll() is None, err_path.read_text()
-                pub.put(hostile)
+                pub.put(malformed)
+                pub.put(odd)
                 time.sleep(3.0)
                 survived = launcher.poll() is None
             finally:
@@ -771,24 +805,11 @@ def test_launcher_survives_schema_valid_but_hostile_episode_and_status(tmp_path,
         rc = launcher.wait(timeout=60)
         err_text = err_path.read_text()
         assert survived and rc == 130 and "Traceback" not in err_text, (
-            f"khgrl up ({'live table' if progress else '--no-progress'}) died with exit code {rc} on one "
-            f"schema-valid {kind} message on {key}:\n{err_text[-2500:]}")
+            f"khgrl up ({'live table' if progress else '--no-progress'}) died with exit code {rc} on {kind} "
+            f"messages on {key}:\n{err_text[-2500:]}")
+        summary = read_json(run_dir / "summary.json")
+        assert summary["launcher_rejects"] == {kind: 1}, summary
+        if kind == "episode":
+            assert "[evil] episode 1000000000000: return" in out_path.read_text()
     finally:
-        _cleanup(launcher, endpoint)
-
-
-@pytest.mark.integration
-@pytest.mark.timeout(300)
-def test_up_stops_promptly_when_a_process_dies_at_start(dead_actor_run):
-    """The actor dies ~1 s after launch; the launcher then sends one ``stop`` put -- which the learner (and often
-    the human process), still starting up and not yet subscribed, never receives -- and waits the whole
-    --stop-timeout for each of them before its SIGINT fallback. With the default --stop-timeout 60 a user waits
-    1-2 minutes for the error of a bad argument (measured: 62 s and 123 s)."""
-    proc, run_dir = dead_actor_run["proc"], dead_actor_run["run_dir"]
-    assert proc.returncode == 1
-    learner_log = (run_dir / "logs" / "learner.log").read_text()
-    how = [ln.split(" INFO ")[-1] for ln in learner_log.splitlines() if "stopping (" in ln]
-    assert dead_actor_run["wall"] < STOP_TIMEOUT, (
-        f"khgrl up --stop-timeout {STOP_TIMEOUT} took {dead_actor_run['wall']:.0f} s to report an actor that exited "
-        f"with code 2 at start-up: it waited out --stop-timeout for children that missed its one stop message "
-        f"(learner log: {how})")
+        _cleanup(launcher, run_dir)

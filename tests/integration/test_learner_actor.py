@@ -4,6 +4,9 @@ Small and fast on purpose: low_cov scenario, 2 episodes per actor (~250 steps ea
 ``--learning-starts 16``. Only the first test runs at ``--max-lead 8`` (the single-process SB3 schedule,
 one ~0.4 s training iteration per 8 steps on a 2-core box, so with a longer random warm-up); the others let
 the actor run ahead. Most of the time is process start-up (imports + fitting the world: 10-20 s per actor).
+Also here: a forged ack cannot make the actor drop batches the learner does not hold, and ``--resume`` of an
+actor continues its episode numbering and appends to its files. (The actor's parts without Zenoh:
+tests/unit/test_actor_parts.py.)
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ LOCKSTEP_STARTS = 384  # random warm-up; ~15 lock-step iterations follow in 2 ep
 
 
 def checkpoint(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    from learner.service import load_checkpoint_arrays
+    from learner.checkpoint import load_checkpoint_arrays
 
     ck = run_dir / "learner" / "checkpoint"
     return read_json(ck / "state.json"), load_checkpoint_arrays(ck)
@@ -47,152 +50,6 @@ def assert_exactly_once(state: dict, arrays: dict, actor: str, n: int) -> None:
     assert got == list(range(n)), f"{actor}: provenance is not 0..{n - 1} exactly once"
 
 
-# ------------------------------------------------------------------------------ unit level (no Zenoh)
-def test_protocol_fields_added_for_learner_and_actor():
-    from common.protocol import ProtocolError, decode, encode
-
-    ack = dict(actor="a0", received=3, durable=1, trained=24, epoch="e1", version=2)
-    assert decode("ack", encode("ack", "learner", 0, **ack))["version"] == 2
-    assert decode("ack", encode("ack", "learner", 0, **ack, stream="s1"))["stream"] == "s1"
-    with pytest.raises(ProtocolError, match="version"):
-        decode("ack", encode("ack", "learner", 0, **{k: v for k, v in ack.items() if k != "version"}))
-    with pytest.raises(ProtocolError, match="stream"):
-        decode("ack", encode("ack", "learner", 0, **ack, stream="a/b"))
-    w = dict(version=1, trained={"a0": 8}, tensors={"w": np.zeros((2, 2), np.float32)})
-    assert decode("weights", encode("weights", "learner", 0, **w, epoch="e1"))["epoch"] == "e1"
-    with pytest.raises(ProtocolError, match="epoch"):
-        decode("weights", encode("weights", "learner", 0, **w, epoch=5))
-    n = 2
-    tr = dict(actor="a0", first_step=0, obs=np.zeros((n, 5), np.float32), next_obs=np.zeros((n, 5), np.float32),
-              action=np.zeros((n, 2), np.float32), reward=np.zeros(n, np.float32),
-              **{f: np.zeros(n, np.uint8) for f in ("terminated", "truncated", "intervened", "clipped")})
-    assert decode("transitions", encode("transitions", "a0", 5, **tr, base_seq=3, stream="s1"))["base_seq"] == 3
-    with pytest.raises(ProtocolError, match="base_seq"):
-        decode("transitions", encode("transitions", "a0", 5, **tr, base_seq=6))
-
-
-def test_outbox_spills_and_drops(tmp_path):
-    from actor.service import Outbox
-
-    box = Outbox(memory=3, spill_dir=tmp_path / "outbox")
-    for s in range(8):
-        box.add(s, f"batch{s}".encode())
-    assert len(box) == 8 and len(list((tmp_path / "outbox").iterdir())) == 5
-    assert box.get(1) == b"batch1" and box.get(7) == b"batch7"
-    assert box.seqs_after(4) == [5, 6, 7] and box.oldest() == 0 and box.newest() == 7
-    box.drop_through(5)
-    assert len(box) == 2 and box.oldest() == 6 and not list((tmp_path / "outbox").iterdir())
-
-
-def test_correction_arbitration():
-    from actor.service import CorrectionArbiter
-
-    arb = CorrectionArbiter("a0", timeout=0.5, enabled=True)
-
-    def c(client, active, p=(0.5, 0.5), actor="a0", episode=1):
-        m = {"client": client, "actor": actor, "active": active, "episode": episode}
-        if active:
-            m["p_h"] = np.array(p)
-        return m
-
-    arb.offer(c("h1", True, (0.4, 0.6)), arrival=10.0, episode=1)
-    arb.offer(c("h2", True, (0.9, 0.9)), arrival=10.1, episode=1)  # someone else: ignored
-    arb.offer(c("h1", True, actor="a1"), arrival=10.1, episode=1)  # another actor's
-    assert np.allclose(arb.current(10.2), [0.4, 0.6]) and arb.counts["ignored_other_client"] == 1
-    assert arb.counts["ignored_other_actor"] == 1
-    arb.extend(1.0)  # the actor paused for 1 s: the holder's silence does not count
-    assert arb.current(11.3) is not None
-    assert arb.current(11.7) is None and arb.counts["timeouts"] == 1  # silent > 0.5 s of running time
-    arb.offer(c("h2", True, (0.9, 0.9)), arrival=12.0, episode=1)  # free again: h2 takes over
-    arb.offer(c("h2", True, episode=0), arrival=12.1, episode=1)  # a frame of an old episode: stale
-    assert np.allclose(arb.current(12.2), [0.9, 0.9]) and arb.counts["stale_episode"] == 1
-    arb.offer(c("h2", False), arrival=12.3, episode=1)
-    assert arb.current(12.3) is None
-    kgrl = CorrectionArbiter("a0", timeout=0.5, enabled=False)
-    kgrl.offer(c("h1", True), arrival=0.0, episode=1)
-    assert kgrl.current(0.1) is None and kgrl.counts["ignored_method"] == 1
-
-
-def test_correction_arbitration_step_addressed():
-    """A step-addressed client puts the actor in lock-step for the episode: each step waits for its word."""
-    from actor.service import CorrectionArbiter
-
-    arb = CorrectionArbiter("a0", timeout=0.5, enabled=True)
-
-    def c(client, step, p=None, episode=1):
-        m = {"client": client, "actor": "a0", "active": p is not None, "episode": episode, "step": step}
-        if p is not None:
-            m["p_h"] = np.array(p)
-        return m
-
-    assert arb.ready(5)  # nobody in lock-step: never wait
-    arb.offer(c("s", 6, (0.1, 0.2)), arrival=1.0, episode=1, step=5)  # early: kept for step 6
-    assert arb.lockstep == "s" and not arb.ready(5) and arb.ready(6)
-    arb.offer(c("s", 5), arrival=1.0, episode=1, step=5)  # release word for step 5
-    assert arb.ready(5) and arb.current(1.0, 5) is None
-    assert np.allclose(arb.current(1.1, 6), [0.1, 0.2]) and arb.holder == "s"
-    assert not arb.ready(7)  # waits for step 7's word...
-    arb.offer(c("s", 6, (0.9, 0.9)), arrival=1.2, episode=1, step=7)  # ...one for a step already taken is late
-    arb.offer(c("g", 7, (0.5, 0.5)), arrival=1.2, episode=1, step=7)  # another client: ignored
-    arb.offer(c("s", 7, (0.3, 0.3), episode=2), arrival=1.2, episode=1, step=7)  # another episode: stale
-    assert arb.counts["late_step"] == 1 and arb.counts["ignored_other_client"] == 1 and arb.counts["stale_episode"] == 1
-    assert not arb.ready(7)
-    arb.offer(c("s", 7, (0.3, 0.4)), arrival=1.3, episode=1, step=7)
-    assert np.allclose(arb.current(5.0, 7), [0.3, 0.4])  # applied at its step, whatever the wall time
-    arb.give_up(8)  # silent at step 8: plain mode again, the last P_h holds until the timeout
-    assert arb.ready(8) and arb.counts["lockstep_timeouts"] == 1
-    assert np.allclose(arb.current(5.1, 8), [0.3, 0.4]) and arb.current(5.6, 9) is None
-    arb.offer(c("s", 3, (0.2, 0.2), episode=2), arrival=6.0, episode=2, step=3)
-    assert np.allclose(arb.current(6.0, 3), [0.2, 0.2])
-    arb.offer(c("s", 0, (0.6, 0.6), episode=3), arrival=6.0, episode=2, step=4)  # announces episode 3
-    arb.new_episode(3)  # a lock-step hold ends with its episode; the announced client is in lock-step at once
-    assert arb.holder is None and arb.lockstep == "s" and arb.ready(0) and not arb.ready(1)
-    assert np.allclose(arb.current(6.1, 0), [0.6, 0.6])
-    arb.offer(c("s", 1, episode=3), arrival=6.2, episode=3, step=1)
-    assert arb.current(6.2, 1) is None and arb.counts["releases"] == 2  # the old hold at new_episode, this word
-    arb.new_episode(4)  # no announcement: plain mode
-    assert arb.lockstep is None and arb.ready(0)
-
-
-def test_learner_core_orders_stream_and_keeps_sb3_schedule(tmp_path):
-    from common.protocol import decode, encode
-    from learner.service import LearnerCore
-
-    core = LearnerCore(tmp_path, learning_starts=16, buffer_size=1000, logger_formats=("csv",))
-    rng = np.random.default_rng(0)
-
-    def batch(seq, first, n, actor="a0", base=0):
-        obs = rng.uniform(0, 1, (n, 5)).astype(np.float32)
-        f = dict(actor=actor, first_step=first, obs=obs, next_obs=obs, action=np.zeros((n, 2), np.float32),
-                 reward=np.ones(n, np.float32), terminated=np.zeros(n, np.uint8), truncated=np.zeros(n, np.uint8),
-                 intervened=np.ones(n, np.uint8), clipped=np.zeros(n, np.uint8), base_seq=base, stream="s0")
-        return decode("transitions", encode("transitions", actor, seq, **f))
-
-    assert core.offer(batch(1, 8, 8)) == "held"  # gap: held until seq 0 arrives
-    assert core.total == 0 and core.ack_fields("a0")["received"] == -1
-    assert core.offer(batch(0, 0, 8)) == "accepted"
-    assert core.total == 16 and core.ack_fields("a0")["received"] == 1
-    assert core.offer(batch(0, 0, 8)) == "duplicate" and core.total == 16
-    # inside learning_starts: no training due, trained = everything ingested
-    assert not core.due and core.ack_fields("a0")["trained"] == 16
-    assert core.offer(batch(2, 16, 5)) == "accepted" and not core.due  # 21: next multiple of 8 is 24
-    assert core.ack_fields("a0")["trained"] == 0  # training started, initial weights cover nothing
-    assert core.offer(batch(3, 21, 8)) == "accepted"  # 29 ingested: due at 24
-    assert [at for at, _ in core.due] == [24]
-    assert core.train_one() and not core.train_one()
-    assert core.version == 1 and core.gradient_steps == 8
-    assert core.ack_fields("a0")["trained"] == 24 and core.weights_fields()["trained"] == {"a0": 24}
-    assert core.iterations == 1 and int(core.flag_intervened[:29].sum()) == 29
-    core.save_checkpoint()
-    again = LearnerCore(tmp_path, learning_starts=16, resume=True, logger_formats=("csv",))
-    assert again.total == 29 and again.version == 1 and again.streams["a0"].next_seq == 4
-    assert again.ack_fields("a0")["durable"] == 3 and again.model.replay_buffer.pos == 29
-    assert list(again.prov_step[:29]) == list(range(29))
-    # an actor that only holds batches from seq 6 on (a fresh learner): the stream starts there
-    assert again.offer(batch(6, 40, 8, actor="a1", base=6)) == "accepted"
-    assert again.streams["a1"].next_seq == 7
-
-
 # --------------------------------------------------------------------------- processes over Zenoh
 @pytest.mark.integration
 @pytest.mark.timeout(300)
@@ -209,14 +66,19 @@ def test_actor_and_learner_end_to_end(tmp_path):
 
     summary = read_json(run_dir / "actor-a0" / "summary.json")
     n = summary["transitions"]
-    assert summary["episodes"] == 2 and summary["unconfirmed_transitions"] == 0 and summary["durable"] == summary["last_seq"]
+    assert summary["episodes"] == 2 and summary["unconfirmed_transitions"] == 0
+    assert summary["durable"] == summary["last_seq"]
     # --max-lead 8: every policy step used the weights single-process SB3 would have used (lag 0..7)
     assert summary["weights"]["final_version"] > 0
     assert 0 <= summary["weights"]["max_lag"] <= TRAIN_FREQ - 1, summary["weights"]
     assert summary["rate_limit"]["waits"] > 0
     episodes = json.loads((run_dir / "actor-a0" / "episodes.json").read_text())
     assert [e["episode"] for e in episodes] == [1, 2] and sum(e["steps"] for e in episodes) == n
-    assert (run_dir / "actor-a0" / "episodes.csv").exists() and (run_dir / "actor-a0" / "config.json").exists()
+    assert (run_dir / "actor-a0" / "episodes.csv").exists()
+    config = read_json(run_dir / "actor-a0" / "config.json")  # the resolved run configuration + the actor's facts
+    assert config["tqc"]["learning_starts"] == LOCKSTEP_STARTS and config["stream"]["max_lead"] == 8
+    assert config["runtime"]["actor_id"] == "a0" and config["runtime"]["stream"] == summary["stream"]
+    assert config["runtime"]["resumed"] is False and summary["refused_acks"] == 0
 
     state, arrays = checkpoint(run_dir)
     assert_exactly_once(state, arrays, "a0", n)
@@ -240,7 +102,8 @@ def test_learner_killed_and_resumed_loses_and_duplicates_nothing(tmp_path):
         learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "64")
         actor = g.actor(run, ep, *FAST, "--episodes", "2", "--max-lead", "100000", "--rate", "120")
         # kill after the learner has acked and checkpointed some of the stream
-        wait_for(lambda: read_json(state_file)["total_ingested"] >= 128, 120, "a first checkpoint", procs=[learner, actor])
+        wait_for(lambda: read_json(state_file)["total_ingested"] >= 128, 120, "a first checkpoint",
+                 procs=[learner, actor])
         learner.kill()
         killed_at = read_json(state_file)["total_ingested"]
         time.sleep(0.5)
@@ -302,26 +165,126 @@ def test_two_actors_feed_one_learner(two_actors):
     assert state["total_ingested"] == total
 
 
-def test_set_realtime_is_reported_truthfully():
-    """The control loop's SCHED_FIFO request either takes effect (root) or is refused and says so."""
-    import os
-    import threading
+@pytest.mark.integration
+@pytest.mark.timeout(300)
+def test_forged_ack_cannot_make_the_actor_drop_undelivered_batches(tmp_path):
+    """Someone on the router acks every batch as durable (with the real stream id and epoch); then the learner
+    dies and resumes from a checkpoint that holds less. The actor refused the forged acks, so it still holds
+    and re-sends everything after that checkpoint: the learner ends up with every transition exactly once."""
+    from common.messages import Ack, Control, Transitions
+    from common.protocol import Keys, decode, encode
+    from common.transport import open_client
 
-    from actor.service import set_realtime
+    run, run_dir = unique_run("forge"), tmp_path / "run"
+    keys = Keys(run)
+    state_file = run_dir / "learner" / "checkpoint" / "state.json"
+    seen: dict = {}
 
-    out = {}
+    def on_ack(sample) -> None:
+        msg = decode(Ack, sample.payload.to_bytes())
+        if msg.received < 10**6:
+            seen["ack"] = msg
 
-    def loop_thread():
-        before = os.sched_getscheduler(0)
-        out["ok"] = set_realtime(7)
-        out["policy"], out["prio"] = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
-        out["before"] = before
+    def on_transitions(sample) -> None:
+        seen["stream"] = decode(Transitions, sample.payload.to_bytes()).stream
 
-    t = threading.Thread(target=loop_thread)
-    t.start()
-    t.join()
-    if out["ok"]:
-        assert out["policy"] == os.SCHED_FIFO and out["prio"] == 7
-    else:
-        assert out["policy"] == out["before"] != os.SCHED_FIFO
-    assert os.sched_getscheduler(0) != os.SCHED_FIFO  # only the calling thread changed
+    forged_sent = 5
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "0")
+        actor = g.actor(run, ep, *FAST, "--episodes", "2", "--max-lead", "100000", "--rate", "120")
+        with open_client(ep) as s:
+            subs = [s.declare_subscriber(keys.ack("a0"), on_ack),
+                    s.declare_subscriber(keys.transitions("a0"), on_transitions)]
+            try:
+                wait_for(lambda: "stream" in seen and "ack" in seen and seen["ack"].received >= 8, 120,
+                         "the learner acking the actor's batches", procs=[learner, actor])
+                s.put(keys.control("learner"), encode(Control(command="checkpoint"), "tester", 0))
+                wait_for(state_file.exists, 60, "a learner checkpoint", procs=[learner, actor])
+                time.sleep(1.0)  # ~120 more transitions that the checkpoint does not hold
+                forged = Ack(actor="a0", received=10**6, durable=10**6, trained=0, version=0,
+                             epoch=seen["ack"].epoch, stream=seen["stream"])
+                for i in range(forged_sent):
+                    s.put(keys.ack("a0"), encode(forged, "learner", 10**6 + i))
+                    time.sleep(0.02)
+                time.sleep(0.3)
+                learner.kill()
+            finally:
+                for sub in subs:
+                    sub.undeclare()
+        at_kill = read_json(state_file)["total_ingested"]
+        learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "0", "--resume")
+        rc = actor.wait(150)
+        assert rc == 0, actor.tail()
+        assert learner.stop(60) == 0, learner.tail()
+
+    summary = read_json(run_dir / "actor-a0" / "summary.json")
+    n = summary["transitions"]
+    assert summary["episodes"] == 2 and summary["unconfirmed_transitions"] == 0 and n > at_kill
+    assert summary["refused_acks"] == forged_sent and summary["rejects"] == {"ack": forged_sent}, summary
+    assert summary["durable"] == summary["last_seq"]
+    log = (run_dir / "actor-a0" / "actor.log").read_text()
+    assert "ack claims batches beyond the highest seq sent" in log and "refused ack #1" in log
+    state, arrays = checkpoint(run_dir)
+    assert_exactly_once(state, arrays, "a0", n)
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(300)
+def test_resumed_actor_continues_episode_numbering_and_appends(tmp_path):
+    """Part 1: 2 episodes; part 2 (--resume, --episodes 3): episode 3 only, numbered 3 in its frames, rows
+    appended to episodes.csv / corrections.csv, a new TensorBoard event file beside the first; part 3: nothing
+    left to run. The scripted human helps in episodes 1 and 3 of the whole run."""
+    import csv
+
+    from common.messages import Frame
+    from common.protocol import Keys, decode
+    from common.transport import open_client
+
+    run, run_dir = unique_run("resume"), tmp_path / "run"
+    out = run_dir / "actor-a0"
+    # 100 Hz: the scripted human's first word of an episode (for step 1) arrives before the actor takes step 1
+    flags = [*FAST, "--learning-starts", "100000", "--flush-timeout", "0.5", "--tensorboard", "--rate", "100"]
+    frames: list[Frame] = []
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        human = g.human(run, ep, "scripted", "--scenario", "low_cov", "--human-episodes", "1", "3")
+        part1 = g.actor(run, ep, *flags, "--episodes", "2")
+        assert part1.wait(150) == 3, part1.tail()  # no learner: only the final flush times out
+        assert read_json(out / "summary.json")["episodes"] == 2
+        with open_client(ep) as s:
+            sub = s.declare_subscriber(Keys(run).frame("a0"),
+                                       lambda smp: frames.append(decode(Frame, smp.payload.to_bytes())))
+            try:
+                part2 = g.actor(run, ep, *flags, "--episodes", "3", "--resume")
+                assert part2.wait(150) == 3, part2.tail()
+                time.sleep(0.5)
+            finally:
+                sub.undeclare()
+        summary2 = read_json(out / "summary.json")
+        part3 = g.actor(run, ep, *flags, "--episodes", "3", "--resume")
+        assert part3.wait(150) == 0, part3.tail()  # all 3 episodes of the run are done: nothing to send
+        human.stop(30)
+
+    assert summary2["episodes"] == 1 and summary2["first_episode"] == 3
+    assert read_json(out / "summary.json")["episodes"] == 0
+    assert {f.episode for f in frames} == {3}
+    lasts = [f for f in frames if f.last]
+    assert len(lasts) == 1 and lasts[0].t == max(f.t for f in frames), "one final frame, flagged last"
+    text = (out / "episodes.csv").read_text()
+    assert text.count("episode,steps") == 1
+    with open(out / "episodes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["episode"] for r in rows] == ["1", "2", "3"]
+    assert lasts[0].t == int(rows[2]["steps"]) - 1
+    assert [e["episode"] for e in read_json(out / "episodes.json")] == [1, 2, 3]
+    corrections = (out / "corrections.csv").read_text()
+    assert corrections.count("run,actor,episode") == 1
+    with open(out / "corrections.csv", newline="") as fh:
+        helped = {r["episode"] for r in csv.DictReader(fh)}
+    assert helped == {"1", "3"}, helped  # the human's schedule in episodes of the whole run
+    assert int(rows[0]["intervention_steps"]) > 0 and int(rows[1]["intervention_steps"]) == 0
+    assert int(rows[2]["intervention_steps"]) > 0
+    assert len(list((out / "tb").glob("events.out.tfevents.*"))) >= 2
+    config = read_json(out / "config.json")
+    assert config["runtime"]["resumed"] is True and config["episodes"] == 3 and config["scenario"] == "low_cov"

@@ -10,8 +10,9 @@ import pytest
 
 from deploy.analysis import analyse, find_runs, stable_success, zero_cost_from
 
-FIELDS = ["episode", "steps", "ret", "success", "failure", "action_cost", "obstacle_cost", "passage_cost", "obstacle_steps",
-          "interventions", "intervention_steps", "clipped_steps", "projected_steps", "mean_abs_xi_h", "scale_max", "wall_time"]
+FIELDS = ["episode", "steps", "ret", "success", "failure", "action_cost", "obstacle_cost", "passage_cost",
+          "obstacle_steps", "interventions", "intervention_steps", "clipped_steps", "projected_steps", "mean_abs_xi_h",
+          "scale_max", "wall_time"]
 
 
 def test_stable_success_skips_human_episodes():
@@ -33,7 +34,9 @@ def test_zero_cost_from():
     assert zero_cost_from([]) is None
 
 
-def _write_run(path: Path, success: list[bool], obstacle: list[float], human: set[int] = frozenset(), actor: bool = True):
+def _write_run(
+    path: Path, success: list[bool], obstacle: list[float], human: set[int] = frozenset(), actor: bool = True
+) -> None:
     d = path / "actor-a0" if actor else path
     d.mkdir(parents=True)
     with open(d / "episodes.csv", "w", newline="") as fh:
@@ -42,7 +45,8 @@ def _write_run(path: Path, success: list[bool], obstacle: list[float], human: se
         for i, (s, o) in enumerate(zip(success, obstacle), start=1):
             iv = 10 if i in human else 0
             w.writerow({"episode": i, "steps": 100, "ret": (180.0 if s else -200.0) + o, "success": str(s),
-                        "failure": str(not s), "action_cost": -1.0, "obstacle_cost": o, "passage_cost": 0.0 if s else -200.0,
+                        "failure": str(not s), "action_cost": -1.0, "obstacle_cost": o,
+                        "passage_cost": 0.0 if s else -200.0,
                         "obstacle_steps": int(-o / 10), "interventions": int(iv > 0), "intervention_steps": iv,
                         "clipped_steps": iv // 2, "projected_steps": 0, "mean_abs_xi_h": 0.0, "scale_max": "15;15",
                         "wall_time": 1.0})
@@ -104,10 +108,10 @@ def test_report_cli_dispatches_and_rejects_mixed_input(tmp_path, capsys):
 
 
 def test_median_over_seeds_with_never():
-    from deploy.analysis import _fmt_episode, _median_text
+    from deploy.summary_table import fmt_episode, median_text
 
-    assert _median_text([3, 5, None], 60) == "5"
-    assert _median_text([None, None, 22, 2], 60) == "22–never"  # between an episode and 'never': a range
-    assert _median_text([None, None], 60) == "never"
-    assert _median_text([2, 5], 60) == "3.5"
-    assert _fmt_episode([None, 7], 60) == "7–never (never, 7)"
+    assert median_text([3, 5, None], 60) == "5"
+    assert median_text([None, None, 22, 2], 60) == "22–never"  # between an episode and 'never': a range
+    assert median_text([None, None], 60) == "never"
+    assert median_text([2, 5], 60) == "3.5"
+    assert fmt_episode([None, 7], 60) == "7–never (never, 7)"

@@ -30,8 +30,66 @@ ALL_COMMANDS = list(_commands(build_parser()))
 
 
 def test_expected_commands_exist():
-    for cmd in [("demos", "make"), ("kmp", "fit"), ("reference",), ("bench", "kmp")]:
+    for cmd in [("demos", "make"), ("kmp", "fit"), ("reference",), ("bench", "kmp"), ("bench", "runtime"), ("up",),
+                ("router",), ("learner",), ("actor",), ("human",), ("experiment",), ("report",)]:
         assert cmd in ALL_COMMANDS
+
+
+def test_process_commands_run_the_process_modules():
+    """khgrl router/learner/actor/human run the process modules' main (the launcher's children's contract)."""
+    from deploy.cli import PROCESS_COMMANDS
+
+    assert {k: v[:2] for k, v in PROCESS_COMMANDS.items()} == {
+        "up": ("deploy.launcher", "main"), "router": ("deploy.router", "main"), "learner": ("learner.main", "main"),
+        "actor": ("actor.main", "main"), "human": ("human_bridge.main", "main"),
+        "experiment": ("deploy.experiment", "main"), "report": ("deploy.report", "main")}
+
+
+def _leaf_parsers(parser: argparse.ArgumentParser, prefix=()):
+    """(command path, parser) of every parser without sub-commands below ``parser``."""
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield prefix, parser
+    for action in subs:
+        for name, sub in action.choices.items():
+            yield from _leaf_parsers(sub, prefix + (name,))
+
+
+def _parsers_of(command: str):
+    """(command path, parser) of every leaf parser of ``command`` ("khgrl": the khgrl parser's own commands;
+    a process command: its module's build_parser)."""
+    import importlib
+
+    from deploy.cli import PROCESS_COMMANDS
+
+    if command == "khgrl":
+        return [(c, p) for c, p in _leaf_parsers(build_parser()) if c and c[0] not in PROCESS_COMMANDS]
+    mod = importlib.import_module(PROCESS_COMMANDS[command][0])
+    assert hasattr(mod, "build_parser"), f"{mod.__name__} has no build_parser()"
+    return list(_leaf_parsers(mod.build_parser(), (command,)))
+
+
+@pytest.mark.parametrize("command", ["khgrl", "up", "router", "learner", "actor", "human", "experiment"])
+def test_help_shows_every_default(command):
+    """--help states each option's default (a value, 'none', 'off', ...)."""
+    missing = [(" ".join(cmd), a.option_strings[-1]) for cmd, parser in _parsers_of(command)
+               for a in parser._actions
+               if a.option_strings and a.help != argparse.SUPPRESS and not isinstance(a, argparse._HelpAction)
+               and not a.required and "default" not in (a.help or "").lower()]
+    assert not missing, f"options whose --help shows no default: {missing}"
+
+
+def test_up_help_lists_every_run_setting(capsys):
+    """khgrl up takes every RunConfig field as a flag, plus --config, --resume, --overwrite, --progress."""
+    from common.config import _flag_fields
+
+    with pytest.raises(SystemExit):
+        main(["up", "--help"])
+    out = capsys.readouterr().out
+    for path, _, _ in _flag_fields():
+        assert "--" + path[-1].replace("_", "-") in out
+    for flag in ("--config", "--resume", "--overwrite", "--no-progress"):
+        assert flag in out
 
 
 @pytest.mark.parametrize("cmd", ALL_COMMANDS, ids=lambda c: " ".join(c) or "khgrl")
@@ -126,9 +184,9 @@ def test_bad_choice_is_usage_error(capsys):
 
 
 def test_report_on_committed_reference_runs(tmp_path):
-    from deploy.cli import main
-
     from pathlib import Path
+
+    from deploy.cli import main
 
     docs = Path(__file__).resolve().parents[2] / "docs" / "reference_runs"
     out = tmp_path / "rep.png"

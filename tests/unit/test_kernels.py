@@ -7,7 +7,6 @@ import pytest
 
 from common.kernels import RBF, evaluate_kernel, kernel_diag
 from common.kmp import LCNSKMP
-
 from kmp_problems import BETA, LAM
 
 
@@ -28,18 +27,18 @@ def test_length_scale_form(points):
     np.testing.assert_allclose(k(a, b), expected, rtol=1e-13, atol=1e-15)
 
 
-@pytest.mark.parametrize("l", [0.5, 2.0, 50.0, 1234.5])
-def test_from_precision_is_exp_minus_l_d2(points, l):
+@pytest.mark.parametrize("prec", [0.5, 2.0, 50.0, 1234.5])
+def test_from_precision_is_exp_minus_l_d2(points, prec):
     a, b = points
-    k = RBF.from_precision(l)
-    np.testing.assert_allclose(k(a, b), np.exp(-l * _sqdist(a, b)), rtol=1e-12, atol=1e-300)
+    k = RBF.from_precision(prec)
+    np.testing.assert_allclose(k(a, b), np.exp(-prec * _sqdist(a, b)), rtol=1e-12, atol=1e-300)
     assert k.variance == 1.0
     np.testing.assert_allclose(k(a, a).diagonal(), 1.0, rtol=0, atol=1e-15)
 
 
-@pytest.mark.parametrize("l", [1e-3, 0.5, 2.0, 50.0, 1e4])
-def test_precision_round_trip(l):
-    assert RBF.from_precision(l).precision == pytest.approx(l, rel=1e-14)
+@pytest.mark.parametrize("prec", [1e-3, 0.5, 2.0, 50.0, 1e4])
+def test_precision_round_trip(prec):
+    assert RBF.from_precision(prec).precision == pytest.approx(prec, rel=1e-14)
 
 
 @pytest.mark.parametrize("length_scale", [1e-3, 0.05, 0.7, 30.0])
@@ -68,10 +67,10 @@ def test_rbf_bad_parameters(bad):
         RBF(**bad)
 
 
-@pytest.mark.parametrize("l", [0.0, -2.0, np.nan, np.inf])
-def test_from_precision_bad(l):
+@pytest.mark.parametrize("prec", [0.0, -2.0, np.nan, np.inf])
+def test_from_precision_bad(prec):
     with pytest.raises(ValueError):
-        RBF.from_precision(l)
+        RBF.from_precision(prec)
 
 
 def test_rbf_bad_input_shapes():

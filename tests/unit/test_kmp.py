@@ -18,9 +18,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from common.kernels import RBF
-from common.kmp import InfeasibleConstraintsError, LCNSKMP
+from common.kmp import LCNSKMP, InfeasibleConstraintsError
 from common.qp import lcp_residual
-from kmp_problems import BETA, BOX_C, BOX_G, LAM, LOOSE_C, PRECISION, Reference, dense_A, make_reference
+from kmp_problems import BETA, BOX_C, BOX_G, LAM, PRECISION, Reference, dense_A, make_reference
 
 GAMMA = LAM + BETA
 N_REF = 40  # size of the shared ``ref`` fixture

@@ -149,7 +149,9 @@ def learned_low():
     env = PassageEnv("low_cov")
     segments: list[list[dict]] = []
     wrapped = HumanCorrectionWrapper(
-        env, ScriptedHuman("low_cov", ScriptedHumanConfig(episodes=(1,))), on_release=lambda seg: segments.append(list(seg))
+        env,
+        ScriptedHuman("low_cov", ScriptedHumanConfig(episodes=(1,))),
+        on_release=lambda seg: segments.append(list(seg)),
     )
     wrapped.reset(seed=0)
     done = False

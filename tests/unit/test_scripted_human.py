@@ -202,3 +202,59 @@ def test_wrapper_without_callback():
     _, _, _, _, info = w.step(np.zeros(2))
     assert info["intervened"]
     w.reset(seed=0)
+
+
+# ------------------------------------------------------------------------------------ the scripted client's answers
+class _Stream:
+    """Records what a CorrectionPublisher would send (same rules: a live release only after a hold)."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple] = []
+        self.active: dict[str, bool] = {}
+
+    def send(self, actor, p_h, episode=0, t=0, step=None) -> None:
+        if p_h is None and step is None and not self.active.get(actor, False):
+            return
+        self.sent.append((actor, None if p_h is None else np.asarray(p_h).copy(), episode, t, step))
+        self.active[actor] = p_h is not None
+
+
+def _frames(name: str, episode: int, steps: int):
+    from common.protocol import Frame
+
+    env = PassageEnv(name)
+    m = env.mapping
+    for t in range(steps):
+        yield Frame(actor="a0", episode=episode, t=t, phase=t / (env.horizon - 1), robot=m.mean(t), desired=m.mean(t),
+                    mean=m.mean(t), scale=np.array([15.0, 15.0]), intervening=False, scenario=name,
+                    next_mean=m.mean(t + 1), last=True if t == steps - 1 else None)
+
+
+def test_scripted_answers_are_step_addressed_and_announce_the_next_help_episode():
+    from human_bridge.scripted import ScriptedAnswers
+
+    name = "low_cov"
+    human = ScriptedHuman(name, ScriptedHumanConfig(episodes=(2,)))
+    stream = _Stream()
+    answers = ScriptedAnswers(human, stream)
+    env = PassageEnv(name)
+    for f in _frames(name, 1, 50):  # the episode before the help episode: only the announcement
+        answers.frame(f)
+    assert len(stream.sent) == 1
+    actor, p0, ep, t, step = stream.sent[0]
+    assert (actor, ep, t, step) == ("a0", 2, 0, 0)  # lock-step for episode 2 announced with its step 0's word
+    want0 = human.correction(2, env.mapping.mean(0))
+    assert (p0 is None) == (want0 is None) and (p0 is None or np.array_equal(p0, want0))
+    stream.sent.clear()
+    for f in _frames(name, 2, env.horizon - 1):
+        answers.frame(f)
+    assert [s[4] for s in stream.sent] == list(range(1, env.horizon))  # every frame: a word for step t + 1
+    for _, p_h, ep, t, step in stream.sent:
+        want = human.correction(2, env.mapping.mean(step))
+        assert ep == 2 and step == t + 1
+        assert (p_h is None) == (want is None) and (p_h is None or np.array_equal(p_h, want))
+    assert any(s[1] is not None for s in stream.sent)
+    stream.sent.clear()
+    for f in _frames(name, 3, 5):  # after the help episode: a hold left over is released once, then silence
+        answers.frame(f)
+    assert all(s[1] is None for s in stream.sent) and len(stream.sent) <= 1

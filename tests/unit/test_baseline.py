@@ -1,4 +1,4 @@
-"""A short real run of the single-process reference (learner/reference.py): SB3 TQC on the passage world with
+"""A short real run of the single-process baseline (learner/baseline.py): SB3 TQC on the passage world with
 the scripted human, whose interventions reach the replay buffer as the human's actions."""
 
 from __future__ import annotations
@@ -9,7 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from learner.reference import InterventionTQC, ReferenceConfig, build_env, run_reference, tqc_kwargs
+from common.config import TQCSettings
+from learner.baseline import InterventionTQC, ReferenceConfig, build_env, run_reference
 
 EPISODES = 2  # episode 1: no human (blocked at the second wall); episode 2: the scripted human
 
@@ -51,7 +52,9 @@ def test_reference_episodes_and_interventions(ref_run):
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["intervened_transitions_stored"] == second.intervention_steps > 0
     assert summary["env_steps"] == sum(e.steps for e in episodes)
-    assert summary["gradient_steps"] > 0
+    # one iteration of 8 gradient steps per 8 environment steps past learning_starts (SB3's learn())
+    # (the rollout cut short by the episode limit does not train)
+    assert summary["gradient_steps"] == 8 * ((summary["env_steps"] - 1) // 8 - 100 // 8) > 0
     assert summary["final_scale_table_max"][1] > 15.0
     table = np.load(run_dir / "scale_table.npy")
     assert table.shape == (400, 2) and np.all(table >= 1.0)
@@ -76,13 +79,18 @@ def test_reference_config_validation():
         ReferenceConfig(method="sac")
     with pytest.raises(ValueError):
         ReferenceConfig(episodes=0)
+    with pytest.raises(ValueError):
+        ReferenceConfig(tqc=TQCSettings(train_freq=0))
 
 
-def test_tqc_kwargs_are_the_papers():
-    kw = tqc_kwargs(3)
+def test_tqc_settings_are_the_papers():
+    """The baseline takes its TQC settings from common.config.TQCSettings, as the learner does."""
+    assert ReferenceConfig().tqc == TQCSettings()
+    kw = ReferenceConfig(seed=3).tqc.sb3_kwargs(3)
     assert kw["learning_rate"] == 1e-3 and kw["tau"] == 0.02 and kw["gamma"] == 0.99
     assert kw["train_freq"] == 8 and kw["gradient_steps"] == 8 and kw["ent_coef"] == "auto"
     assert kw["policy_kwargs"] == {"net_arch": [256, 256]} and kw["seed"] == 3
+    assert kw["learning_starts"] == 100 and kw["batch_size"] == 256
 
 
 def test_intervention_tqc_stores_the_human_action():
@@ -90,7 +98,7 @@ def test_intervention_tqc_stores_the_human_action():
     from stable_baselines3.common.buffers import ReplayBuffer
 
     base, env = build_env(ReferenceConfig(scenario="low_cov", method="kgrl", episodes=1))
-    model = InterventionTQC("MlpPolicy", env, **{**tqc_kwargs(0), "learning_starts": 10**9})
+    model = InterventionTQC("MlpPolicy", env, **{**TQCSettings().sb3_kwargs(0), "learning_starts": 10**9})
     model.n_intervened_stored = 0
     buf = model.replay_buffer
     assert isinstance(buf, ReplayBuffer)

@@ -1,0 +1,121 @@
+"""The actor's Zenoh declarations: what it subscribes to (acks, corrections, control, learner liveliness,
+weights), what it publishes (transitions, frames, episodes, scale, status), its liveliness token, and the
+queries it makes (who is alive, the current weights). Callbacks only file samples in an
+:class:`~common.transport.Inbox`; the control loop takes them out."""
+
+from __future__ import annotations
+
+import logging
+
+from common.messages import Control, Message
+from common.protocol import Keys, encode
+from common.transport import Inbox, undeclare_all
+
+__all__ = ["ActorLink"]
+
+log = logging.getLogger("khgrl.actor")
+
+
+class ActorLink:
+    """Everything the actor declares on its Zenoh session.
+
+    :param session: an open Zenoh session.
+    :param keys: the run's key expressions.
+    :param actor: this actor's id.
+    :param inbox: where subscriber callbacks put ``(kind, key, payload, arrival)``.
+    """
+
+    def __init__(self, session, keys: Keys, actor: str, inbox: Inbox) -> None:
+        import zenoh
+
+        self.session = session
+        self.keys = keys
+        self.actor = actor
+        cb = inbox.callback
+        self.subs = [
+            session.declare_subscriber(keys.ack(actor), cb("ack")),
+            session.declare_subscriber(keys.correction("*"), cb("correction")),
+            session.declare_subscriber(keys.control("actor"), cb("control")),
+            session.declare_subscriber(keys.control(actor), cb("control")),
+            session.declare_subscriber(keys.control("all"), cb("control")),
+            session.liveliness().declare_subscriber(keys.alive("learner", "*"), inbox.liveliness_callback("alive"),
+                                                    history=True),
+        ]
+        block, drop = zenoh.CongestionControl.BLOCK, zenoh.CongestionControl.DROP
+        self.pubs = {
+            "transitions": session.declare_publisher(keys.transitions(actor), congestion_control=block,
+                                                     priority=zenoh.Priority.DATA),
+            "frame": session.declare_publisher(keys.frame(actor), congestion_control=drop,
+                                               priority=zenoh.Priority.DATA),
+            "episode": session.declare_publisher(keys.episode(actor), congestion_control=block),
+            "scale": session.declare_publisher(keys.scale(actor), congestion_control=block),
+            "status": session.declare_publisher(keys.status("actor", actor), congestion_control=drop,
+                                                priority=zenoh.Priority.DATA_LOW),
+        }
+        self.seq = {"frame": 0, "episode": 0, "scale": 0, "status": 0, "control": 0}
+        self.token = None
+
+    def weights_subscriber(self):
+        """A subscriber to the learner's weights that keeps only the newest sample (RingChannel(1))."""
+        import zenoh
+
+        return self.session.declare_subscriber(self.keys.weights, zenoh.handlers.RingChannel(1))
+
+    def announce(self) -> None:
+        """Declare this actor's liveliness token."""
+        self.token = self.session.liveliness().declare_token(self.keys.alive("actor", self.actor))
+
+    def learners_alive(self, timeout: float = 1.0) -> set[str]:
+        """Keys of the learners alive right now (a liveliness query).
+
+        :param timeout: seconds to wait for replies.
+        """
+        out: set[str] = set()
+        try:
+            for r in self.session.liveliness().get(self.keys.alive("learner", "*"), timeout=timeout):
+                if r.ok:
+                    out.add(str(r.ok.key_expr))
+        except Exception as exc:  # noqa: BLE001
+            log.warning("liveliness query failed: %s", exc)
+        return out
+
+    def query_weights(self, timeout: float) -> list[bytes]:
+        """The payloads the learner's weights queryable answers (empty on failure).
+
+        :param timeout: seconds to wait for replies.
+        """
+        try:
+            replies = list(self.session.get(self.keys.weights, timeout=timeout))
+        except Exception as exc:  # noqa: BLE001
+            log.warning("weights query failed: %s", exc)
+            return []
+        return [r.ok.payload.to_bytes() for r in replies if r.ok]
+
+    def publish(self, msg: Message) -> None:
+        """Publish a frame, episode report, scale or status, numbered per kind.
+
+        :param msg: the message (its kind picks the publisher).
+        """
+        kind = msg.KIND
+        self.pubs[kind].put(encode(msg, self.actor, self.seq[kind]))
+        self.seq[kind] += 1
+
+    def publish_transitions(self, payload: bytes) -> None:
+        """Publish an encoded ``transitions`` batch (new or re-sent).
+
+        :param payload: the encoded message.
+        """
+        self.pubs["transitions"].put(payload)
+
+    def send_control(self, target: str, command: str) -> None:
+        """Send a control command (e.g. ``checkpoint`` to the learner).
+
+        :param target: ``learner``, an id, ``actor`` or ``all``.
+        :param command: one of the protocol's commands.
+        """
+        self.session.put(self.keys.control(target), encode(Control(command=command), self.actor, self.seq["control"]))
+        self.seq["control"] += 1
+
+    def close(self) -> None:
+        """Undeclare everything (best effort)."""
+        undeclare_all(*self.subs, *self.pubs.values(), *([self.token] if self.token is not None else []))

@@ -1,0 +1,380 @@
+"""The actor's control loop: episodes of the passage world, one step at a time.
+
+Per control step:
+
+1. service the inbox (acks, corrections, learner liveliness, control) and swap in new policy weights if the
+   background receiver has a validated state dict ready (no stall: the swap is a ``load_state_dict``);
+2. rate limit: while the learner is alive, wait while ``sent - ack.trained >= max_lead`` or the loaded
+   weights are older than ``ack.version``. The transition about to be collected would otherwise make the
+   actor more than ``max_lead`` transitions ahead of what the learner has trained on. With ``max_lead`` =
+   ``batch`` = the train frequency (the defaults) each step is taken with exactly the weights single-process
+   SB3 would use: the weights trained at the last multiple of ``train_freq`` (after ``learning_starts``).
+   If the learner is not alive, the actor keeps acting with its last weights (a robot does not stop);
+3. pace to ``rate`` (:class:`~actor.pacing.Pacer`), choose the action (uniform random, seeded, for the first
+   ``learning_starts`` transitions of the run, as SB3 does; then ``policy.predict(obs, deterministic=False)``),
+   apply the arbitrated correction (``env.set_correction``), step;
+4. record the transition (the stored action is ``info["action"]``: the human's a_h when intervened), publish a
+   frame (``last`` on the episode's final one), and every ``batch`` transitions of the actor's running index
+   (and at episode end) cut a batch (:class:`~actor.stream.TransitionStream`).
+
+At the end the actor waits until the learner holds every batch in a checkpoint (``flush_timeout``).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from actor.arbiter import CorrectionArbiter
+from actor.exploration import ExplorationScale
+from actor.link import ActorLink
+from actor.pacing import Pacer
+from actor.record import CorrectionRecord
+from actor.results import EpisodeLog
+from actor.stream import TransitionStream
+from actor.telemetry import RateLimitStats, TensorBoard, status_info, summary
+from actor.weights import PolicyWeights
+from common.config import RunConfig
+from common.messages import Ack, Control, Correction, EpisodeReport, Frame, Status
+from common.metrics import EpisodeAccumulator
+from common.process import StopFlag
+from common.protocol import Keys, decode
+from common.transport import Inbox
+from common.wire import ProtocolError, RejectCounter
+
+__all__ = ["ActorParts", "ActorLoop"]
+
+log = logging.getLogger("khgrl.actor")
+
+STATUS_EVERY_S = 1.0
+_INBOX_KINDS = {"ack": Ack, "correction": Correction, "control": Control}
+
+
+@dataclass
+class ActorParts:
+    """The pieces the loop drives (built and wired by :mod:`actor.main`)."""
+
+    env: Any  # common.env.PassageEnv
+    policy: Any  # sb3_contrib TQCPolicy
+    link: ActorLink
+    inbox: Inbox
+    stream: TransitionStream
+    arbiter: CorrectionArbiter
+    weights: PolicyWeights
+    scale: ExplorationScale
+    record: CorrectionRecord
+    episodes: EpisodeLog
+    tensorboard: TensorBoard
+    rejects: RejectCounter
+
+
+@dataclass
+class _Episode:
+    """What one episode accumulates besides its statistics."""
+
+    started: float
+    segment: list = field(default_factory=list)  # the current intervention's (xi_h, phase) per step
+    ret: float = 0.0
+
+
+class ActorLoop:
+    """Runs the episodes.
+
+    :param cfg: the run's settings.
+    :param actor: this actor's id.
+    :param parts: the wired parts.
+    :param flag: set by SIGINT/SIGTERM or a ``stop`` command.
+    """
+
+    def __init__(self, cfg: RunConfig, actor: str, parts: ActorParts, flag: StopFlag) -> None:
+        self.cfg = cfg
+        self.id = actor
+        self.p = parts
+        self.flag = flag
+        self.learners: set[str] = set()
+        self.paused = False
+        self.realtime = False
+        self.episode = parts.episodes.last_episode
+        self.first_episode = self.episode + 1
+        self.earlier_transitions = parts.episodes.earlier_transitions
+        self.waits = RateLimitStats()
+        self.pacer = Pacer(cfg.rate)
+        tf = cfg.tqc.train_freq
+        self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
+        self._t_status = time.monotonic()
+
+    @property
+    def learner_alive(self) -> bool:
+        return bool(self.learners)
+
+    def join(self) -> None:
+        """Before the first step: who is alive right now, and the current weights (late joiner)."""
+        self.learners = self.p.link.learners_alive(timeout=1.0)
+        self._query_weights(timeout=2.0)
+        w = self.p.weights
+        w.initial_version = w.version if w.version >= 0 else None
+        log.info("actor %s: learner %s, initial weights version %s", self.id,
+                 "alive" if self.learners else "not seen", w.initial_version)
+
+    # ------------------------------------------------------------------ episodes
+    def run(self) -> int:
+        """All remaining episodes, then the flush; returns the exit code (3: flush timed out)."""
+        acc = EpisodeAccumulator()
+        acc.episode = self.episode  # a resumed run continues the numbering
+        todo = self.cfg.episodes - self.episode
+        self.pacer = Pacer(self.cfg.rate)
+        self.p.scale.publish()
+        if todo <= 0:
+            log.info("all %d episodes of the run are done already: nothing to run", self.cfg.episodes)
+        while len(self.p.episodes.new) < todo and not self.flag:
+            if not self._episode(acc):
+                break  # stopped mid-episode: no statistics for a partial episode
+        self.p.stream.cut()  # a partial batch after a stop
+        if self.flag:
+            return self._finish_on_signal()
+        return self._flush()
+
+    def _episode(self, acc: EpisodeAccumulator) -> bool:
+        env = self.p.env
+        obs, _ = env.reset()
+        acc.start()
+        self.episode = acc.episode
+        self.p.arbiter.new_episode(self.episode)
+        ep = _Episode(started=time.perf_counter())
+        done = False
+        while not done and not self.flag:
+            if not self._before_step():
+                break
+            obs, done = self._step(obs, acc, ep)
+        if not done:
+            return False
+        self._end_episode(acc, ep)
+        return True
+
+    def _before_step(self) -> bool:
+        """Inbox, flow control and pacing before a step; False if the actor is to stop."""
+        self.service()
+        self.rate_limit()
+        if self.flag:
+            return False
+        if self.pacer.sleep():
+            # what arrived while pacing (a correction for the frame just published) applies to this step
+            self.service()
+            self.rate_limit()
+            if self.flag:
+                return False
+        return True
+
+    def _action(self, obs: np.ndarray) -> np.ndarray:
+        run_index = self.earlier_transitions + self.p.stream.count
+        if run_index < self.cfg.tqc.learning_starts:
+            return self.p.env.action_space.sample()
+        action, _ = self.p.policy.predict(obs, deterministic=False)
+        if run_index >= self.first_due:
+            self.p.weights.note_lag(self.p.stream.count, self.cfg.stream.max_lead)
+        return action
+
+    def _step(self, obs: np.ndarray, acc: EpisodeAccumulator, ep: _Episode) -> tuple[np.ndarray, bool]:
+        p, env = self.p, self.p.env
+        self.pacer.step_started()
+        action = self._action(obs)
+        if not p.arbiter.ready(env.t):
+            self._await_correction(env.t)
+        p_h = p.arbiter.current(time.monotonic(), env.t)
+        env.set_correction(p_h)
+        next_obs, reward, terminated, truncated, info = env.step(action)
+        acc.add(reward, info)
+        ep.ret += float(reward)
+        iv = bool(info["intervened"])
+        if iv:
+            ep.segment.append((info["xi_h"], info["phase"]))
+        elif ep.segment:
+            p.scale.refit(ep.segment, self.episode)
+            ep.segment = []
+        p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]))
+        t = int(info["t"])
+        if iv and p_h is not None:
+            p.record.write(self.episode, t, p.arbiter.holder, p_h, info)
+            p.arbiter.counts["projected_steps"] += int(bool(info.get("projected")))
+        done = terminated or truncated
+        p.link.publish(self._frame(info, t, iv, ep.ret, done))
+        if done or p.stream.count % self.cfg.stream.batch == 0:
+            p.stream.cut()
+        return next_obs, done
+
+    def _frame(self, info: dict, t: int, intervening: bool, ret: float, last: bool) -> Frame:
+        env = self.p.env
+        return Frame(actor=self.id, episode=self.episode, t=t, phase=float(info["phase"]),
+                     robot=np.asarray(env.robot, dtype=np.float64), desired=np.asarray(info["desired"], np.float64),
+                     mean=np.asarray(env.mapping.mean(t), np.float64), scale=np.asarray(info["scale"], np.float64),
+                     intervening=intervening, scenario=self.cfg.scenario, ret=float(ret),
+                     next_mean=np.asarray(env.mapping.mean(t + 1), np.float64) if t + 1 < env.horizon else None,
+                     last=True if last else None)
+
+    def _end_episode(self, acc: EpisodeAccumulator, ep: _Episode) -> None:
+        p = self.p
+        p.env.set_correction(None)
+        p.scale.refit(ep.segment, self.episode)
+        st = acc.finish(time.perf_counter() - ep.started)
+        p.record.flush()
+        p.tensorboard.episode(st)
+        p.episodes.add(st)
+        p.link.publish(EpisodeReport(actor=self.id, stats=asdict(st)))
+        log.info("episode %d: %d steps, return %.1f, success %s, interventions %d (%d steps), weights v%d",
+                 st.episode, st.steps, st.ret, st.success, st.interventions, st.intervention_steps,
+                 p.weights.version)
+
+    # ------------------------------------------------------------------ inbox
+    def service(self, block: float = 0.0) -> None:
+        """Handle everything that arrived (waiting up to ``block`` s for the first item); swap weights; re-send
+        if stalled; publish the status about once a second.
+
+        :param block: seconds to wait for something to arrive.
+        """
+        timeout = block
+        while (item := self.p.inbox.get(timeout)) is not None:
+            timeout = 0.0
+            self._handle(*item)
+        self.p.weights.swap()
+        self.p.stream.check_resend(self.learner_alive)
+        now = time.monotonic()
+        if now - self._t_status >= STATUS_EVERY_S:
+            self._t_status = now
+            self._publish_status()
+
+    def _handle(self, kind: str, key: str, payload, arrival: float) -> None:
+        if kind == "alive":
+            self._on_alive(key, payload)
+            return
+        try:
+            msg = decode(_INBOX_KINDS[kind], payload)
+        except ProtocolError as exc:
+            self.p.rejects.reject(kind, key, exc)
+            return
+        if kind == "ack":
+            self.p.stream.on_ack(msg, key)
+        elif kind == "correction":
+            if msg.client != Keys.chunk(key, 3):
+                self.p.rejects.reject("correction", key, ProtocolError(f"client {msg.client!r} published on {key}"))
+                return
+            self.p.arbiter.offer(msg, arrival, self.episode, self.p.env.t)
+        else:
+            self._on_control(msg.command)
+
+    def _on_alive(self, key: str, put: bool) -> None:
+        if put:
+            if key not in self.learners:
+                self.learners.add(key)
+                log.info("learner %s appeared (outbox: %d batches)", key, len(self.p.stream.outbox))
+                self.p.stream.learner_appeared()
+        else:
+            self.learners.discard(key)
+            log.warning("learner %s gone: acting on with weights version %d", key, self.p.weights.version)
+
+    def _on_control(self, command: str) -> None:
+        log.info("control: %s", command)
+        if command == "stop":
+            self.flag.set("stop command")
+        elif command == "pause":
+            self.paused = True
+        elif command == "resume":
+            self.paused = False
+
+    def _publish_status(self) -> None:
+        p = self.p
+        info = status_info(actor=self.id, episode=self.episode, t=p.env.t, stream=p.stream, weights=p.weights,
+                           arbiter=p.arbiter, rejects=p.rejects, waits=self.waits, learner_alive=self.learner_alive,
+                           paused=self.paused, periods=self.pacer.periods)
+        p.link.publish(Status(role="actor", info=info))
+
+    def _query_weights(self, timeout: float) -> None:
+        """Pull the current weights from the learner's queryable (late joiner / missed update)."""
+        self.p.weights.last_query = time.monotonic()
+        self.p.weights.load_replies(self.p.link.query_weights(timeout))
+
+    # ------------------------------------------------------------------ waiting
+    def _must_wait(self) -> bool:
+        if self.paused:
+            return True
+        if not self.learner_alive:
+            return False
+        s = self.p.stream
+        trained = s.trained if s.ack_epoch is not None else 0
+        return s.sent - trained >= self.cfg.stream.max_lead or self.p.weights.behind(s.ack_epoch, s.ack_version)
+
+    def rate_limit(self) -> None:
+        """Wait (servicing the inbox) while the actor is too far ahead of the learner or paused."""
+        if not self._must_wait():
+            return
+        t0 = time.monotonic()
+        self.waits.waits += 1
+        w, s = self.p.weights, self.p.stream
+        while not self.flag and self._must_wait():
+            self.service(block=0.02)
+            now = time.monotonic()
+            if w.behind(s.ack_epoch, s.ack_version) and now - t0 > 1.0 and now - w.last_query > 1.0:
+                self._query_weights(timeout=1.0)
+        dt = time.monotonic() - t0
+        self.waits.wait_s += dt
+        self.p.arbiter.extend(dt)
+
+    def _await_correction(self, step: int) -> None:
+        """A lock-step correction client has not yet sent its word for ``step``: wait for it (servicing the
+        inbox) at most the correction timeout, then carry on without it."""
+        t0 = time.monotonic()
+        arb = self.p.arbiter
+        arb.counts["lockstep_waits"] += 1
+        while not self.flag and not arb.ready(step):
+            if time.monotonic() - t0 > arb.timeout:
+                arb.give_up(step)
+                break
+            self.service(block=0.002)
+
+    # ------------------------------------------------------------------ the end
+    def _flush(self) -> int:
+        """Wait until the learner holds every batch in a checkpoint (or ``flush_timeout``)."""
+        s = self.p.stream
+        last = s.highest_sent
+        t0 = time.monotonic()
+        log.info("all %d episodes done: flushing %d batches (last seq %d)", len(self.p.episodes.new), len(s.outbox),
+                 last)
+        while last >= 0 and s.durable < last and time.monotonic() - t0 < self.cfg.stream.flush_timeout \
+                and not self.flag:
+            self.service(block=0.05)
+            if s.checkpoint_due(self.learner_alive):
+                self.p.link.send_control("learner", "checkpoint")
+        self._publish_status()
+        if s.durable < last:
+            n = s.unconfirmed()
+            log.error("flush timed out: %d transitions in %d batches not confirmed durable by the learner", n,
+                      len(s.outbox))
+            print(f"khgrl actor {self.id}: flush timed out: {n} transitions not confirmed", file=sys.stderr, flush=True)
+            return 3
+        log.info("flushed: every batch up to seq %d is in a learner checkpoint", last)
+        return 0
+
+    def _finish_on_signal(self) -> int:
+        s = self.p.stream
+        last = s.highest_sent
+        t0 = time.monotonic()
+        while last >= 0 and s.received < last and self.learner_alive and time.monotonic() - t0 < 2.0:
+            self.service(block=0.05)
+        log.info("stopped (%s): %d transitions not yet durable", self.flag.reason, s.unconfirmed())
+        return 0
+
+    def summary(self, rc: int, wall: float) -> dict:
+        """``summary.json`` of this part of the run.
+
+        :param rc: the exit code.
+        :param wall: seconds the run took.
+        """
+        p = self.p
+        return summary(actor=self.id, rc=rc, stopped_by=self.flag.reason, wall=wall, episodes=p.episodes.new,
+                       first_episode=self.first_episode, stream=p.stream, weights=p.weights, arbiter=p.arbiter,
+                       rejects=p.rejects, waits=self.waits, max_lead=self.cfg.stream.max_lead, rate=self.cfg.rate,
+                       periods=self.pacer.periods, scale_updates=p.scale.updates, realtime=self.realtime)

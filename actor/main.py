@@ -1,0 +1,168 @@
+"""``khgrl actor``: the actor process. Steps the passage world (KGRL mapping, GPR exploration scale) with a
+local copy of the TQC policy, applies human corrections that arrive over Zenoh, and streams its transitions
+to the learner without losing or duplicating any.
+
+    khgrl actor --config RUN_DIR/config.json --id a0 [--resume]
+    khgrl actor --run RUN --connect tcp/HOST:PORT --run-dir DIR --id a0 [any run setting flag]
+
+Wiring, top to bottom: settings -> logging and signals -> world and policy (seeded exactly as single-process
+SB3 seeds them) -> Zenoh session -> the loop's parts (:mod:`actor.loop`) -> run -> result files in
+RUN_DIR/actor-ID/ (episodes.csv/json, corrections.csv, summary.json, config.json, scale.npz, tb/).
+With ``--resume`` the actor continues the episode numbering of its earlier part and appends to its files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import secrets
+import sys
+import time
+from pathlib import Path
+
+from actor.arbiter import CorrectionArbiter
+from actor.exploration import ExplorationScale
+from actor.link import ActorLink
+from actor.loop import ActorLoop, ActorParts
+from actor.outbox import Outbox
+from actor.pacing import set_realtime
+from actor.record import CorrectionRecord
+from actor.results import EpisodeLog
+from actor.stream import TransitionStream
+from actor.telemetry import TensorBoard
+from actor.weights import PolicyWeights, WeightsReceiver
+from common.config import ProcessConfig, add_process_flags, resolve_process
+from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
+from common.protocol import Keys
+from common.transport import Inbox, open_client
+from common.wire import RejectCounter, ident
+
+__all__ = ["main", "build_parser", "run"]
+
+log = logging.getLogger("khgrl.actor")
+
+# the run settings an actor uses (its flags; every other setting comes from --config)
+ACTOR_SETTINGS = {"scenario", "method", "episodes", "seed", "run_dir", "run", "connect", "rate", "actor_rt_priority",
+                  "tensorboard", "learning_starts", "train_freq", "net_arch", "batch", "max_lead", "outbox_memory",
+                  "resend_after_s", "flush_timeout", "correction_timeout", "lease_ms"}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="khgrl actor",
+                                description="Actor: steps the passage world with the current policy, applies human "
+                                            "corrections, streams transitions to the learner.")
+    p.add_argument("--id", default="a0", help="actor id; actor a<i> is seeded with seed + i (default: %(default)s)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue this actor's part of the run in RUN_DIR/actor-ID: episode numbering, episodes.csv, "
+                        "corrections.csv and TensorBoard carry on (default: start afresh)")
+    add_process_flags(p, only=ACTOR_SETTINGS)
+    return p
+
+
+def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, resume: bool) -> ActorParts:
+    """Declare everything on the session and wire the loop's parts (declaration order as the protocol expects:
+    subscribers, publishers, the weights receiver, then the liveliness token)."""
+    cfg, keys = pc.cfg, Keys(pc.run)
+    rejects = RejectCounter(f"actor/{actor}")
+    inbox = Inbox(maxsize=10_000, overflow="drop_oldest")
+    link = ActorLink(session, keys, actor, inbox)
+    receiver = WeightsReceiver(link.weights_subscriber(), policy.actor.state_dict(), rejects, keys.weights)
+    receiver.start()
+    link.announce()
+    stream = TransitionStream(actor, secrets.token_hex(6), Outbox(cfg.stream.outbox_memory, out_dir / "outbox"),
+                              link.publish_transitions, rejects, cfg.stream.resend_after_s)
+    khgrl = cfg.method == "khgrl"
+    scale = ExplorationScale(env, actor, khgrl, link.publish)
+    episodes = EpisodeLog(out_dir, resume)
+    if resume:
+        scale.restore(out_dir)
+    return ActorParts(env=env, policy=policy, link=link, inbox=inbox, stream=stream,
+                      arbiter=CorrectionArbiter(actor, cfg.stream.correction_timeout, enabled=khgrl),
+                      weights=PolicyWeights(policy, actor, receiver), scale=scale,
+                      record=CorrectionRecord(out_dir / "corrections.csv", pc.run, actor, append=resume),
+                      episodes=episodes, tensorboard=TensorBoard(out_dir / "tb" if cfg.tensorboard else None),
+                      rejects=rejects)
+
+
+def _close(parts: ActorParts) -> None:
+    parts.record.close()
+    parts.weights.receiver.stop()
+    parts.link.close()
+    parts.tensorboard.close()
+
+
+def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
+    """Run one actor to the end; returns its exit code (0 done, 3 flush timed out, 1 failed).
+
+    :param pc: the resolved settings, run id and router endpoint.
+    :param actor: this actor's id.
+    :param resume: continue the actor's earlier part of the run.
+    """
+    import torch
+    from sb3_contrib.tqc.policies import TQCPolicy
+
+    from common.env import PassageEnv
+
+    cfg = pc.cfg
+    seed = cfg.actor_seed(actor)
+    out_dir = Path(cfg.run_dir) / f"actor-{actor}"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    setup_process_logging(out_dir / "actor.log")
+    torch.set_num_threads(1)
+    flag = StopFlag()
+    install_stop_handlers(flag)
+
+    t0 = time.perf_counter()
+    env = PassageEnv(cfg.scenario)
+    env.action_space.seed(seed)  # SB3 seeds the action space it samples warm-up actions from
+    torch.manual_seed(seed)
+    policy = TQCPolicy(env.observation_space, env.action_space, lr_schedule=lambda _: 1e-3,
+                       net_arch=list(cfg.tqc.net_arch))
+    policy.set_training_mode(False)
+    log.info("actor %s (seed %d): %s/%s, world ready in %.1f s", actor, seed, cfg.scenario, cfg.method,
+             time.perf_counter() - t0)
+
+    rc = 1
+    t_run = time.perf_counter()
+    try:
+        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag))
+    except ConnectionError as exc:
+        log.error("%s", exc)
+        print(f"khgrl actor {actor}: {exc}", file=sys.stderr, flush=True)
+        return 0 if flag else 1
+    with session:
+        parts = _build_parts(pc, actor, session, env, policy, out_dir, resume)
+        loop = ActorLoop(cfg, actor, parts, flag)
+        loop.join()
+        loop.realtime = set_realtime(cfg.actor_rt_priority) if cfg.actor_rt_priority > 0 else False
+        try:
+            rc = loop.run()
+        finally:
+            summary = loop.summary(rc, time.perf_counter() - t_run)
+            _close(parts)
+
+    runtime = {**pc.runtime, "run": pc.run, "endpoint": pc.endpoint, "actor_id": actor, "seed": seed,
+               "stream": parts.stream.stream, "resumed": resume, "first_episode": loop.first_episode}
+    parts.scale.save(out_dir)
+    parts.episodes.write_final({**cfg.to_dict(), "runtime": runtime}, summary)
+    log.info("actor %s done (exit %d): %d episodes, %d transitions, loop period p50 %.2f ms p99 %.2f ms",
+             actor, rc, len(parts.episodes.new), parts.stream.count, summary["loop_period_ms"]["p50"] or 0,
+             summary["loop_period_ms"]["p99"] or 0)
+    return rc
+
+
+def main(argv: list[str] | None = None) -> int:
+    die_with_parent()
+    args = build_parser().parse_args(argv)
+    try:
+        pc = resolve_process(args)
+        Keys(pc.run)
+        ident("--id", args.id)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"khgrl actor: error: {exc}", file=sys.stderr)
+        return 2
+    return run(pc, args.id, args.resume)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

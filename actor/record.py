@@ -1,0 +1,57 @@
+"""``RUN_DIR/actor-ID/corrections.csv``: one row per step at which the actor applied a human correction.
+``khgrl human replay`` feeds such a file into a new run."""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+__all__ = ["CorrectionRecord"]
+
+
+class CorrectionRecord:
+    """Rows of run, actor, episode, step t, wall time, client, P_h as received, and whether it was projected
+    onto the workspace / its action clipped.
+
+    :param path: the CSV file.
+    :param run: run id.
+    :param actor: actor id.
+    :param append: continue an existing file (``--resume``: no second header); otherwise start it afresh.
+    """
+
+    FIELDS = ("run", "actor", "episode", "step", "time", "client", "p_h_x", "p_h_y", "projected", "clipped")
+
+    def __init__(self, path: Path, run: str, actor: str, append: bool = False) -> None:
+        self.path = Path(path)
+        self.run, self.actor = run, actor
+        has_rows = append and self.path.is_file() and self.path.stat().st_size > 0
+        self._fh = open(self.path, "a" if has_rows else "w", newline="")
+        self._w = csv.writer(self._fh)
+        if not has_rows:
+            self._w.writerow(self.FIELDS)
+        self.rows = 0
+
+    def write(self, episode: int, t: int, client: str | None, p_h, info: dict) -> None:
+        """One applied correction.
+
+        :param episode: the episode (whole run).
+        :param t: the step.
+        :param client: the client that held the robot.
+        :param p_h: the P_h applied (as received).
+        :param info: the environment's step info (``projected``, ``clipped``).
+        """
+        if self._fh.closed:
+            return
+        self._w.writerow((self.run, self.actor, int(episode), int(t), f"{time.time():.6f}", client or "",
+                          repr(float(p_h[0])), repr(float(p_h[1])), int(bool(info.get("projected"))),
+                          int(bool(info.get("clipped")))))
+        self.rows += 1
+
+    def flush(self) -> None:
+        if not self._fh.closed:
+            self._fh.flush()
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.close()

@@ -1,0 +1,102 @@
+"""The actor's result files in RUN_DIR/actor-ID/: ``episodes.csv`` and ``episodes.json`` (a row per finished
+episode, written as it finishes, so a killed actor keeps its history), ``config.json`` and ``summary.json``.
+
+With ``--resume`` the actor continues an earlier part of the run: its episodes are read back, numbering
+continues after the last one, and new rows are appended. Without it, earlier files are replaced.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from dataclasses import asdict
+from pathlib import Path
+
+from common.metrics import EpisodeStats, append_episode_row
+
+__all__ = ["EpisodeLog"]
+
+log = logging.getLogger("khgrl.actor")
+
+
+def _typed(value: str):
+    """A value read back from episodes.csv as the type it was written from."""
+    if value in ("True", "False"):
+        return value == "True"
+    for conv in (int, float):
+        try:
+            return conv(value)
+        except ValueError:
+            pass
+    return value
+
+
+def _from_csv_row(row: dict) -> dict:
+    out = {k: _typed(v) for k, v in row.items()}
+    sm = row.get("scale_max", "")
+    out["scale_max"] = [float(v) for v in sm.split(";")] if sm else []
+    return out
+
+
+class EpisodeLog:
+    """The finished episodes of this actor, earlier parts of the run included.
+
+    :param out_dir: RUN_DIR/actor-ID.
+    :param resume: continue the episodes already recorded there (else start afresh).
+    """
+
+    def __init__(self, out_dir: Path, resume: bool) -> None:
+        self.dir = Path(out_dir)
+        self.csv = self.dir / "episodes.csv"
+        self.json = self.dir / "episodes.json"
+        self.earlier: list[dict] = []
+        if resume:
+            self.earlier = self._read_earlier()
+        else:
+            for p in (self.csv, self.json):
+                p.unlink(missing_ok=True)
+        self.new: list[EpisodeStats] = []
+
+    def _read_earlier(self) -> list[dict]:
+        """episodes.json, or episodes.csv where it has more rows (a part killed between the two writes)."""
+        from_json = json.loads(self.json.read_text()) if self.json.is_file() else []
+        if not isinstance(from_json, list):
+            raise ValueError(f"{self.json}: expected a list of episodes")
+        rows = []
+        if self.csv.is_file():
+            with open(self.csv, newline="") as fh:
+                rows = list(csv.DictReader(fh))
+        return from_json if len(from_json) >= len(rows) else [_from_csv_row(r) for r in rows]
+
+    @property
+    def last_episode(self) -> int:
+        """The number of the last episode of the earlier parts (0: none)."""
+        return max((int(e["episode"]) for e in self.earlier), default=0)
+
+    @property
+    def earlier_transitions(self) -> int:
+        """Transitions (steps) the earlier parts took."""
+        return sum(int(e["steps"]) for e in self.earlier)
+
+    def add(self, st: EpisodeStats) -> None:
+        """Record a finished episode (appended to episodes.csv; episodes.json rewritten).
+
+        :param st: the episode's statistics.
+        """
+        self.new.append(st)
+        append_episode_row(self.csv, st)
+        tmp = self.json.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(self.earlier + [asdict(e) for e in self.new], indent=2))
+        tmp.replace(self.json)
+
+    def write_final(self, config: dict, summary: dict) -> None:
+        """``config.json`` and ``summary.json``.
+
+        :param config: the resolved run configuration plus this actor's runtime facts.
+        :param summary: this part's summary.
+        """
+        (self.dir / "config.json").write_text(json.dumps(config, indent=2, default=str))
+        if not self.json.is_file():  # no episode finished in this part
+            self.json.write_text(json.dumps(self.earlier, indent=2))
+        (self.dir / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -1,0 +1,209 @@
+"""The actor's copy of the policy weights: receive the learner's ``weights`` messages in a background
+thread, validate them against the local actor network, and swap them into the policy between steps (a
+``load_state_dict``, no stall). Also counts how far the loaded weights lag behind the transitions taken."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.messages import Weights
+from common.protocol import decode
+from common.wire import ProtocolError, RejectCounter
+
+__all__ = ["WeightsUpdate", "WeightsReceiver", "PolicyWeights"]
+
+log = logging.getLogger("khgrl.actor")
+
+
+@dataclass(frozen=True)
+class WeightsUpdate:
+    """One validated weights message, ready to load.
+
+    :param epoch: the learner incarnation that trained them.
+    :param version: weights version (per epoch).
+    :param trained: {actor id: transitions covered}.
+    :param state_dict: tensors by name, matching the actor network.
+    :param ts: when the learner published them (its clock).
+    """
+
+    epoch: str | None
+    version: int
+    trained: dict
+    state_dict: dict
+    ts: float
+
+
+class WeightsReceiver:
+    """Drains a RingChannel(1) weights subscriber in a background thread: decodes, validates names and shapes
+    against the local actor network, converts to tensors and leaves the newest ready for the control loop.
+
+    :param subscriber: a Zenoh subscriber with a ``handler`` (None: only :meth:`parse` is used).
+    :param template: the actor network's state dict (names and shapes to expect).
+    :param rejects: counts refused weights messages.
+    :param key: the weights key (for the reject log).
+    """
+
+    def __init__(self, subscriber, template: dict, rejects: RejectCounter, key: str) -> None:
+        self.sub = subscriber
+        self.template = {k: tuple(v.shape) for k, v in template.items()}
+        self.rejects = rejects
+        self.key = key
+        self.lock = threading.Lock()
+        self.ready: WeightsUpdate | None = None
+        self.received = 0
+        self.thread = threading.Thread(target=self._run, name="weights-rx", daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def _run(self) -> None:
+        handler = self.sub.handler
+        while True:
+            try:
+                sample = handler.recv()
+            except Exception:  # noqa: BLE001 - ZError "channel is empty and closed" after undeclare
+                return
+            self.offer(sample.payload.to_bytes())
+
+    def parse(self, payload: bytes) -> WeightsUpdate:
+        """Decode and check one weights payload (raises :class:`ProtocolError`).
+
+        :param payload: the encoded message.
+        """
+        import torch
+
+        msg = decode(Weights, payload)
+        tensors = msg.tensors
+        if set(tensors) != set(self.template):
+            raise ProtocolError(f"tensors: names {sorted(tensors)} do not match the actor network")
+        for k, shape in self.template.items():
+            if tuple(tensors[k].shape) != shape:
+                raise ProtocolError(f"tensors[{k}]: shape {tensors[k].shape}, the actor network has {shape}")
+        sd = {k: torch.from_numpy(np.array(v, dtype=np.float32)) for k, v in tensors.items()}
+        return WeightsUpdate(msg.epoch, msg.version, dict(msg.trained), sd, float(msg.envelope.ts))
+
+    def offer(self, payload: bytes) -> None:
+        """Parse ``payload`` and keep it as the newest ready update (or count it as rejected).
+
+        :param payload: the encoded message.
+        """
+        try:
+            item = self.parse(payload)
+        except ProtocolError as exc:
+            self.rejects.reject("weights", self.key, exc)
+            return
+        with self.lock:
+            self.received += 1
+            self.ready = item
+
+    def take(self) -> WeightsUpdate | None:
+        """The newest update not yet taken (None: nothing new)."""
+        with self.lock:
+            item, self.ready = self.ready, None
+        return item
+
+    def stop(self) -> None:
+        if self.sub is not None:
+            try:
+                self.sub.undeclare()
+            except Exception:  # noqa: BLE001
+                pass
+        if self.thread.is_alive():
+            self.thread.join(timeout=2.0)
+
+
+class PolicyWeights:
+    """Which weights the policy runs with, and how they lag behind the transitions taken.
+
+    :param policy: the local TQC policy (its ``actor`` network gets the state dicts).
+    :param actor: this actor's id (its entry in ``trained``).
+    :param receiver: the background receiver to take updates from.
+    """
+
+    def __init__(self, policy, actor: str, receiver: WeightsReceiver) -> None:
+        self.policy = policy
+        self.actor = actor
+        self.receiver = receiver
+        self.epoch: str | None = None
+        self.version = -1
+        self.trained = 0  # this actor's transitions the loaded weights were trained on
+        self.initial_version: int | None = None
+        self.swaps = 0
+        self.latency: list[float] = []  # s from the learner's publish (msg ts) to applied in the loop
+        self.max_lag = 0
+        self.lag_hist: dict[str, int] = {}  # steps by (transitions - those the loaded weights were trained on)
+        self.last_query = -1e9  # when the loop last asked the learner's queryable (time.monotonic())
+
+    def load(self, item: WeightsUpdate) -> bool:
+        """Load ``item`` unless it is not newer than what runs; returns whether it was loaded.
+
+        :param item: a parsed update.
+        """
+        if item.epoch == self.epoch and item.version <= self.version:
+            return False
+        self.policy.actor.load_state_dict(item.state_dict)
+        self.epoch, self.version = item.epoch, item.version
+        self.trained = int(item.trained.get(self.actor, 0))
+        self.swaps += 1
+        return True
+
+    def swap(self) -> None:
+        """Load the receiver's newest update, if any (between steps)."""
+        item = self.receiver.take()
+        if item is not None and self.load(item):  # applied: latency from the learner's publish (same-machine clock)
+            self.latency.append(time.time() - item.ts)
+
+    def load_replies(self, payloads: list[bytes]) -> None:
+        """Load the answers of the learner's weights queryable (late joiner / missed update).
+
+        :param payloads: the reply payloads.
+        """
+        for p in payloads:
+            try:
+                self.load(self.receiver.parse(p))
+            except ProtocolError as exc:
+                self.receiver.rejects.reject("weights", self.receiver.key, exc)
+
+    def behind(self, ack_epoch: str | None, ack_version: int) -> bool:
+        """Whether the learner has newer weights than the loaded ones (per its last ack).
+
+        :param ack_epoch: the learner epoch of the last ack (None: no ack yet).
+        :param ack_version: the weights version of the last ack.
+        """
+        if ack_epoch is None:
+            return False
+        if self.epoch is not None and self.epoch != ack_epoch:
+            return True
+        return self.version < ack_version
+
+    def note_lag(self, transitions: int, max_lead: int) -> None:
+        """Count the lag of a policy step: transitions taken minus those the loaded weights were trained on.
+
+        :param transitions: this actor's transitions so far.
+        :param max_lead: the flow-control lead (the histogram's last bin is ``>= 2 * max_lead``).
+        """
+        lag = transitions - self.trained
+        self.max_lag = max(self.max_lag, lag)
+        b = str(lag) if lag < 2 * max_lead else f">={2 * max_lead}"
+        self.lag_hist[b] = self.lag_hist.get(b, 0) + 1
+
+    def summary(self) -> dict:
+        """This part of ``summary.json``: ``weights`` and ``weights_latency_ms``."""
+        wl = np.asarray(self.latency)
+
+        def ms(v) -> float | None:
+            return float(v * 1e3) if wl.size else None
+
+        return {
+            "weights": {"initial_version": self.initial_version, "final_version": self.version, "swaps": self.swaps,
+                        "received": self.receiver.received, "max_lag": self.max_lag,
+                        "lag_histogram": dict(sorted(self.lag_hist.items(), key=lambda kv: (len(kv[0]), kv[0])))},
+            "weights_latency_ms": {"p50": ms(np.percentile(wl, 50)) if wl.size else None,
+                                   "p99": ms(np.percentile(wl, 99)) if wl.size else None,
+                                   "max": ms(wl.max()) if wl.size else None, "n": int(wl.size)},
+        }

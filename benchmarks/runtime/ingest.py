@@ -1,0 +1,51 @@
+"""Measurement 1: transitions per second a learner ingests (it never trains), with and without checkpoints."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+from benchmarks.runtime.link import Link, batches
+from benchmarks.runtime.procs import BENCH_ACTOR, BenchProcs, run_id, wait_until
+from common.transport import open_client
+
+__all__ = ["measure_ingest"]
+
+
+def measure_ingest(procs: BenchProcs, ep: str, work: Path, *, n: int, batch: int, inflight: int,
+                   checkpoint_every: int, seed: int, report: Callable[[int, int], None]) -> dict:
+    """Publish ``n`` transitions to a fresh learner and time them from the first put to the last ack.
+
+    :param procs: the benchmark's processes
+    :param ep: the router endpoint
+    :param work: the work directory
+    :param n: transitions
+    :param batch: transitions per batch
+    :param inflight: unacknowledged batches at most
+    :param checkpoint_every: the learner's checkpoint interval (0: none)
+    :param seed: seed of the transitions
+    :param report: ``report(done, n)`` as the acks come in
+    """
+    tag = f"ingest-ckpt{checkpoint_every}"
+    run = run_id(tag)
+    payloads = batches(n, batch, seed)
+    learner = procs.learner(f"learner-{tag}", run, ep, work / tag, "--learning-starts", str(10**9),
+                            "--checkpoint-every", str(checkpoint_every))
+    try:
+        with open_client(ep) as session:
+            link = Link(session, run)
+            try:
+                link.wait_learner(learner)
+                res = link.stream(payloads, inflight, on_progress=lambda k: report(k * batch, n))
+                # the learner's own count (status about every second)
+                seen = wait_until(lambda: [m for m in link.statuses() if m.info.ingested >= n], 5.0,
+                                  "learner status", [learner])
+                info = seen[-1].info
+            finally:
+                link.close()
+    finally:
+        learner.stop(30.0)
+    return {"transitions": n, "batch": batch, "inflight": inflight, "checkpoint_every": checkpoint_every,
+            "elapsed_s": res["elapsed_s"], "transitions_per_s": n / res["elapsed_s"], "resends": res["resends"],
+            "learner_ingested": info.ingested, "learner_duplicates": info.duplicates.get(BENCH_ACTOR, 0),
+            "learner_checkpoints": info.checkpoints, "learner_iterations": info.iterations}

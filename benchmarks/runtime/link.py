@@ -1,0 +1,144 @@
+"""This process as a stand-in actor: valid transition batches published to a learner as fast as its acks
+allow, and the learner's status messages -- typed messages through :mod:`common.protocol`."""
+
+from __future__ import annotations
+
+import math
+import secrets
+import time
+from typing import Callable
+
+import numpy as np
+
+from benchmarks.runtime.procs import BENCH_ACTOR
+from common.messages import Ack, Control, Status, Transitions
+from common.protocol import Keys, ProtocolError, decode, encode
+from common.spaces import ACT_DIM, OBS_DIM
+from common.transport import Inbox, undeclare_all
+from deploy.supervisor import Proc
+
+__all__ = ["batches", "Link"]
+
+
+def batches(n: int, batch: int, seed: int) -> list[bytes]:
+    """``n`` valid transitions as encoded batches seq 0, 1, ... (encoded before any timing starts).
+
+    :param n: transitions
+    :param batch: transitions per batch
+    :param seed: seed of the random contents
+    """
+    rng = np.random.default_rng(seed)
+    stream = secrets.token_hex(6)
+    out = []
+    for seq in range(math.ceil(n / batch)):
+        m = min(batch, n - seq * batch)
+        trunc = np.zeros(m, dtype=np.uint8)
+        trunc[-1] = 1 if seq % 8 == 7 else 0  # an episode end now and then
+        zeros = np.zeros(m, dtype=np.uint8)
+        msg = Transitions(actor=BENCH_ACTOR, first_step=seq * batch, obs=rng.random((m, OBS_DIM), dtype=np.float32),
+                          next_obs=rng.random((m, OBS_DIM), dtype=np.float32),
+                          action=rng.uniform(-1, 1, (m, ACT_DIM)).astype(np.float32),
+                          reward=rng.standard_normal(m).astype(np.float32), terminated=zeros, truncated=trunc,
+                          intervened=zeros, clipped=zeros, stream=stream, base_seq=0)
+        out.append(encode(msg, BENCH_ACTOR, seq))
+    return out
+
+
+class Link:
+    """This process's Zenoh declarations for one measurement: a transitions publisher, the acks of
+    :data:`BENCH_ACTOR` and the learner's status.
+
+    :param session: an open Zenoh client session
+    :param run: the run id
+    """
+
+    def __init__(self, session, run: str) -> None:
+        import zenoh
+
+        self.session = session
+        self.keys = Keys(run)
+        self.acks = Inbox(maxsize=100_000)
+        self.status = Inbox(maxsize=100_000)
+        self.decls = [session.declare_subscriber(self.keys.ack(BENCH_ACTOR), self.acks.callback("ack")),
+                      session.declare_subscriber(self.keys.status("learner", "*"), self.status.callback("status"))]
+        self.pub = session.declare_publisher(self.keys.transitions(BENCH_ACTOR),
+                                             congestion_control=zenoh.CongestionControl.BLOCK,
+                                             priority=zenoh.Priority.DATA)
+        self.decls.append(self.pub)
+        self._control_seq = 0
+
+    def wait_learner(self, learner: Proc, timeout: float = 120.0) -> None:
+        """Until the learner's liveliness token (declared after its subscribers) is visible here."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if learner.poll() is not None:
+                raise RuntimeError(f"{learner.name} exited with {learner.poll()}:\n{learner.tail()}")
+            replies = list(self.session.liveliness().get(self.keys.alive("learner", "*"), timeout=1.0))
+            if any(r.ok for r in replies):
+                time.sleep(0.3)  # let the subscription reach this client through the router
+                return
+            time.sleep(0.2)
+        raise RuntimeError(f"the learner's liveliness token never appeared:\n{learner.tail()}")
+
+    def control(self, command: str) -> None:
+        """Send ``control/learner COMMAND`` (pause, resume, ...)."""
+        self.session.put(self.keys.control("learner"), encode(Control(command=command), "bench", self._control_seq))
+        self._control_seq += 1
+
+    def _drain_acks(self, received: int, wait: float) -> tuple[int, float | None]:
+        """Read the acks that arrived (waiting up to ``wait`` s for the first): the highest ``received`` seq,
+        and when the ack that raised it arrived (None: no progress)."""
+        t_new = None
+        item = self.acks.get(timeout=wait)
+        while item is not None:
+            try:
+                ack = decode(Ack, item[2])
+            except ProtocolError:
+                ack = None
+            if ack is not None and ack.received > received:
+                received, t_new = ack.received, item[3]
+            item = self.acks.get()
+        return received, t_new
+
+    def stream(self, payloads: list[bytes], inflight: int, on_progress: Callable[[int], None] | None = None,
+               timeout: float = 300.0, stall_s: float = 5.0) -> dict:
+        """Publish ``payloads`` keeping at most ``inflight`` unacknowledged, until the last seq is acked;
+        batches not acknowledged after ``stall_s`` s without progress are sent again."""
+        last = len(payloads) - 1
+        received, nxt, resends = -1, 0, 0
+        t0 = time.monotonic()
+        t_last = last_progress = t0
+        while received < last:
+            while nxt <= last and nxt - 1 - received < inflight:
+                self.pub.put(payloads[nxt])
+                nxt += 1
+            received, t_new = self._drain_acks(received, 0.5)
+            now = time.monotonic()
+            if t_new is not None:
+                t_last, last_progress = t_new, now
+            if on_progress is not None:
+                on_progress(received + 1)
+            if now - t0 > timeout:
+                raise RuntimeError(f"ingest: only seq {received} of {last} acknowledged after {timeout:.0f} s")
+            if now - last_progress > stall_s:  # a lost batch (e.g. before the subscription was matched): re-send
+                for s in range(received + 1, nxt):
+                    self.pub.put(payloads[s])
+                resends += 1
+                last_progress = now
+        return {"elapsed_s": t_last - t0, "resends": resends, "batches": len(payloads)}
+
+    def statuses(self) -> list[Status]:
+        """The learner status messages that arrived since the last call (decoded; ``.envelope.ts`` is the
+        learner's send time)."""
+        out = []
+        item = self.status.get()
+        while item is not None:
+            try:
+                out.append(decode(Status, item[2]))
+            except ProtocolError:
+                pass
+            item = self.status.get()
+        return out
+
+    def close(self) -> None:
+        undeclare_all(*self.decls)

@@ -1,0 +1,86 @@
+"""Fig. 4-6 of the paper from an experiment's runs (``khgrl report EXP``): learning curves and the scale L."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from deploy.run_results import METHOD_LABEL, episode_matrix, human_episodes
+
+__all__ = ["FIGURE", "METHOD_COLOR", "plot_learning", "plot_scale"]
+
+METHOD_COLOR = {"khgrl": "C3", "kgrl": "C0"}
+FIGURE = {"high_cov": ("fig4_high_cov.png", "Fig. 4 (high-covariance scenario A)"),
+          "low_cov": ("fig5_low_cov.png", "Fig. 5 (low-covariance scenario B)")}
+
+
+def plot_learning(scenario: str, groups: dict[str, list[list[dict]]], episodes: int, path: Path, title: str) -> None:
+    """Return, obstacle cost, passage cost and success rate per episode: mean +- std over seeds per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [("ret", "return"), ("obstacle_cost", "obstacle cost"), ("passage_cost", "passage cost"),
+            ("success", "success rate")]
+    fig, axes = plt.subplots(len(keys), 1, figsize=(9, 10), sharex=True, constrained_layout=True)
+    ep = np.arange(1, episodes + 1)
+    for method, runs in groups.items():
+        color, label = METHOD_COLOR[method], f"{METHOD_LABEL[method]} ({len(runs)} seeds)"
+        for ax, (key, _) in zip(axes, keys):
+            m = episode_matrix(runs, key, episodes)
+            mean = np.nanmean(m, axis=0)
+            ax.plot(ep, mean, color=color, label=label, lw=1.6)
+            if key != "success":
+                std = np.nanstd(m, axis=0)
+                ax.fill_between(ep, mean - std, mean + std, color=color, alpha=0.18, lw=0)
+        if method == "khgrl":
+            for h in human_episodes(runs):
+                for ax in axes:
+                    ax.axvspan(h - 0.5, h + 0.5, color="0.85", zorder=0, lw=0)
+    for ax, (_, name) in zip(axes, keys):
+        ax.set_ylabel(name)
+        ax.grid(alpha=0.3)
+    axes[-1].set_ylim(-0.05, 1.05)
+    axes[-1].set_xlabel("episode (grey: episodes with scripted human corrections, KhGRL)")
+    axes[0].legend(loc="lower right", fontsize=9)
+    axes[0].set_title(f"{title}: mean ± std over seeds")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def plot_scale(scales: dict, path: Path) -> None:
+    """Fig. 6: L_x and L_y over phase at the end of each run, per scenario; where the human intervened, shaded."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenarios = sorted({k[0] for k in scales})
+    fig, axes = plt.subplots(len(scenarios), 2, figsize=(11, 3.6 * len(scenarios)), squeeze=False,
+                             constrained_layout=True)
+    for row, scenario in enumerate(scenarios):
+        for (sc, method), items in sorted(scales.items()):
+            if sc != scenario:
+                continue
+            for i, (phases, table, corrected) in enumerate(items):
+                for d, ax in enumerate(axes[row]):
+                    ax.plot(phases, table[:, d], color=METHOD_COLOR[method], lw=1.0, alpha=0.8,
+                            label=f"{METHOD_LABEL[method]} ({len(items)} seeds)" if i == 0 else None)
+                    if method == "khgrl" and corrected.size:
+                        ax.axvspan(corrected.min(), corrected.max(), color="0.9", zorder=0, lw=0)
+        from common.scenarios import get_scenario
+
+        note = "grey: phases the human corrected" + ("" if get_scenario(scenario).learn_scale
+                                                      else "; L is not learned here, as in the paper")
+        for d, ax in enumerate(axes[row]):
+            ax.set_title(f"{scenario}: L_{'xy'[d]} at the end of each run ({note})", fontsize=9)
+            ax.set_xlabel("phase s")
+            ax.set_yscale("log")
+            ax.grid(alpha=0.3)
+        axes[row][0].legend(fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)

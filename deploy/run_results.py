@@ -1,0 +1,179 @@
+"""The runs of an experiment and their learning criteria (``khgrl experiment`` output, read by ``khgrl report``).
+
+An experiment directory holds one run directory per (scenario, method, seed), named
+``<scenario>-<method>-seed<S>`` (``khgrl up`` runs: ``actor-a0/episodes.csv``; ``khgrl reference`` runs:
+``episodes.csv``). This module finds them, reads their episode rows, scale tables and corrections, and computes
+each run's learning criteria (all in episodes, counted from 1; ``None`` = never within the run):
+
+* first success; first success without human help (no intervention in that episode)
+* **stable success**: the first episode of the first 5 consecutive *autonomous* episodes (no human
+  intervention) that all succeed -- human-assisted episodes are skipped, neither counted nor breaking the run
+* **zero obstacle cost**: the episode from which no later episode touches the obstacle (obstacle cost 0
+  in that episode and every one after it)
+* success rate over the last 10 episodes; episodes with a collision (obstacle cost < 0) during learning
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "RUN_NAME",
+    "STABLE_WINDOW",
+    "METHOD_LABEL",
+    "RunResult",
+    "stable_success",
+    "zero_cost_from",
+    "find_runs",
+    "load_run",
+    "summarize_run",
+    "episode_matrix",
+    "human_episodes",
+    "load_scale",
+    "corrected_phases",
+]
+
+RUN_NAME = re.compile(r"^(?P<scenario>high_cov|low_cov)-(?P<method>khgrl|kgrl)-seed(?P<seed>\d+)$")
+STABLE_WINDOW = 5  # consecutive autonomous successes that count as "stable success"
+METHOD_LABEL = {"khgrl": "KhGRL", "kgrl": "KGRL"}
+
+
+@dataclass
+class RunResult:
+    scenario: str
+    method: str
+    seed: int
+    path: str
+    episodes: int
+    successes: int
+    success_last_10: float
+    first_success: int | None
+    first_success_without_human: int | None
+    stable_success: int | None
+    zero_obstacle_cost_from: int | None
+    collision_episodes: int
+    obstacle_steps: int
+    human_episodes: int
+    intervention_steps: int
+    clipped_human_steps: int
+    mean_return_last_10: float
+
+
+def stable_success(success: list[bool], human: list[bool], window: int = STABLE_WINDOW) -> int | None:
+    """First episode (1-based) of the first ``window`` consecutive autonomous successes; human episodes skipped."""
+    run: list[int] = []
+    for ep, (s, h) in enumerate(zip(success, human), start=1):
+        if h:
+            continue
+        run = run + [ep] if s else []
+        if len(run) == window:
+            return run[0]
+    return None
+
+
+def zero_cost_from(costs: list[float]) -> int | None:
+    """First episode (1-based) from which every episode's cost is 0; None if the last episode has a cost."""
+    e = None
+    for ep in range(len(costs), 0, -1):
+        if costs[ep - 1] < 0:
+            break
+        e = ep
+    return e
+
+
+def find_runs(exp_dir: Path) -> list[tuple[str, str, int, Path]]:
+    """(scenario, method, seed, run dir) of every run directory in ``exp_dir`` that has episode results."""
+    out = []
+    for d in sorted(Path(exp_dir).iterdir()):
+        m = RUN_NAME.match(d.name)
+        if m and d.is_dir() and _episodes_file(d) is not None:
+            out.append((m["scenario"], m["method"], int(m["seed"]), d))
+    return out
+
+
+def _episodes_file(run_dir: Path) -> Path | None:
+    for f in (run_dir / "episodes.csv", run_dir / "actor-a0" / "episodes.csv"):
+        if f.exists():
+            return f
+    return None
+
+
+def load_run(run_dir: Path) -> list[dict]:
+    """Episode rows of a run, typed."""
+    f = _episodes_file(run_dir)
+    if f is None:
+        raise FileNotFoundError(f"{run_dir}: no episodes.csv")
+    with open(f, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return [{"episode": int(r["episode"]), "ret": float(r["ret"]), "success": r["success"] == "True",
+             "obstacle_cost": float(r["obstacle_cost"]), "passage_cost": float(r["passage_cost"]),
+             "obstacle_steps": int(r["obstacle_steps"]), "intervention_steps": int(r["intervention_steps"]),
+             "clipped_steps": int(r["clipped_steps"])} for r in rows]
+
+
+def summarize_run(scenario: str, method: str, seed: int, run_dir: Path, rows: list[dict]) -> RunResult:
+    succ = [r["success"] for r in rows]
+    human = [r["intervention_steps"] > 0 for r in rows]
+    last = rows[-10:]
+    return RunResult(
+        scenario=scenario, method=method, seed=seed, path=str(run_dir), episodes=len(rows), successes=sum(succ),
+        success_last_10=sum(r["success"] for r in last) / max(1, len(last)),
+        first_success=next((r["episode"] for r in rows if r["success"]), None),
+        first_success_without_human=next((r["episode"] for r, h in zip(rows, human) if r["success"] and not h), None),
+        stable_success=stable_success(succ, human),
+        zero_obstacle_cost_from=zero_cost_from([r["obstacle_cost"] for r in rows]),
+        collision_episodes=sum(r["obstacle_cost"] < 0 for r in rows),
+        obstacle_steps=sum(r["obstacle_steps"] for r in rows),
+        human_episodes=sum(human), intervention_steps=sum(r["intervention_steps"] for r in rows),
+        clipped_human_steps=sum(r["clipped_steps"] for r in rows),
+        mean_return_last_10=float(np.mean([r["ret"] for r in last])) if last else float("nan"),
+    )
+
+
+def episode_matrix(runs: list[list[dict]], key: str, episodes: int) -> np.ndarray:
+    """(seeds, episodes) of one per-episode quantity; NaN where a run is shorter."""
+    m = np.full((len(runs), episodes), np.nan)
+    for i, rows in enumerate(runs):
+        for r in rows[:episodes]:
+            m[i, r["episode"] - 1] = float(r[key])
+    return m
+
+
+def human_episodes(runs: list[list[dict]]) -> list[int]:
+    """Episodes (1-based) in which any of the runs had a human intervention."""
+    eps = set()
+    for rows in runs:
+        eps |= {r["episode"] for r in rows if r["intervention_steps"] > 0}
+    return sorted(eps)
+
+
+def load_scale(run_dir: Path, scenario: str) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(phases (N,), L (N, O), recorded) at the end of a run. Runs without a recorded table (single-process
+    reference KGRL, or runs made before the actor wrote ``scale.npz``) never refit L: the scenario's default."""
+    from common.scenarios import get_scenario
+
+    f = run_dir / "actor-a0" / "scale.npz"
+    if f.exists():
+        d = np.load(f)
+        return d["phases"], d["table"], True
+    if (run_dir / "scale_table.npy").exists():
+        table = np.load(run_dir / "scale_table.npy")
+        return np.linspace(0.0, 1.0, table.shape[0]), table, True
+    sc = get_scenario(scenario)
+    n = 400
+    return np.linspace(0.0, 1.0, n), np.full((n, 2), sc.default_scale), False
+
+
+def corrected_phases(run_dir: Path, n: int) -> np.ndarray:
+    """Phases (step / (n - 1)) of the corrections the human made in a run (none without corrections.csv)."""
+    f = run_dir / "actor-a0" / "corrections.csv"
+    if not f.exists():
+        return np.zeros(0)
+    with open(f, newline="") as fh:
+        steps = [int(r["step"]) for r in csv.DictReader(fh)]
+    return np.asarray(steps, dtype=np.float64) / (n - 1)

@@ -1,0 +1,120 @@
+"""The run directory of ``khgrl up``: whether it already holds a run, starting it again (``--overwrite``),
+continuing it (``--resume``), and the configuration files written into it.
+
+Layout::
+
+    RUN_DIR/config.toml, config.json  the resolved configuration of the latest start (children read config.json)
+    RUN_DIR/config-partN.*            the configuration of part N of a resumed run (part 1: the first start)
+    RUN_DIR/summary.json              exit codes, wall time, per-actor results (summary-partN.json: earlier parts)
+    RUN_DIR/pids.json                 the launcher's and its children's process ids (latest start)
+    RUN_DIR/logs/<process>.log        each process's output (appended to by a resumed run)
+    RUN_DIR/learner/...               checkpoints, TensorBoard scalars
+    RUN_DIR/actor-<id>/...            episodes.csv/json, summary.json, corrections.csv, tb/
+
+A resumed run is one run in several parts: ``config.json`` always describes the part now running (its
+``runtime`` says ``resumed``, ``part`` and ``first_started``); the earlier parts' ``config.json``,
+``config.toml`` and ``summary.json`` are kept as ``*-partN.*``.
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import shutil
+from pathlib import Path
+
+__all__ = ["RunDirError", "results_in", "has_checkpoint", "clear_run", "archive_part", "previous_runtime",
+           "make_run_id", "write_pids"]
+
+# entries that mark a directory as holding (part of) a run; --overwrite deletes exactly these
+_RESULT_FILES = ("config.json", "config.toml", "summary.json", "pids.json")
+_RESULT_DIRS = ("learner", "logs")
+_RESULT_GLOBS = ("actor-*", "config-part*", "summary-part*", "human-*")
+
+
+class RunDirError(Exception):
+    """A run directory that cannot be used as asked (``khgrl up`` exits 2 with this message)."""
+
+
+def results_in(run_dir: Path) -> list[str]:
+    """Names of the entries of ``run_dir`` that belong to an earlier run (empty: the directory is free).
+
+    :param run_dir: the run directory (need not exist)
+    """
+    if not run_dir.is_dir():
+        return []
+    found = [n for n in (*_RESULT_FILES, *_RESULT_DIRS) if (run_dir / n).exists()]
+    for pattern in _RESULT_GLOBS:
+        found += sorted(p.name for p in run_dir.glob(pattern))
+    return found
+
+
+def has_checkpoint(run_dir: Path) -> bool:
+    """Whether the learner left a complete checkpoint to resume from (``state.json`` in
+    ``learner/checkpoint`` or in the previous one, ``learner/checkpoint.old``).
+
+    :param run_dir: the run directory
+    """
+    return any((run_dir / "learner" / d / "state.json").is_file() for d in ("checkpoint", "checkpoint.old"))
+
+
+def clear_run(run_dir: Path) -> list[str]:
+    """Delete an earlier run's entries (only those :func:`results_in` names; other files stay).
+
+    :param run_dir: the run directory
+    :returns: the names deleted
+    """
+    names = results_in(run_dir)
+    for name in names:
+        path = run_dir / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+    return names
+
+
+def previous_runtime(run_dir: Path) -> dict:
+    """The ``runtime`` table of the run directory's ``config.json`` ({} if there is none or it is unreadable).
+
+    :param run_dir: the run directory
+    """
+    try:
+        data = json.loads((run_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    runtime = data.get("runtime") if isinstance(data, dict) else None
+    return runtime if isinstance(runtime, dict) else {}
+
+
+def archive_part(run_dir: Path, part: int) -> None:
+    """Keep the configuration and summary of part ``part`` of a resumed run as ``*-partN.*`` before the next
+    part writes its own.
+
+    :param run_dir: the run directory
+    :param part: the number of the part that ran before (1: the first start)
+    """
+    for name in ("config.json", "config.toml", "summary.json"):
+        src = run_dir / name
+        if src.is_file():
+            stem, _, suffix = name.partition(".")
+            src.replace(run_dir / f"{stem}-part{part}.{suffix}")
+
+
+def make_run_id(run_dir: Path) -> str:
+    """A run id (key prefix) from the directory's name and a random suffix, e.g. ``demo-3fa2c1``.
+
+    :param run_dir: the run directory
+    """
+    stem = "".join(c if c.isalnum() or c in "-_" else "-" for c in run_dir.name)[:40] or "run"
+    return f"{stem}-{secrets.token_hex(3)}"
+
+
+def write_pids(run_dir: Path, launcher: int, children: dict[str, int]) -> None:
+    """``RUN_DIR/pids.json``: who to look for (and stop) if a launcher dies.
+
+    :param run_dir: the run directory
+    :param launcher: the launcher's process id
+    :param children: process id by process name
+    """
+    (run_dir / "pids.json").write_text(json.dumps({"launcher": launcher, "children": children}, indent=2))

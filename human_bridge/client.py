@@ -1,0 +1,195 @@
+"""What every human-input client shares (docs/protocol.md): its Zenoh side.
+
+* :class:`CorrectionPublisher` -- the client's correction stream: typed :class:`~common.protocol.Correction`
+  messages, sequence-numbered, express and high priority. A stream is ``active`` messages with P_h while the
+  person (or script) holds the robot, sent for every frame, then one ``active=False`` release.
+* :class:`HumanClient` -- one client's subscriptions (frames and whatever else it shows) into an
+  :class:`~common.transport.Inbox` that keeps the newest, decoded into typed messages; stop commands on
+  ``control/human`` and ``control/all``; its liveliness token; its ``status/human/<id>`` (:class:`HumanInfo`),
+  and ``pause`` / ``resume`` for the actors.
+* :func:`connected` -- a :class:`HumanClient` on a session to the run's router, closed (holds released) on exit.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from contextlib import contextmanager
+from typing import Iterator
+
+import numpy as np
+
+from common.config import ProcessConfig
+from common.messages import Control, Correction, EpisodeReport, Frame, HumanInfo, Message, Scale, Status
+from common.process import StopFlag
+from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from common.transport import Inbox, open_client, undeclare_all
+
+__all__ = ["CorrectionPublisher", "HumanClient", "connected", "read", "KINDS"]
+
+log = logging.getLogger("khgrl.human")
+
+KINDS: dict[str, type[Message]] = {"frame": Frame, "scale": Scale, "episode": EpisodeReport, "status": Status,
+                                   "control": Control}
+STATUS_EVERY_S = 1.0
+
+
+def read(kind: str, key: str, payload: bytes, rejects: RejectCounter) -> Message | None:
+    """The typed message of ``kind`` in ``payload``, or None (counted in ``rejects``) if it breaks the protocol."""
+    try:
+        return decode(KINDS[kind], payload)
+    except ProtocolError as exc:
+        rejects.reject(kind, key, exc)
+        return None
+
+
+class CorrectionPublisher:
+    """Publishes one client's correction stream.
+
+    :param session: the process's Zenoh session.
+    :param keys: the run's key expressions.
+    :param client: the client id (a key chunk).
+    """
+
+    def __init__(self, session, keys: Keys, client: str) -> None:
+        import zenoh
+
+        self.client = client
+        self.seq = 0
+        self.sent = 0
+        self.active: dict[str, bool] = {}  # actor -> whether our last word to it was a hold
+        self._pub = session.declare_publisher(keys.correction(client), congestion_control=zenoh.CongestionControl.BLOCK,
+                                              priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+
+    def send(self, actor: str, p_h: np.ndarray | None, episode: int = 0, t: int = 0, step: int | None = None) -> None:
+        """Hold ``actor``'s desired position at ``p_h`` (2,), or release it (``p_h`` None).
+
+        :param actor: the actor id.
+        :param p_h: the desired position in workspace units, or None to release.
+        :param episode: the episode of the frame this answers (1-based).
+        :param t: the step of that frame.
+        :param step: step-addressed (lock-step): P_h (or the release) is for this step of ``episode``; sent even
+            when there is nothing to release, since the actor waits for this client's word on every step.
+        """
+        active = p_h is not None
+        if not active and step is None and not self.active.get(actor, False):
+            return  # nothing to release
+        msg = Correction(client=self.client, actor=actor, active=active,
+                         p_h=np.asarray(p_h, dtype=np.float64) if active else None,
+                         episode=int(episode), t=int(t), step=None if step is None else int(step))
+        self._pub.put(encode(msg, self.client, self.seq))
+        self.seq += 1
+        self.sent += 1
+        self.active[actor] = active
+
+    def release_all(self) -> None:
+        """Release every actor still held (on the way out)."""
+        for actor, active in list(self.active.items()):
+            if active:
+                self.send(actor, None)
+
+    def close(self) -> None:
+        self._pub.undeclare()
+
+
+class HumanClient:
+    """One human-input client's Zenoh side.
+
+    :param session: the process's Zenoh session.
+    :param keys: the run's key expressions.
+    :param client: the client id.
+    :param flag: the process's stop flag (set by a ``stop`` command).
+    :param actor: the actor whose messages to take (``*``: all).
+    :param kinds: what to subscribe to of those actors: ``frame``, ``scale``, ``episode``, ``status``.
+    """
+
+    def __init__(self, session, keys: Keys, client: str, flag: StopFlag, actor: str = "*",
+                 kinds: tuple[str, ...] = ("frame",)) -> None:
+        import zenoh
+
+        self.session, self.keys, self.client, self.flag = session, keys, client, flag
+        self.rejects = RejectCounter(f"human/{client}")
+        self.frames = 0
+        self.inbox = Inbox(4096, "drop_oldest")  # a viewer needs the newest frames, not every old one
+        self.controls = Inbox(64, "drop_newest")
+        sel = actor or "*"
+        topics = {"frame": keys.frame(sel), "scale": keys.scale(sel), "episode": keys.episode(sel),
+                  "status": keys.status("actor", sel)}
+        self._decls = [session.declare_subscriber(topics[k], self.inbox.callback(k)) for k in kinds]
+        self._decls += [session.declare_subscriber(keys.control(t), self.controls.callback("control"))
+                        for t in ("human", "all")]
+        self._decls.append(session.liveliness().declare_token(keys.alive("human", client)))
+        self._status = session.declare_publisher(keys.status("human", client),
+                                                 congestion_control=zenoh.CongestionControl.DROP)
+        self._decls.append(self._status)
+        self.pub = CorrectionPublisher(session, keys, client)
+        self._status_seq = 0
+        self._control_seq = 0
+        self._t_status = time.monotonic()
+
+    def next(self, timeout: float = 0.0) -> tuple[str, Message] | None:
+        """The next valid message as ``(key, message)``, waiting up to ``timeout`` s; None if there is none.
+        Control messages are handled here (``stop`` sets the stop flag) and not returned."""
+        self._handle_controls()
+        item = self.inbox.get(timeout)
+        if item is None:
+            return None
+        kind, key, payload, _ = item
+        msg = read(kind, key, payload, self.rejects)
+        if msg is None:
+            return None
+        self.frames += isinstance(msg, Frame)
+        return key, msg
+
+    def _handle_controls(self) -> None:
+        while (item := self.controls.get()) is not None:
+            msg = read("control", item[1], item[2], self.rejects)
+            if msg is not None and msg.command == "stop":
+                self.flag.set("stop command")
+
+    def publish_status(self, force: bool = False) -> None:
+        """``status/human/<id>`` about once a second (:class:`HumanInfo`: frames, corrections, rejects)."""
+        now = time.monotonic()
+        if not force and now - self._t_status < STATUS_EVERY_S:
+            return
+        self._t_status = now
+        info = HumanInfo(frames=self.frames, corrections=self.pub.sent, rejects=self.rejects.by_kind())
+        self._status.put(encode(Status(role="human", info=info), self.client, self._status_seq))
+        self._status_seq += 1
+
+    def control_actors(self, command: str) -> None:
+        """Publish ``pause`` or ``resume`` on ``control/actor``."""
+        import zenoh
+
+        self.session.put(self.keys.control("actor"), encode(Control(command=command), self.client, self._control_seq),
+                         congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
+                         express=True)
+        self._control_seq += 1
+
+    def close(self) -> None:
+        """Release every hold, then undeclare everything."""
+        try:
+            self.pub.release_all()
+        finally:
+            undeclare_all(*self._decls)
+            self.pub.close()
+
+
+@contextmanager
+def connected(proc: ProcessConfig, client: str, flag: StopFlag, actor: str = "*",
+              kinds: tuple[str, ...] = ("frame",)) -> Iterator[HumanClient]:
+    """A :class:`HumanClient` on a session to the run's router; waits for the router until ``flag`` is set
+    (:class:`ConnectionError` then).
+
+    :param proc: the resolved process configuration (run id, endpoint, lease).
+    :param client: the client id.
+    :param flag: the process's stop flag.
+    :param actor: the actor to follow (``*``: all).
+    :param kinds: what to subscribe to (see :class:`HumanClient`).
+    """
+    with open_client(proc.endpoint, proc.cfg.stream.lease_ms, stop=lambda: bool(flag)) as session:
+        link = HumanClient(session, Keys(proc.run), client, flag, actor, kinds)
+        try:
+            yield link
+        finally:
+            link.close()

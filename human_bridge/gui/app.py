@@ -1,0 +1,231 @@
+"""The GUI's state and input logic (no drawing, no network): what it knows of each actor, and what a person's
+mouse and keys do.
+
+A drag: pressing the left button on the scene sets the desired position P_h to the pointer's workspace point
+and sends an ``active`` correction; while the button is held, one more for every frame of the driven actor (and
+at least every :data:`KEEPALIVE_S` when no frame comes, e.g. the actor is paused); releasing the button sends
+the release. A live hold ends with its episode: on the episode's last frame (``last``) the GUI releases, and the
+person presses again to correct the next episode. Keys: space pauses / resumes the actors, tab chooses the
+actor to drive, o toggles the overlays, q or Esc quits (releasing first).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from common.messages import ActorInfo
+from common.protocol import EpisodeReport, Frame, Message, ProtocolError, RejectCounter, Scale, Status
+
+__all__ = ["GuiApp", "ActorState", "window_size", "KEEPALIVE_S", "CURVE_HEIGHT", "HELP"]
+
+KEEPALIVE_S = 0.1  # while dragging, send at least this often even without frames
+CURVE_HEIGHT = 90  # the L(s) curve below the text strip (pixels)
+HELP = "drag: P_h  space: pause  tab: actor  o: overlays  q: quit"
+TRAIL_MAX = 2000
+
+
+def window_size(size: int, strip_height: int = 80) -> tuple[int, int]:
+    """(width, height) of the window: the scene, the text strip, the L(s) curve."""
+    return int(size), int(size) + int(strip_height) + CURVE_HEIGHT
+
+
+@dataclass
+class ActorState:
+    """What the GUI knows about one actor."""
+
+    actor: str
+    frame: Frame | None = None
+    trail: list[np.ndarray] = field(default_factory=list)  # robot positions in the current episode
+    table: np.ndarray | None = None  # (N, 2) L on the KMP grid, from the actor's scale messages
+    model: dict | None = None  # the actor's scale model, when its scale message has no table
+    scale_version: int = 0  # counts scale messages (cache key of the drawn band)
+    last_episode: dict | None = None  # stats of the last finished episode
+    status: ActorInfo | None = None
+    frames: int = 0
+
+
+class GuiApp:
+    """The GUI's state machine: messages in (:meth:`offer`), pygame events in (:meth:`handle`), corrections out.
+
+    :param send: ``send(actor, p_h or None, episode, t)`` publishes one correction
+        (:meth:`human_bridge.client.CorrectionPublisher.send`).
+    :param control: ``control(command)`` publishes ``pause`` / ``resume`` to the actors.
+    :param actor: the actor to drive (``*`` or None: the first that sends a frame).
+    :param size: the scene's size in pixels.
+    :param strip_height: the text strip's height in pixels.
+    :param client: the client id (for the reject log).
+    :param run: the run id (shown while waiting).
+    :param rejects: where refused messages are counted (default: a counter of its own).
+    """
+
+    def __init__(self, send: Callable, control: Callable | None = None, *, actor: str | None = None,
+                 size: int = 600, strip_height: int = 80, client: str = "gui", run: str = "",
+                 rejects: RejectCounter | None = None) -> None:
+        self.send = send
+        self.control = control
+        self.current: str | None = None if actor in (None, "", "*") else actor
+        self.size = int(size)
+        self.strip_height = int(strip_height)
+        self.width, self.height = window_size(size, strip_height)
+        self.client = client
+        self.run = run
+        self.rejects = rejects if rejects is not None else RejectCounter(f"human/{client}")
+        self.actors: dict[str, ActorState] = {}
+        self.dragging = False
+        self.p_h: np.ndarray | None = None
+        self.paused = False
+        self.overlays = True
+        self.quit = False
+        self.sent = 0
+        self.last_send = 0.0
+
+    # ------------------------------------------------------------------ messages in
+    def state(self, actor: str) -> ActorState:
+        """The state of ``actor`` (created on its first message; the first actor seen is driven by default)."""
+        v = self.actors.get(actor)
+        if v is None:
+            v = self.actors[actor] = ActorState(actor)
+            if self.current is None:
+                self.current = actor
+        return v
+
+    @property
+    def driven(self) -> ActorState | None:
+        """The state of the driven actor, if it has sent anything."""
+        return self.actors.get(self.current) if self.current else None
+
+    def offer(self, msg: Message) -> None:
+        """One decoded message from the wire.
+
+        :param msg: a :class:`Frame`, :class:`Scale`, :class:`EpisodeReport` or an actor's :class:`Status`.
+        """
+        if isinstance(msg, Status):
+            if isinstance(msg.info, ActorInfo) and msg.info.id in self.actors:
+                self.actors[msg.info.id].status = msg.info
+        elif isinstance(msg, Frame):
+            self.on_frame(self.state(msg.actor), msg)
+        elif isinstance(msg, Scale):
+            self.on_scale(self.state(msg.actor), msg)
+        elif isinstance(msg, EpisodeReport):
+            self.state(msg.actor).last_episode = msg.stats
+
+    def on_frame(self, v: ActorState, f: Frame) -> None:
+        """A frame: extend the trail; while dragging this actor, answer it (or release on its episode's last)."""
+        prev = v.frame
+        if prev is None or prev.episode != f.episode or f.t < prev.t:
+            v.trail = []
+        v.trail.append(f.robot)
+        if len(v.trail) > TRAIL_MAX:
+            del v.trail[:TRAIL_MAX // 2]
+        v.frame = f
+        v.frames += 1
+        if self.dragging and v.actor == self.current:
+            if f.last:
+                self.release()  # a live hold ends with its episode
+            else:
+                self._send(self.p_h)  # one correction per frame of the driven actor while held
+
+    def on_scale(self, v: ActorState, msg: Scale) -> None:
+        """A scale message: its L table (must be positive to be drawn), else its model for the view to tabulate."""
+        if msg.table is not None and np.any(msg.table <= 0):
+            self.rejects.reject("scale", v.actor, ProtocolError("table: L must be positive"))
+            return
+        v.table = None if msg.table is None else np.asarray(msg.table, dtype=np.float64)
+        v.model = msg.model if msg.table is None else None
+        v.scale_version += 1
+
+    # ------------------------------------------------------------------ corrections out
+    def pixel_to_world(self, pos) -> np.ndarray:
+        """A scene pixel's workspace point (as ``SceneRenderer.pixel_to_world`` at this size)."""
+        span = float(self.size - 1)
+        return np.array([pos[0] / span, 1.0 - pos[1] / span], dtype=np.float64)
+
+    def _send(self, p_h: np.ndarray | None) -> None:
+        v = self.driven
+        if self.current is None:
+            return
+        ep, t = (v.frame.episode, v.frame.t) if v is not None and v.frame is not None else (0, 0)
+        self.send(self.current, p_h, ep, t)
+        self.sent += 1
+        self.last_send = time.monotonic()
+
+    def press(self, pos) -> None:
+        """Left button down at ``pos``: start dragging (on the scene only)."""
+        if self.current is None or pos[1] >= self.size:
+            return
+        self.dragging = True
+        self.p_h = self.pixel_to_world(pos)
+        self._send(self.p_h)
+
+    def move(self, pos) -> None:
+        """The pointer moved: P_h follows it while dragging (sent with the next frame or keepalive)."""
+        if self.dragging:
+            self.p_h = self.pixel_to_world(pos)
+
+    def release(self) -> None:
+        """Let go (button up, focus lost, actor switched, episode ended, quit)."""
+        if self.dragging:
+            self.dragging = False
+            self.p_h = None
+            self._send(None)
+
+    def keepalive(self) -> None:
+        """While held, re-send if no frame triggered a correction for :data:`KEEPALIVE_S` (e.g. the actor paused)."""
+        if self.dragging and self.p_h is not None and time.monotonic() - self.last_send >= KEEPALIVE_S:
+            self._send(self.p_h)
+
+    # ------------------------------------------------------------------ events
+    def handle(self, event) -> None:
+        """One pygame event."""
+        import pygame
+
+        if event.type == pygame.QUIT:
+            self.stop()
+        elif event.type == pygame.MOUSEBUTTONDOWN and event.button == 1:
+            self.press(event.pos)
+        elif event.type == pygame.MOUSEMOTION:
+            self.move(event.pos)
+        elif event.type == pygame.MOUSEBUTTONUP and event.button == 1:
+            self.move(event.pos)
+            self.release()
+        elif event.type == getattr(pygame, "WINDOWFOCUSLOST", -1):
+            self.release()
+        elif event.type == pygame.KEYDOWN:
+            self.key(event.key)
+
+    def key(self, key: int) -> None:
+        """A key press."""
+        import pygame
+
+        if key in (pygame.K_q, pygame.K_ESCAPE):
+            self.stop()
+        elif key == pygame.K_SPACE:
+            self.toggle_pause()
+        elif key == pygame.K_o:
+            self.overlays = not self.overlays
+        elif key == pygame.K_TAB:
+            self.next_actor()
+
+    def stop(self) -> None:
+        """Quit (releasing first)."""
+        self.release()
+        self.quit = True
+
+    def toggle_pause(self) -> None:
+        """Pause or resume the actors (``control/actor``)."""
+        self.paused = not self.paused
+        if self.control is not None:
+            self.control("pause" if self.paused else "resume")
+
+    def next_actor(self) -> None:
+        """Drive the next actor (in id order), releasing the current one."""
+        ids = sorted(self.actors)
+        if not ids:
+            return
+        self.release()  # never keep dragging an actor we no longer watch
+        i = ids.index(self.current) if self.current in ids else -1
+        self.current = ids[(i + 1) % len(ids)]

@@ -1,0 +1,138 @@
+"""``khgrl learner``: the learner process. sb3-contrib TQC (the paper's settings) trained ONLY from the
+transition stream that actors publish over Zenoh; publishes the actor network by version; checkpoints and
+resumes. See docs/protocol.md for the messages and the flow control.
+
+    khgrl learner --config RUN_DIR/config.json [--resume]
+    khgrl learner --run RUN --connect tcp/HOST:PORT --run-dir DIR [--learning-starts N ...]
+
+The parts, in the order a transition meets them: the Zenoh callback files the payload in an inbox
+(:class:`common.transport.Inbox`), :mod:`learner.loop` decodes it, :mod:`learner.ingest` orders it into its
+actor's stream, :mod:`learner.trainer` stores it in the replay buffer (:mod:`learner.replay`) and trains when
+an iteration is due; acks and weights go out through :mod:`learner.publish`; :mod:`learner.checkpoint`
+saves and loads everything in ``RUN_DIR/learner/checkpoint``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+
+from common.config import ProcessConfig, add_process_flags, resolve_process
+from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
+from common.protocol import Keys
+from common.transport import Inbox, open_client, undeclare_all
+from learner.checkpoint import CheckpointError, find_checkpoint
+
+__all__ = ["main", "build_parser"]
+
+log = logging.getLogger("khgrl.learner")
+
+# The settings the learner uses (its --help lists these; --config may hold all of a run's settings).
+LEARNER_SETTINGS = {"run", "connect", "run_dir", "seed", "learning_rate", "tau", "gamma", "train_freq",
+                    "gradient_steps", "ent_coef", "net_arch", "learning_starts", "batch_size", "buffer_size",
+                    "checkpoint_every", "lease_ms", "learner_threads", "learner_nice", "tensorboard"}
+# Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
+# batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
+INBOX_SIZE = 100_000
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``khgrl learner``'s flags: ``--config``, the learner's run settings, ``--id`` and ``--resume``."""
+    p = argparse.ArgumentParser(
+        prog="khgrl learner", description="TQC learner: trains from the actors' transition stream, publishes weights.")
+    add_process_flags(p, only=LEARNER_SETTINGS)
+    p.add_argument("--id", default="learner", help="learner id (default: %(default)s)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from RUN_DIR/learner/checkpoint (an error if there is none)")
+    return p
+
+
+def _fail(message: object) -> int:
+    """One line on stderr; the exit code of a usage error (2)."""
+    print(f"khgrl learner: error: {message}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the learner until SIGINT/SIGTERM or a ``stop`` command; 0 on a clean stop, 2 on a usage error.
+
+    :param argv: command-line arguments (default: ``sys.argv[1:]``)
+    """
+    die_with_parent()
+    args = build_parser().parse_args(argv)
+    try:
+        pc = resolve_process(args)
+        keys = Keys(pc.run)
+    except (ValueError, FileNotFoundError) as exc:
+        return _fail(exc)
+    learner_dir = Path(pc.cfg.run_dir) / "learner"
+    if args.resume and find_checkpoint(learner_dir) is None:
+        return _fail(f"--resume: no checkpoint under {learner_dir}")
+    try:
+        return run(pc, keys, args.id, learner_dir, resume=args.resume)
+    except CheckpointError as exc:
+        return _fail(exc)
+
+
+def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, resume: bool) -> int:
+    """The learner process after its flags are resolved.
+
+    :param pc: the resolved configuration, run id and router endpoint
+    :param keys: the run's key expressions
+    :param learner_id: this learner's id
+    :param learner_dir: ``RUN_DIR/learner``
+    :param resume: continue from the checkpoint
+    """
+    import torch  # (imported here: --help and flag errors answer at once)
+
+    from learner.loop import LearnerLoop, open_learner
+    from learner.publish import ZenohPublisher
+
+    cfg = pc.cfg
+    setup_process_logging(learner_dir / "learner.log")
+    torch.set_num_threads(max(1, cfg.learner_threads))
+    if cfg.learner_nice:
+        os.nice(cfg.learner_nice)  # training yields the CPU to the actors' control loops on a shared machine
+    flag = StopFlag()
+    install_stop_handlers(flag)
+    formats = ("csv", "tensorboard") if cfg.tensorboard else ("csv",)
+    trainer, streams = open_learner(cfg.tqc, cfg.seed, learner_dir, resume=resume, logger_formats=formats)
+    log.info("khgrl learner %s: run %s, epoch %s, learning_starts %d, connecting to %s", learner_id, pc.run,
+             trainer.epoch, trainer.learning_starts, pc.endpoint)
+    try:
+        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag))
+    except ConnectionError as exc:  # stopped while waiting for the router, or an endpoint Zenoh refuses
+        log.info("%s", exc)
+        if flag:
+            return 0
+        print(f"khgrl learner: error: {exc}", file=sys.stderr)
+        return 1
+    with session:
+        pub = ZenohPublisher(session, keys, learner_id)
+        inbox = Inbox(maxsize=INBOX_SIZE, overflow="drop_newest")
+        subs = [session.declare_subscriber(keys.transitions("*"), inbox.callback("transitions")),
+                session.declare_subscriber(keys.control("learner"), inbox.callback("control")),
+                session.declare_subscriber(keys.control("all"), inbox.callback("control")),
+                session.declare_queryable(keys.weights, pub.answer)]
+        loop = LearnerLoop(trainer, streams, pub, learner_id=learner_id, learner_dir=learner_dir,
+                           checkpoint_every=cfg.stream.checkpoint_every, flag=flag)
+        loop.start()
+        token = session.liveliness().declare_token(keys.alive("learner", learner_id))
+        print(f"khgrl learner {learner_id} ready (epoch {trainer.epoch}, version {trainer.version}, "
+              f"{trainer.total} transitions)", flush=True)
+        try:
+            loop.run(inbox)
+            log.info("stopping (%s): final checkpoint", flag.reason or "stop")
+            loop.checkpoint()
+        finally:
+            undeclare_all(*subs, token)
+            pub.close()
+    log.info("learner %s done: %s; inbox dropped %s", learner_id, loop.summary(), inbox.dropped)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,74 @@
+"""The learner's replay buffer: SB3's :class:`ReplayBuffer` plus what the learner knows about each slot.
+
+Besides SB3's arrays, every slot records whether the human intervened on that transition (the stored action
+is then the human's a_h), whether the action was clipped by the safety layer, and its provenance: the actor
+stream it came from (a code into the learner's stream table, ``-1`` for an empty slot) and the transition's
+running index in that actor's stream. :meth:`StreamReplayBuffer.add` writes them in the same slot as SB3's
+fields, so they can never drift apart, and they travel inside the buffer: TQC builds this class through
+``replay_buffer_class`` and ``save_replay_buffer``/``load_replay_buffer`` save and load them with the rest.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from stable_baselines3.common.buffers import ReplayBuffer
+
+__all__ = ["StreamReplayBuffer", "SIDE_ARRAYS"]
+
+# name of each per-slot array as exported by :meth:`StreamReplayBuffer.side_arrays` (and load_checkpoint_arrays)
+SIDE_ARRAYS = ("provenance_actor", "provenance_step", "intervened", "clipped")
+
+
+class StreamReplayBuffer(ReplayBuffer):
+    """A replay buffer for one environment (``n_envs=1``) whose slots also hold the intervention and clip flags
+    and the provenance (actor code, the actor's transition index) of the transition stored there.
+
+    Constructed by SB3 (``TQC(..., replay_buffer_class=StreamReplayBuffer)``) with the usual arguments; it
+    draws no random numbers, so a seeded model is the same as with SB3's own buffer.
+    """
+
+    def __init__(self, buffer_size: int, observation_space: Any, action_space: Any, *args: Any, **kwargs: Any) -> None:
+        """:param buffer_size: capacity in transitions
+        :param observation_space: the environment's observation space
+        :param action_space: the environment's action space
+        :param args: further positional arguments of SB3's ReplayBuffer
+        :param kwargs: further keyword arguments of SB3's ReplayBuffer (``n_envs`` must be 1)
+        """
+        super().__init__(buffer_size, observation_space, action_space, *args, **kwargs)
+        if self.n_envs != 1:
+            raise ValueError("StreamReplayBuffer holds one stream of transitions at a time (n_envs=1)")
+        n = self.buffer_size
+        self.provenance_actor = np.full(n, -1, dtype=np.int32)
+        self.provenance_step = np.full(n, -1, dtype=np.int64)
+        self.intervened = np.zeros(n, dtype=np.uint8)
+        self.clipped = np.zeros(n, dtype=np.uint8)
+
+    def add(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: np.ndarray, done: np.ndarray,
+            infos: list[dict[str, Any]], *, intervened: bool | int = 0, clipped: bool | int = 0, actor: int = -1,
+            step: int = -1) -> None:
+        """SB3's ``add`` for one transition, and the slot's flags and provenance.
+
+        :param obs: observation, shape (1, obs_dim)
+        :param next_obs: next observation, shape (1, obs_dim)
+        :param action: action stored for training, shape (1, act_dim)
+        :param reward: reward, shape (1,)
+        :param done: terminated or truncated, shape (1,)
+        :param infos: one info dict (``TimeLimit.truncated``)
+        :param intervened: the human corrected this step (the action is the human's)
+        :param clipped: the safety layer clipped the action
+        :param actor: provenance code of the actor stream (-1: unknown)
+        :param step: the transition's running index in that actor's stream (-1: unknown)
+        """
+        slot = self.pos
+        super().add(obs, next_obs, action, reward, done, infos)
+        self.provenance_actor[slot] = actor
+        self.provenance_step[slot] = step
+        self.intervened[slot] = intervened
+        self.clipped[slot] = clipped
+
+    def side_arrays(self) -> dict[str, np.ndarray]:
+        """The per-slot arrays by name (:data:`SIDE_ARRAYS`), whole buffer (empty slots: provenance -1)."""
+        return {"provenance_actor": self.provenance_actor, "provenance_step": self.provenance_step,
+                "intervened": self.intervened, "clipped": self.clipped}

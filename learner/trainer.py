@@ -1,0 +1,184 @@
+"""The learner's TQC model and its training schedule: transitions into the replay buffer, due training
+iterations, and what the weights and ack messages say about them.
+
+Update-to-data ratio as SB3's ``learn()`` with ``train_freq`` F and ``gradient_steps`` G (the paper: 8 and 8):
+one training iteration (G gradient steps) is due for every multiple of F in ``(learning_starts, ingested]``.
+The learner never trains ahead of the data and never spins on stale data. After an iteration the weights
+carry, per actor, its running transition index reached when the global count hit the multiple of F that
+made the iteration due -- the data SB3's policy would have been trained on at that environment step.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+from collections import deque
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from common.config import TQCSettings
+from common.protocol import Ack, Transitions, Weights
+from common.spaces import SpacesEnv
+from learner.ingest import ActorStream
+from learner.replay import StreamReplayBuffer
+
+__all__ = ["Trainer", "build_model"]
+
+log = logging.getLogger("khgrl.learner")
+
+
+def build_model(tqc: TQCSettings, seed: int):
+    """A fresh sb3-contrib TQC with the run's settings on the passage world's spaces, whose replay buffer is a
+    :class:`StreamReplayBuffer` (which draws no random numbers: the seeded model is SB3's own).
+
+    :param tqc: the TQC settings (``common.config.TQCSettings``)
+    :param seed: the model's seed
+    """
+    from sb3_contrib import TQC
+
+    return TQC("MlpPolicy", SpacesEnv(), **tqc.sb3_kwargs(seed), replay_buffer_class=StreamReplayBuffer)
+
+
+def _configure_logger(model: Any, folder: Path, formats: tuple[str, ...]) -> None:
+    """SB3's logger of ``model`` writing ``formats`` to ``folder``."""
+    from stable_baselines3.common.logger import configure
+
+    model.set_logger(configure(str(folder), list(formats)))
+
+
+class Trainer:
+    """Owns the model: stores transitions, keeps the schedule of due iterations, trains them, and reports what
+    the latest weights cover. One per learner incarnation (``epoch``)."""
+
+    def __init__(self, model: Any, *, learning_starts: int, train_freq: int, log_dir: str | Path,
+                 logger_formats: tuple[str, ...] = ("csv", "tensorboard")) -> None:
+        """:param model: a TQC whose replay buffer is a :class:`StreamReplayBuffer` (:func:`build_model`, or loaded)
+        :param learning_starts: transitions before the first training iteration
+        :param train_freq: transitions per training iteration
+        :param log_dir: where SB3's logger writes (csv, TensorBoard)
+        :param logger_formats: SB3 logger output formats
+        """
+        if not isinstance(model.replay_buffer, StreamReplayBuffer):
+            raise TypeError("the learner's model needs a StreamReplayBuffer (build_model)")
+        self.model = model
+        self.learning_starts = int(learning_starts)
+        self.train_freq = int(train_freq)
+        self.epoch = secrets.token_hex(6)
+        self.total = 0  # transitions ingested, all actors
+        self.due: deque[tuple[int, dict[str, int]]] = deque()  # (multiple of train_freq, positions) not trained yet
+        self.iterations = 0
+        self.gradient_steps = 0
+        self.version = 0
+        self.weights_trained: dict[str, int] = {}
+        _configure_logger(model, Path(log_dir), logger_formats)
+
+    @property
+    def buffer(self) -> StreamReplayBuffer:
+        """The model's replay buffer."""
+        return self.model.replay_buffer
+
+    @property
+    def training_started(self) -> bool:
+        """More than ``learning_starts`` transitions are in: training iterations come due."""
+        return self.total > self.learning_starts
+
+    # ------------------------------------------------------------------------------------ data
+    def add(self, msg: Transitions, stream: ActorStream, positions: Callable[[], dict[str, int]]) -> None:
+        """Store one accepted batch, transition by transition, as SB3's ``_store_transition`` does for one
+        environment (done = terminated or truncated, ``TimeLimit.truncated`` for the time limit), and note
+        each iteration that becomes due.
+
+        :param msg: the batch
+        :param stream: its actor's stream (provenance code, running index)
+        :param positions: every actor's running index now (the due iteration's ``trained`` snapshot)
+        """
+        first = msg.first_step
+        if first != stream.index and (stream.ingested or first):
+            log.warning("actor %s batch %d starts at its step %d, expected %d", stream.actor, msg.envelope.seq, first,
+                        stream.index)
+        term, trunc = msg.terminated.astype(bool), msg.truncated.astype(bool)
+        rb = self.buffer
+        for i in range(msg.n):
+            done = np.array([term[i] or trunc[i]], dtype=np.float32)
+            rb.add(msg.obs[i][None], msg.next_obs[i][None], msg.action[i][None], msg.reward[i:i + 1], done,
+                   [{"TimeLimit.truncated": bool(trunc[i] and not term[i])}], intervened=msg.intervened[i],
+                   clipped=msg.clipped[i], actor=stream.code, step=first + i)
+            stream.stored(first + i)
+            self.total += 1
+            if self.total > self.learning_starts and self.total % self.train_freq == 0:
+                self.due.append((self.total, positions()))
+
+    # ------------------------------------------------------------------------------------ training
+    def train_one(self) -> bool:
+        """Run one due training iteration (``gradient_steps`` steps on minibatches of ``batch_size``);
+        False if none is due."""
+        if not self.due:
+            return False
+        at, snapshot = self.due.popleft()
+        model = self.model
+        model.num_timesteps = at
+        model.train(gradient_steps=model.gradient_steps, batch_size=model.batch_size)
+        self.iterations += 1
+        self.gradient_steps += model.gradient_steps
+        self.version += 1
+        self.weights_trained = dict(snapshot)
+        return True
+
+    def record_iteration(self, seconds: float, queue_depth: int) -> None:
+        """Training scalars after an iteration (SB3 logger: csv and TensorBoard).
+
+        :param seconds: how long the iteration took
+        :param queue_depth: messages waiting in the learner's inbox
+        """
+        lg = self.model.logger
+        lg.record("learner/ingested", self.total)
+        lg.record("learner/version", self.version)
+        lg.record("learner/iteration_s", seconds)
+        lg.record("learner/queue_depth", queue_depth)
+        lg.record("learner/pending_iterations", len(self.due))
+        lg.dump(step=self.total)
+
+    # ------------------------------------------------------------------------------------ messages
+    def weights(self) -> Weights:
+        """The actor network of the latest version, and the transitions per actor it was trained on."""
+        sd = self.model.policy.actor.state_dict()
+        tensors = {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
+        return Weights(version=self.version, trained=dict(self.weights_trained), tensors=tensors, epoch=self.epoch)
+
+    def ack(self, stream: ActorStream) -> Ack:
+        """What the learner holds of one actor's stream, in the actor's own index space.
+
+        :param stream: the actor's stream
+        """
+        if self.training_started:
+            trained = min(self.weights_trained.get(stream.actor, 0), stream.index)
+        else:  # inside learning_starts: everything ingested is as good as trained on
+            trained = stream.index
+        return Ack(actor=stream.actor, received=stream.next_seq - 1, durable=stream.durable, trained=int(trained),
+                   version=self.version, epoch=self.epoch, stream=stream.stream or None)
+
+    # ------------------------------------------------------------------------------------ checkpoints
+    def state(self) -> dict[str, Any]:
+        """Counters and the schedule for a checkpoint."""
+        rb = self.buffer
+        return {"epoch": self.epoch, "total_ingested": self.total, "learning_starts": self.learning_starts,
+                "iterations": self.iterations, "gradient_steps": self.gradient_steps, "version": self.version,
+                "weights_trained": dict(self.weights_trained), "due": [[at, snap] for at, snap in self.due],
+                "replay": {"pos": int(rb.pos), "full": bool(rb.full), "size": int(rb.buffer_size)}}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Continue from a checkpoint's counters and schedule (the model and its buffer are loaded already).
+
+        :param state: the checkpoint's state map
+        """
+        self.total = int(state["total_ingested"])
+        self.iterations = int(state["iterations"])
+        self.gradient_steps = int(state["gradient_steps"])
+        self.version = int(state["version"])
+        self.weights_trained = {k: int(v) for k, v in state["weights_trained"].items()}
+        self.due = deque((int(at), {k: int(v) for k, v in snap.items()}) for at, snap in state["due"])
+        saved = int(state.get("learning_starts", self.learning_starts))
+        if saved != self.learning_starts:
+            log.warning("resuming with learning_starts %d (checkpoint: %d)", self.learning_starts, saved)
