@@ -116,7 +116,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     env = PassageEnv(cfg.scenario)
     env.action_space.seed(seed)  # SB3 seeds the action space it samples warm-up actions from
     torch.manual_seed(seed)
-    policy = TQCPolicy(env.observation_space, env.action_space, lr_schedule=lambda _: 1e-3,
+    policy = TQCPolicy(env.observation_space, env.action_space, lr_schedule=lambda _: cfg.tqc.learning_rate,
                        net_arch=list(cfg.tqc.net_arch))
     policy.set_training_mode(False)
     log.info("actor %s (seed %d): %s/%s, world ready in %.1f s", actor, seed, cfg.scenario, cfg.method,

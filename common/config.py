@@ -179,7 +179,7 @@ def add_config_flags(parser: argparse.ArgumentParser, only: set[str] | None = No
             continue
         kw: dict[str, Any] = {"dest": "cfg__" + "__".join(path), "default": argparse.SUPPRESS}
         default = f.default
-        shown = " ".join(map(str, default)) if isinstance(default, tuple) else default
+        shown = " ".join(map(str, default)) if isinstance(default, tuple) else (default if default != "" else "none")
         kw["help"] = f"{f.metadata['help']} (default: {shown!s})"
         if typ is bool:
             kw["action"] = argparse.BooleanOptionalAction

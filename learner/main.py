@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_process_flags(p, only=LEARNER_SETTINGS)
     p.add_argument("--id", default="learner", help="learner id (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
-                   help="continue from RUN_DIR/learner/checkpoint (an error if there is none)")
+                   help="continue from RUN_DIR/learner/checkpoint (an error if there is none; default: start afresh)")
     return p
 
 

@@ -168,16 +168,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--id", default="gui", help="client id (default: %(default)s)")
     parser.add_argument("--size", type=int, default=600, help="scene size in pixels (default: %(default)s)")
     parser.add_argument("--fps", type=float, default=60.0, help="window refresh rate (default: %(default)s)")
-    parser.add_argument("--screenshot", default=None, metavar="FILE", help="render one frame to this PNG and exit")
+    parser.add_argument("--screenshot", default=None, metavar="FILE",
+                        help="render one frame to this PNG and exit (default: open the window)")
     parser.add_argument("--screenshot-frames", type=int, default=1,
                         help="with --screenshot: frames to receive first (default: %(default)s)")
     parser.add_argument("--screenshot-intervening", type=int, default=0, metavar="N",
                         help="with --screenshot: take it at the N-th frame with an intervention (or after "
-                             "--screenshot-frames)")
+                             "--screenshot-frames; default: %(default)s, none)")
     parser.add_argument("--wait", type=float, default=120.0,
                         help="with --screenshot: give up after this many seconds (default: %(default)s)")
     parser.add_argument("--offline", action="store_true",
-                        help="with --screenshot: synthetic frames of --scenario, no router needed")
+                        help="with --screenshot: synthetic frames of --scenario, no router needed (default: off)")
 
 
 def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
