@@ -30,7 +30,8 @@ from deploy.supervisor import Proc, ProcessGroup
 REPO = Path(__file__).resolve().parents[1]
 
 __all__ = ["REPO", "Proc", "ProcGroup", "free_endpoint", "unique_run", "wait_for", "wait_for_file", "read_json",
-           "python_main"]
+           "python_main",
+           "RecordingPublisher"]
 
 
 def unique_run(prefix: str = "t") -> str:
@@ -153,3 +154,19 @@ def kill_pids(pids: list[int]) -> None:
             os.kill(pid, signal.SIGKILL)
         except (ProcessLookupError, PermissionError):
             pass
+
+
+class RecordingPublisher:
+    """Stands in for :class:`human_bridge.client.CorrectionPublisher` in tests of a client's answers: records
+    what it would send, with the same rule (a live release only after a hold). ``sent`` holds
+    ``(actor, p_h as a tuple or None, episode, t, step)``."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple] = []
+        self.active: dict[str, bool] = {}
+
+    def send(self, actor, p_h, episode=0, t=0, step=None) -> None:
+        if p_h is None and step is None and not self.active.get(actor, False):
+            return
+        self.sent.append((actor, None if p_h is None else tuple(float(v) for v in p_h), episode, t, step))
+        self.active[actor] = p_h is not None

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import ProcGroup, unique_run
+from helpers import ProcGroup, RecordingPublisher, unique_run
 
 
 def _rows(path: Path) -> list[dict]:
@@ -47,20 +47,6 @@ def test_plan_leads_by_one_step(tmp_path):
         load_record(bad)
 
 
-class _Stream:
-    """Records what a CorrectionPublisher would send (same rules: a live release only after a hold)."""
-
-    def __init__(self) -> None:
-        self.sent: list[tuple] = []
-        self.active: dict[str, bool] = {}
-
-    def send(self, actor, p_h, episode=0, t=0, step=None) -> None:
-        if p_h is None and step is None and not self.active.get(actor, False):
-            return
-        self.sent.append((actor, None if p_h is None else tuple(p_h), episode, t, step))
-        self.active[actor] = p_h is not None
-
-
 def _frame(episode: int, t: int):
     from common.protocol import Frame
 
@@ -73,7 +59,7 @@ def test_replay_answers_each_frame_with_the_recorded_word_for_the_next_step():
     from human_bridge.replay import ReplayAnswers, ReplayPlan
 
     rows = [{"actor": "a0", "episode": 2, "step": s, "p_h": np.array([0.1 * s, 0.5]), "client": "x"} for s in (0, 1, 3)]
-    stream = _Stream()
+    stream = RecordingPublisher()
     answers = ReplayAnswers(ReplayPlan(rows), stream, "a1")
     assert not answers.frame(_frame(1, 7))  # episode 1: announce episode 2 with its step 0's word
     addressed = [m for m in stream.sent if m[4] is not None]  # (live words only release a hold, if any)

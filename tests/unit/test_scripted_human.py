@@ -9,6 +9,7 @@ import pytest
 
 from common.env import PassageEnv
 from common.scenarios import SCENARIOS, get_scenario
+from helpers import RecordingPublisher
 from human_bridge.scripted import PAPER_EPISODES, HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 
 
@@ -205,20 +206,6 @@ def test_wrapper_without_callback():
 
 
 # ------------------------------------------------------------------------------------ the scripted client's answers
-class _Stream:
-    """Records what a CorrectionPublisher would send (same rules: a live release only after a hold)."""
-
-    def __init__(self) -> None:
-        self.sent: list[tuple] = []
-        self.active: dict[str, bool] = {}
-
-    def send(self, actor, p_h, episode=0, t=0, step=None) -> None:
-        if p_h is None and step is None and not self.active.get(actor, False):
-            return
-        self.sent.append((actor, None if p_h is None else np.asarray(p_h).copy(), episode, t, step))
-        self.active[actor] = p_h is not None
-
-
 def _frames(name: str, episode: int, steps: int):
     from common.protocol import Frame
 
@@ -235,7 +222,7 @@ def test_scripted_answers_are_step_addressed_and_announce_the_next_help_episode(
 
     name = "low_cov"
     human = ScriptedHuman(name, ScriptedHumanConfig(episodes=(2,)))
-    stream = _Stream()
+    stream = RecordingPublisher()
     answers = ScriptedAnswers(human, stream)
     env = PassageEnv(name)
     for f in _frames(name, 1, 50):  # the episode before the help episode: only the announcement
