@@ -125,7 +125,7 @@ class ProcGroup(ProcessGroup):
                                                                             "--connect", endpoint, *extra[1:]])
 
 
-# ------------------------------------------------------------------ additions for tests/test_integration.py
+# ------------------------------------------------------------------ processes found by their command line
 def pids_matching(pattern: str) -> list[int]:
     """PIDs of processes whose full command line matches the regex ``pattern`` (``pgrep -f``), not this one."""
     out = subprocess.run(["pgrep", "-f", pattern], capture_output=True, text=True, timeout=10)

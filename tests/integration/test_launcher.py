@@ -243,6 +243,22 @@ def test_overwrite_deletes_the_earlier_run_first(first_part, tmp_path):
     assert first_log[:200] not in (run_dir / "logs" / "a0.log").read_text(), "the earlier run's log was kept"
 
 
+@pytest.mark.timeout(300)
+def test_the_run_config_reproduces_the_run(first_part, tmp_path):
+    """``khgrl up --config RUN_DIR/config.toml`` runs the same configuration again: the same resolved settings
+    (but the run directory) and, seeded, the same episodes (every column but wall time)."""
+    again = tmp_path / "again"
+    proc = _run(again, "--config", str(first_part / "config.toml"), "--no-progress")
+    assert proc.returncode == 0, f"exit code {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
+    first, second = (read_json(d / "config.json") for d in (first_part, again))
+    for cfg in (first, second):
+        cfg.pop("runtime")
+        cfg.pop("run_dir")
+    assert first == second
+    strip = [{k: v for k, v in r.items() if k != "wall_time"} for r in _rows(first_part)]
+    assert [{k: v for k, v in r.items() if k != "wall_time"} for r in _rows(again)] == strip
+
+
 @pytest.mark.timeout(400)
 def test_resume_continues_episodes_corrections_checkpoint_and_the_human_schedule(first_part, tmp_path):
     run_dir = _copy(first_part, tmp_path)
