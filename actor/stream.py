@@ -131,11 +131,9 @@ class TransitionStream:
             return False
         if ack.received > self.highest_sent or ack.durable > self.highest_sent:
             self.refused_acks += 1
-            # one fixed reason, so that a flood of forged acks costs a few log lines (RejectCounter)
+            # one fixed reason, so that a flood of forged acks costs a few log lines (RejectCounter: the first,
+            # then every 100th)
             self.rejects.reject("ack", key, ProtocolError("ack claims batches beyond the highest seq sent"))
-            if self.refused_acks == 1 or self.refused_acks % 100 == 0:
-                log.warning("refused ack #%d: received %d, durable %d, but the highest seq sent is %d",
-                            self.refused_acks, ack.received, ack.durable, self.highest_sent)
             return False
         new_epoch = ack.epoch != self.ack_epoch
         restarted = new_epoch and self.ack_epoch is not None

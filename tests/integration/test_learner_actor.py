@@ -224,7 +224,7 @@ def test_forged_ack_cannot_make_the_actor_drop_undelivered_batches(tmp_path):
     assert summary["refused_acks"] == forged_sent and summary["rejects"] == {"ack": forged_sent}, summary
     assert summary["durable"] == summary["last_seq"]
     log = (run_dir / "actor-a0" / "actor.log").read_text()
-    assert "ack claims batches beyond the highest seq sent" in log and "refused ack #1" in log
+    assert "ack claims batches beyond the highest seq sent" in log
     state, arrays = checkpoint(run_dir)
     assert_exactly_once(state, arrays, "a0", n)
 

@@ -189,7 +189,7 @@ def test_forged_ack_beyond_what_was_sent_is_refused(tmp_path, caplog):
     assert stream.outbox.seqs_after(-1) == [1, 2] and stream.unconfirmed() == 16
     assert stream.refused_acks == 3 and rejects.by_kind() == {"ack": 3}
     assert "ack claims batches beyond the highest seq sent" in caplog.text
-    assert "refused ack #1: received 2, durable 1000000, but the highest seq sent is 2" in caplog.text
+    assert caplog.text.count("ack claims batches beyond the highest seq sent") == 1  # logged once, counted always
     n = len(sent)
     assert stream.on_ack(ack(2, 2))  # the truth is still believed
     assert stream.unconfirmed() == 0 and len(sent) == n
