@@ -24,11 +24,13 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, get_type_hints
 
+from common.scenarios import SCENARIOS as _PASSAGE_SCENARIOS
+
 __all__ = ["SCENARIOS", "METHODS", "HUMANS", "PAPER_EPISODES", "TQCSettings", "StreamSettings", "RunConfig",
            "add_config_flags", "resolve", "load_file", "write_run_config", "read_run_file", "to_toml",
            "ProcessConfig", "add_process_flags", "resolve_process"]
 
-SCENARIOS = ("high_cov", "low_cov")  # the passage world's scenarios (common/scenarios.py)
+SCENARIOS = tuple(_PASSAGE_SCENARIOS)  # the passage world's scenarios: "high_cov", "low_cov"
 METHODS = ("khgrl", "kgrl")
 HUMANS = ("scripted", "gui", "none")
 PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)

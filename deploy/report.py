@@ -14,6 +14,8 @@ import csv
 import sys
 from pathlib import Path
 
+from common.config import SCENARIOS
+
 __all__ = ["main", "load_series", "summarize"]
 
 
@@ -100,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="experiments: output directory (default EXP/report); runs: the figure "
                                                 "(default runs/report.png; the table is written beside it as .md)")
     p.add_argument("--seeds", type=int, nargs="+", default=None, help="experiments: only these seeds")
-    p.add_argument("--scenarios", nargs="+", default=None, choices=["high_cov", "low_cov"],
+    p.add_argument("--scenarios", nargs="+", default=None, choices=SCENARIOS,
                    help="experiments: only these")
     args = p.parse_args(argv)
     from deploy.analysis import analyse, find_runs
