@@ -94,7 +94,9 @@ class Envelope:
 
 def _to_wire(value: Any, as_list: bool = False) -> Any:
     if as_list:  # a short vector: a list of floats on the wire
-        return [float(v) for v in np.asarray(value, dtype=np.float64).reshape(-1)]
+        return np.asarray(value, dtype=np.float64).reshape(-1).tolist()
+    if isinstance(value, (str, bool, int, float)):  # most fields: nothing to convert
+        return value
     if dataclasses.is_dataclass(value):
         return _to_wire(dataclasses.asdict(value))
     if isinstance(value, np.ndarray):
@@ -122,8 +124,10 @@ def encode(msg: Message, sender: str, seq: int, ts: float | None = None) -> byte
         value = getattr(msg, f.name)
         if value is not None:
             body[f.name] = _to_wire(value, f.name in msg.VECTORS)
+    _validate(type(msg), body)  # the sender's own check, on the map itself: never publish what receivers reject
     payload = msgpack.packb(body, use_bin_type=True)
-    decode(type(msg), payload)  # the sender's own check: never publish what receivers reject
+    if len(payload) > msg.MAX_BYTES:
+        raise ProtocolError(f"{len(payload)} bytes exceeds the {msg.KIND} limit of {msg.MAX_BYTES}")
     return payload
 
 
@@ -154,7 +158,12 @@ def _envelope(msg: dict, kind: str) -> Envelope:
 
 def decode(cls: type[M], payload: bytes) -> M:
     """Unpack and validate a message that must be of class ``cls``; raises :class:`ProtocolError` with the reason."""
-    msg = _unpack(payload, cls.MAX_BYTES, cls.KIND)
+    return _validate(cls, _unpack(payload, cls.MAX_BYTES, cls.KIND))
+
+
+def _validate(cls: type[M], msg: dict) -> M:
+    """The checks of a received map (envelope, then the kind's fields): shared by :func:`decode` and the sender's
+    own check in :func:`encode`."""
     env = _envelope(msg, cls.KIND)
     try:
         out = cls.from_wire(msg)
@@ -174,8 +183,13 @@ def decode_any(kind: str, payload: bytes) -> Message:
 
 
 def with_base_seq(payload: bytes, base_seq: int) -> bytes:
-    """A stored ``transitions`` payload re-stamped with the sender's current ``base_seq`` (for a re-send)."""
-    msg = decode(Transitions, payload)
-    env = msg.envelope
-    return encode(msg.replace(base_seq=int(base_seq)), env.sender, env.seq, env.ts)
+    """A stored ``transitions`` payload (one this process encoded, so its fields were checked then) re-stamped
+    with the sender's current ``base_seq`` for a re-send: only the envelope and ``base_seq`` are looked at."""
+    msg = _unpack(payload, Transitions.MAX_BYTES, Transitions.KIND)
+    env = _envelope(msg, Transitions.KIND)
+    base = typ("base_seq", base_seq, int, low=0)
+    if base > env.seq:
+        raise ProtocolError(f"base_seq {base} > seq {env.seq}")
+    msg["base_seq"] = base
+    return msgpack.packb(msg, use_bin_type=True)
 
