@@ -369,17 +369,9 @@ def add_process_flags(parser: argparse.ArgumentParser, only: set[str] | None = N
 def resolve_process(args: argparse.Namespace) -> ProcessConfig:
     """Settings < ``--config`` < flags. Run id: ``--run``, else the run file's, else ``run`` of the config;
     endpoint: ``--connect``, else the run file's router, else the default loopback router."""
-    runtime: dict = {}
     base = getattr(args, "config", None)
-    data = {}
-    if base:
-        if str(base).endswith(".json"):
-            cfg0, runtime = read_run_file(base)
-            data = cfg0.to_dict()
-        else:
-            data = load_file(base)
-    data = _merge(data, _overrides(args))
-    cfg = _build(RunConfig, data, "config").validate()
+    runtime = read_run_file(base)[1] if base and str(base).endswith(".json") else {}
+    cfg = resolve(base, args)
     run = getattr(args, "cfg__run", None) or runtime.get("run") or cfg.run
     if not run:
         raise ValueError("no run id: give --run RUN (printed by khgrl up) or --config RUN_DIR/config.json")
