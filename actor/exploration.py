@@ -22,7 +22,7 @@ log = logging.getLogger("khgrl.actor")
 class ExplorationScale:
     """Learns L from interventions (KhGRL on scenarios with a learned scale; otherwise L stays constant).
 
-    :param env: the passage world (its ``mapping`` holds the scale model).
+    :param env: the task's KGRL environment (its ``mapping`` holds the scale model).
     :param actor: this actor's id.
     :param khgrl: whether the method uses human corrections (KGRL publishes and learns nothing).
     :param publish: sends a :class:`~common.messages.Scale` message.
@@ -32,7 +32,7 @@ class ExplorationScale:
         self.env = env
         self.actor = actor
         self.khgrl = khgrl
-        self.learns = khgrl and env.scenario.learn_scale
+        self.learns = khgrl and env.task.learn_scale
         self.publish_fn = publish
         self.updates = 0
         self.history: list[tuple[int, np.ndarray]] = []  # (episode, L table over the grid) after each refit

@@ -79,6 +79,22 @@ class ActorLink:
             log.warning("liveliness query failed: %s", exc)
         return out
 
+    def other_task(self, mine, timeout: float = 1.0) -> str | None:
+        """Why a learner alive now cannot train this actor (it was built for another task), or None.
+
+        :param mine: this actor's :class:`~common.descriptor.TaskDescriptor`.
+        :param timeout: seconds to wait for the learners' answers.
+        """
+        from common.task_link import fetch_tasks
+
+        for lid, theirs in fetch_tasks(self.session, self.keys, "learner", timeout=timeout).items():
+            if theirs.digest != mine.digest:
+                return (f"learner {lid} was built for task {theirs.name!r} ({theirs.out_dim} outputs, "
+                        f"{theirs.obs_dim} observations, digest {theirs.digest}); this actor runs {mine.name!r} "
+                        f"({mine.out_dim} outputs, {mine.obs_dim} observations, digest {mine.digest}): start them "
+                        f"with one task")
+        return None
+
     def query_weights(self, timeout: float) -> list[bytes]:
         """The payloads the learner's weights queryable answers (empty on failure).
 

@@ -1,4 +1,4 @@
-"""The actor's control loop: episodes of the passage world, one step at a time.
+"""The actor's control loop: episodes of the run's task, one step at a time.
 
 Per control step:
 
@@ -40,7 +40,7 @@ from actor.stream import TransitionStream
 from actor.telemetry import RateLimitStats, TensorBoard, status_info, summary
 from actor.weights import PolicyWeights
 from common.config import RunConfig
-from common.messages import Ack, Control, Correction, EpisodeReport, Frame, Status
+from common.messages import Ack, Control, Correction, Dims, EpisodeReport, Frame, Status
 from common.metrics import EpisodeAccumulator
 from common.process import StopFlag
 from common.protocol import Keys, decode
@@ -59,7 +59,7 @@ _INBOX_KINDS = {"ack": Ack, "correction": Correction, "control": Control}
 class ActorParts:
     """The pieces the loop drives (built and wired by :mod:`actor.main`)."""
 
-    env: Any  # common.env.PassageEnv
+    env: Any  # common.kgrl_env.KGRLEnv (the task behind the KGRL mapping)
     policy: Any  # sb3_contrib TQCPolicy
     link: ActorLink
     inbox: Inbox
@@ -71,6 +71,8 @@ class ActorParts:
     episodes: EpisodeLog
     tensorboard: TensorBoard
     rejects: RejectCounter
+    task: Any = None  # common.descriptor.TaskDescriptor this actor announced
+    announcer: Any = None  # common.task_link.TaskAnnouncer
 
 
 @dataclass
@@ -107,6 +109,9 @@ class ActorLoop:
         tf = cfg.tqc.train_freq
         self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
         self._t_status = time.monotonic()
+        out = parts.env.mapping.model.out_dim
+        self.dims = Dims(out=out)  # corrections carry O coordinates
+        self.wrong_task: str | None = None  # why this actor refused its learner (exit code 2)
 
     @property
     def learner_alive(self) -> bool:
@@ -115,6 +120,8 @@ class ActorLoop:
     def join(self) -> None:
         """Before the first step: who is alive right now, and the current weights (late joiner)."""
         self.learners = self.p.link.learners_alive(timeout=1.0)
+        if self.learners:
+            self._check_learner_task()
         self._query_weights(timeout=2.0)
         w = self.p.weights
         w.initial_version = w.version if w.version >= 0 else None
@@ -135,6 +142,9 @@ class ActorLoop:
             if not self._episode(acc):
                 break  # stopped mid-episode: no statistics for a partial episode
         self.p.stream.cut()  # a partial batch after a stop
+        if self.wrong_task:
+            print(f"khgrl actor {self.id}: error: {self.wrong_task}", file=sys.stderr, flush=True)
+            return 2
         if self.flag:
             return self._finish_on_signal()
         return self._flush()
@@ -210,9 +220,9 @@ class ActorLoop:
     def _frame(self, info: dict, t: int, intervening: bool, ret: float, last: bool) -> Frame:
         env = self.p.env
         return Frame(actor=self.id, episode=self.episode, t=t, phase=float(info["phase"]),
-                     robot=np.asarray(env.robot, dtype=np.float64), desired=np.asarray(info["desired"], np.float64),
+                     robot=np.asarray(env.position, dtype=np.float64), desired=np.asarray(info["desired"], np.float64),
                      mean=np.asarray(env.mapping.mean(t), np.float64), scale=np.asarray(info["scale"], np.float64),
-                     intervening=intervening, scenario=self.cfg.scenario, ret=float(ret),
+                     intervening=intervening, task=env.task.name, ret=float(ret),
                      next_mean=np.asarray(env.mapping.mean(t + 1), np.float64) if t + 1 < env.horizon else None,
                      last=True if last else None)
 
@@ -252,7 +262,7 @@ class ActorLoop:
             self._on_alive(key, payload)
             return
         try:
-            msg = decode(_INBOX_KINDS[kind], payload)
+            msg = decode(_INBOX_KINDS[kind], payload, self.dims)
         except ProtocolError as exc:
             self.p.rejects.reject(kind, key, exc)
             return
@@ -271,10 +281,18 @@ class ActorLoop:
             if key not in self.learners:
                 self.learners.add(key)
                 log.info("learner %s appeared (outbox: %d batches)", key, len(self.p.stream.outbox))
+                self._check_learner_task()
                 self.p.stream.learner_appeared()
         else:
             self.learners.discard(key)
             log.warning("learner %s gone: acting on with weights version %d", key, self.p.weights.version)
+
+    def _check_learner_task(self) -> None:
+        """Refuse a learner built for another task: stop with a clear error (exit code 2)."""
+        if self.p.task is not None and (why := self.p.link.other_task(self.p.task)):
+            self.wrong_task = why
+            log.error("%s", why)
+            self.flag.set("learner of another task")
 
     def _on_control(self, command: str) -> None:
         log.info("control: %s", command)

@@ -1,4 +1,4 @@
-"""``khgrl actor``: the actor process. Steps the passage world (KGRL mapping, GPR exploration scale) with a
+"""``khgrl actor``: the actor process. Steps the run's task (KGRL mapping, GPR exploration scale) with a
 local copy of the TQC policy, applies human corrections that arrive over Zenoh, and streams its transitions
 to the learner without losing or duplicating any.
 
@@ -34,6 +34,8 @@ from actor.weights import PolicyWeights, WeightsReceiver
 from common.config import ProcessConfig, add_process_flags, resolve_process
 from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
 from common.protocol import Keys
+from common.task import TaskError, load_task
+from common.task_link import TaskAnnouncer
 from common.transport import Inbox, open_client
 from common.wire import RejectCounter, ident
 
@@ -42,14 +44,15 @@ __all__ = ["main", "build_parser", "run"]
 log = logging.getLogger("khgrl.actor")
 
 # the run settings an actor uses (its flags; every other setting comes from --config)
-ACTOR_SETTINGS = {"scenario", "method", "episodes", "seed", "run_dir", "run", "connect", "rate", "actor_rt_priority",
+ACTOR_SETTINGS = {"task", "scenario", "demos", "method", "episodes", "seed", "run_dir", "run", "connect", "rate",
+                  "actor_rt_priority",
                   "tensorboard", "learning_starts", "train_freq", "net_arch", "batch", "max_lead", "outbox_memory",
                   "resend_after_s", "flush_timeout", "correction_timeout", "lease_ms"}
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="khgrl actor",
-                                description="Actor: steps the passage world with the current policy, applies human "
+                                description="Actor: steps the run's task with the current policy, applies human "
                                             "corrections, streams transitions to the learner.")
     p.add_argument("--id", default="a0", help="actor id; actor a<i> is seeded with seed + i (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
@@ -59,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, resume: bool) -> ActorParts:
+def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, resume: bool,
+                 task=None) -> ActorParts:
     """Declare everything on the session and wire the loop's parts (declaration order as the protocol expects:
     subscribers, publishers, the weights receiver, then the liveliness token)."""
     cfg, keys = pc.cfg, Keys(pc.run)
@@ -68,9 +72,11 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
     link = ActorLink(session, keys, actor, inbox)
     receiver = WeightsReceiver(link.weights_subscriber(), policy.actor.state_dict(), rejects, keys.weights)
     receiver.start()
+    announcer = TaskAnnouncer(session, keys, "actor", actor, task) if task is not None else None
     link.announce()
     stream = TransitionStream(actor, secrets.token_hex(6), Outbox(cfg.stream.outbox_memory, out_dir / "outbox"),
-                              link.publish_transitions, rejects, cfg.stream.resend_after_s)
+                              link.publish_transitions, rejects, cfg.stream.resend_after_s,
+                              task=None if task is None else task.digest)
     khgrl = cfg.method == "khgrl"
     scale = ExplorationScale(env, actor, khgrl, link.publish)
     episodes = EpisodeLog(out_dir, resume)
@@ -81,12 +87,14 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                       weights=PolicyWeights(policy, actor, receiver), scale=scale,
                       record=CorrectionRecord(out_dir / "corrections.csv", pc.run, actor, append=resume),
                       episodes=episodes, tensorboard=TensorBoard(out_dir / "tb" if cfg.tensorboard else None),
-                      rejects=rejects)
+                      rejects=rejects, task=task, announcer=announcer)
 
 
 def _close(parts: ActorParts) -> None:
     parts.record.close()
     parts.weights.receiver.stop()
+    if parts.announcer is not None:
+        parts.announcer.undeclare()
     parts.link.close()
     parts.tensorboard.close()
 
@@ -101,7 +109,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     import torch
     from sb3_contrib.tqc.policies import TQCPolicy
 
-    from common.env import PassageEnv
+    from common.kgrl_env import KGRLEnv
 
     cfg = pc.cfg
     seed = cfg.actor_seed(actor)
@@ -113,14 +121,20 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     install_stop_handlers(flag)
 
     t0 = time.perf_counter()
-    env = PassageEnv(cfg.scenario)
+    try:
+        env = KGRLEnv(load_task(cfg.task_spec, cfg.demos or None), seed=seed)
+        task = env.descriptor(cfg.task_spec)
+    except TaskError as exc:
+        log.error("%s", exc)
+        print(f"khgrl actor {actor}: error: {exc}", file=sys.stderr, flush=True)
+        return 2
     env.action_space.seed(seed)  # SB3 seeds the action space it samples warm-up actions from
     torch.manual_seed(seed)
     policy = TQCPolicy(env.observation_space, env.action_space, lr_schedule=lambda _: cfg.tqc.learning_rate,
                        net_arch=list(cfg.tqc.net_arch))
     policy.set_training_mode(False)
-    log.info("actor %s (seed %d): %s/%s, world ready in %.1f s", actor, seed, cfg.scenario, cfg.method,
-             time.perf_counter() - t0)
+    log.info("actor %s (seed %d): task %s (O = %d, %d observations, digest %s), %s, world ready in %.1f s", actor,
+             seed, cfg.task_spec, task.out_dim, task.obs_dim, task.digest, cfg.method, time.perf_counter() - t0)
 
     rc = 1
     t_run = time.perf_counter()
@@ -131,7 +145,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         print(f"khgrl actor {actor}: {exc}", file=sys.stderr, flush=True)
         return 0 if flag else 1
     with session:
-        parts = _build_parts(pc, actor, session, env, policy, out_dir, resume)
+        parts = _build_parts(pc, actor, session, env, policy, out_dir, resume, task)
         loop = ActorLoop(cfg, actor, parts, flag)
         loop.join()
         loop.realtime = set_realtime(cfg.actor_rt_priority) if cfg.actor_rt_priority > 0 else False

@@ -42,12 +42,14 @@ class TransitionStream:
     :param rejects: counts refused acks.
     :param resend_after_s: re-send un-acked batches after this long without ack progress.
     :param clock: monotonic clock (tests pass a fake one).
+    :param task: the digest of the actor's task descriptor (the learner refuses batches of another task).
     """
 
     def __init__(self, actor: str, stream: str, outbox: Outbox, publish: Callable[[bytes], None],
                  rejects: RejectCounter, resend_after_s: float = 2.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, task: str | None = None) -> None:
         self.actor = actor
+        self.task = task  # the digest of this actor's task descriptor, stamped on every batch
         self.stream = stream
         self.outbox = outbox
         self.publish = publish
@@ -107,7 +109,7 @@ class TransitionStream:
             action=np.asarray(cols[2], dtype=np.float32), reward=np.asarray(cols[3], dtype=np.float32),
             terminated=np.asarray(cols[4], dtype=np.uint8), truncated=np.asarray(cols[5], dtype=np.uint8),
             intervened=np.asarray(cols[6], dtype=np.uint8), clipped=np.asarray(cols[7], dtype=np.uint8),
-            base_seq=seq if oldest is None else oldest, stream=self.stream)
+            base_seq=seq if oldest is None else oldest, stream=self.stream, task=self.task)
         payload = encode(batch, self.actor, seq)
         newest = self.outbox.newest()
         if newest is None or newest <= self.received:

@@ -104,7 +104,10 @@ class StreamSettings:
 class RunConfig:
     """One run of ``khgrl up``: every setting of every process. Field order is the order of ``--help``."""
 
-    scenario: str = _opt("high_cov", "passage-world scenario", SCENARIOS)
+    task: str = _opt("", "the task: passage:SCENARIO or package.module:callable returning a common.task.Task "
+                         "(README, 'Bring your own task'; default: passage:<scenario>)")
+    scenario: str = _opt("high_cov", "passage-world scenario (shorthand for --task passage:SCENARIO)", SCENARIOS)
+    demos: str = _opt("", "demonstration file (.npz/.csv, M x N x O) replacing the task's demonstrations")
     method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither", METHODS)
     episodes: int = _opt(60, "episodes per actor (in the whole run: a resumed run continues up to this)")
     seed: int = _opt(0, "seed of the learner and of actor 0 (actor i: seed + i) and the human client")
@@ -136,6 +139,8 @@ class RunConfig:
             raise ValueError(f"run id must be a key chunk without / * $ ? # or space, got {self.run!r}")
         if self.actor_rt_priority and not (1 <= self.actor_rt_priority <= 99 and self.rate > 0):
             raise ValueError("actor_rt_priority must be in 1..99 and needs rate > 0 (a real-time loop must sleep)")
+        if self.task and ":" not in self.task:
+            raise ValueError(f"task {self.task!r}: expected 'passage:SCENARIO' or 'package.module:callable'")
         if any(e < 1 for e in self.human_episodes):
             raise ValueError("human_episodes are counted from 1")
         if self.connect_timeout <= 0 or self.rate < 0:
@@ -143,6 +148,11 @@ class RunConfig:
         self.tqc.validate()
         self.stream.validate(self.tqc.train_freq)
         return self
+
+    @property
+    def task_spec(self) -> str:
+        """The task this run uses: ``task``, or the passage world's ``scenario``."""
+        return self.task or f"passage:{self.scenario}"
 
     def actor_ids(self) -> list[str]:
         return [f"a{i}" for i in range(self.actors)]

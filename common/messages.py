@@ -8,18 +8,38 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, get_type_hints
+from typing import Any, ClassVar
 
 import numpy as np
 
-from common.spaces import ACT_DIM, OBS_DIM
+from common.descriptor import MAX_DIM, TaskDescriptor
+from common.status_info import _INFO, ActorInfo, HumanInfo, LearnerInfo, check_info
 from common.wire import ProtocolError, ident, opt, typ, unpack_array, vec
 
-__all__ = ["Message", "Transitions", "Ack", "Weights", "Correction", "Frame", "Scale", "EpisodeReport", "Status",
-           "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS"]
+__all__ = ["Dims", "ANY_DIMS", "Message", "TaskInfo", "Transitions", "Ack", "Weights", "Correction", "Frame", "Scale",
+           "EpisodeReport", "Status", "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS"]
 
 MAX_BATCH = 4096  # transitions per batch message
 COMMANDS = ("pause", "resume", "stop", "checkpoint")
+
+
+@dataclass(frozen=True)
+class Dims:
+    """The sizes a receiver expects (from the run's task descriptor): the policy's observation and the command
+    O (= the policy's action). None: any size up to the protocol's bound, consistent within the message."""
+
+    obs: int | None = None
+    out: int | None = None
+
+
+ANY_DIMS = Dims()
+
+
+def _vec(name: str, value: Any, n: int | None) -> np.ndarray:
+    """A vector of ``n`` numbers, or (n None) of 1..MAX_DIM numbers."""
+    if n is None:
+        n = len(value) if isinstance(value, (list, tuple)) and 1 <= len(value) <= MAX_DIM else -1
+    return vec(name, value, n)
 
 
 @dataclass(frozen=True)
@@ -33,7 +53,7 @@ class Message:
         return dataclasses.replace(self, **changes)
 
     @classmethod
-    def from_wire(cls, m: dict):
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS):
         raise NotImplementedError
 
 
@@ -48,9 +68,9 @@ class Transitions(Message):
     MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
     actor: str
     first_step: int  # the actor's running index of the first transition
-    obs: np.ndarray  # (n, OBS_DIM) float32
+    obs: np.ndarray  # (n, obs size) float32
     next_obs: np.ndarray
-    action: np.ndarray  # (n, ACT_DIM) float32 in [-1, 1] (the human's a_h on intervened steps)
+    action: np.ndarray  # (n, O) float32 in [-1, 1] (the human's a_h on intervened steps)
     reward: np.ndarray  # (n,) float32
     terminated: np.ndarray  # (n,) uint8 0/1
     truncated: np.ndarray
@@ -58,21 +78,26 @@ class Transitions(Message):
     clipped: np.ndarray
     base_seq: int | None = None  # the oldest batch the actor still holds
     stream: str | None = None  # random id of the actor incarnation
+    task: str | None = None  # the digest of the actor's task descriptor
 
     @property
     def n(self) -> int:
         return int(self.reward.shape[0])
 
     @classmethod
-    def from_wire(cls, m: dict) -> "Transitions":
-        spec = {"obs": ("<f4", (None, OBS_DIM)), "next_obs": ("<f4", (None, OBS_DIM)),
-                "action": ("<f4", (None, ACT_DIM)), "reward": ("<f4", (None,))}
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Transitions":
+        spec = {"obs": ("<f4", (None, dims.obs)), "next_obs": ("<f4", (None, dims.obs)),
+                "action": ("<f4", (None, dims.out)), "reward": ("<f4", (None,))}
         spec.update({f: ("|u1", (None,)) for f in _FLAG_FIELDS})
         arrays = {name: unpack_array(m.get(name), name, dtype=dt, shape=shape) for name, (dt, shape) in spec.items()}
         n = arrays["reward"].shape[0]
         for name, arr in arrays.items():
             if arr.shape[0] != n:
                 raise ProtocolError(f"{name}: {arr.shape[0]} rows, expected {n}")
+        if arrays["obs"].shape[1] != arrays["next_obs"].shape[1] or not 1 <= arrays["obs"].shape[1] <= 4 * MAX_DIM:
+            raise ProtocolError(f"obs/next_obs widths {arrays['obs'].shape[1]}/{arrays['next_obs'].shape[1]}")
+        if not 1 <= arrays["action"].shape[1] <= MAX_DIM:
+            raise ProtocolError(f"action width {arrays['action'].shape[1]} outside [1, {MAX_DIM}]")
         if not 1 <= n <= MAX_BATCH:
             raise ProtocolError(f"batch of {n} transitions outside [1, {MAX_BATCH}]")
         if np.any(np.abs(arrays["action"]) > 1.0 + 1e-6):
@@ -84,7 +109,7 @@ class Transitions(Message):
         if base is not None and base > m.get("seq", 0):
             raise ProtocolError(f"base_seq {base} > seq {m.get('seq')}")
         return cls(actor=ident("actor", m.get("actor")), first_step=typ("first_step", m.get("first_step"), int, low=0),
-                   base_seq=base, stream=opt(m, "stream", ident), **arrays)
+                   base_seq=base, stream=opt(m, "stream", ident), task=opt(m, "task", ident), **arrays)
 
 
 @dataclass(frozen=True)
@@ -99,14 +124,15 @@ class Ack(Message):
     version: int  # latest weights version
     epoch: str  # random per learner incarnation
     stream: str | None = None  # the actor stream the ack is about
+    task: str | None = None  # the digest of the learner's task descriptor
 
     @classmethod
-    def from_wire(cls, m: dict) -> "Ack":
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Ack":
         return cls(actor=ident("actor", m.get("actor")), received=typ("received", m.get("received"), int, low=-1),
                    durable=typ("durable", m.get("durable"), int, low=-1),
                    trained=typ("trained", m.get("trained"), int, low=0),
                    version=typ("version", m.get("version"), int, low=0), epoch=typ("epoch", m.get("epoch"), str),
-                   stream=opt(m, "stream", ident))
+                   stream=opt(m, "stream", ident), task=opt(m, "task", ident))
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,7 +147,7 @@ class Weights(Message):
     epoch: str | None = None
 
     @classmethod
-    def from_wire(cls, m: dict) -> "Weights":
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Weights":
         trained = typ("trained", m.get("trained"), dict)
         for k, v in trained.items():
             ident("trained key", k)
@@ -147,19 +173,19 @@ class Correction(Message):
     client: str
     actor: str
     active: bool
-    p_h: np.ndarray | None = None  # (ACT_DIM,) workspace units; required when active
+    p_h: np.ndarray | None = None  # (O,) command coordinates; required when active
     episode: int | None = None  # the frame reacted to (for the record)
     t: int | None = None
     step: int | None = None  # step-addressed: for this step of ``episode`` (lock-step)
 
     @classmethod
-    def from_wire(cls, m: dict) -> "Correction":
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Correction":
         active = typ("active", m.get("active"), bool)
         step = opt(m, "step", typ, int, low=0)
         if step is not None and m.get("episode") is None:
             raise ProtocolError("step: a step-addressed correction needs its episode")
         return cls(client=ident("client", m.get("client")), actor=ident("actor", m.get("actor")), active=active,
-                   p_h=vec("p_h", m.get("p_h"), ACT_DIM) if active else None,
+                   p_h=_vec("p_h", m.get("p_h"), dims.out) if active else None,
                    episode=opt(m, "episode", typ, int, low=0), t=opt(m, "t", typ, int, low=0), step=step)
 
 
@@ -179,20 +205,21 @@ class Frame(Message):
     mean: np.ndarray
     scale: np.ndarray
     intervening: bool
-    scenario: str
+    task: str  # the task's name
     ret: float | None = None
     next_mean: np.ndarray | None = None  # KMP mean at step t + 1; absent after the horizon's last step
     last: bool | None = None  # true on the episode's last frame (terminated or truncated)
 
     @classmethod
-    def from_wire(cls, m: dict) -> "Frame":
-        vecs = {f: vec(f, m.get(f), ACT_DIM) for f in ("robot", "desired", "mean", "scale")}
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Frame":
+        o = dims.out if dims.out is not None else len(_vec("robot", m.get("robot"), None))
+        vecs = {f: vec(f, m.get(f), o) for f in ("robot", "desired", "mean", "scale")}
         return cls(actor=ident("actor", m.get("actor")), episode=typ("episode", m.get("episode"), int, low=0),
                    t=typ("t", m.get("t"), int, low=0),
                    phase=float(typ("phase", m.get("phase"), (int, float), low=0.0, high=1.0)),
                    intervening=typ("intervening", m.get("intervening"), bool),
-                   scenario=typ("scenario", m.get("scenario"), str), ret=opt(m, "ret", typ, (int, float)),
-                   next_mean=opt(m, "next_mean", vec, ACT_DIM), last=opt(m, "last", typ, bool), **vecs)
+                   task=typ("task", m.get("task"), str), ret=opt(m, "ret", typ, (int, float)),
+                   next_mean=opt(m, "next_mean", vec, o), last=opt(m, "last", typ, bool), **vecs)
 
 
 @dataclass(frozen=True, eq=False)
@@ -203,13 +230,32 @@ class Scale(Message):
     MAX_BYTES: ClassVar[int] = 1024 * 1024
     actor: str
     model: dict  # ScaleModel.to_dict()
-    table: np.ndarray | None = None  # (N, ACT_DIM) float64
+    table: np.ndarray | None = None  # (N, O) float64
 
     @classmethod
-    def from_wire(cls, m: dict) -> "Scale":
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Scale":
         table = m.get("table")
+        if table is not None:
+            table = unpack_array(table, "table", dtype="<f8", shape=(None, dims.out))
+            if not 1 <= table.shape[1] <= MAX_DIM:
+                raise ProtocolError(f"table: {table.shape[1]} columns outside [1, {MAX_DIM}]")
         return cls(actor=ident("actor", m.get("actor")), model=typ("model", m.get("model"), dict),
-                   table=None if table is None else unpack_array(table, "table", dtype="<f8", shape=(None, ACT_DIM)))
+                   table=table)
+
+
+@dataclass(frozen=True, eq=False)
+class TaskInfo(Message):
+    """An actor's task descriptor (``task/actor/<id>``; the learner answers its own on ``task/learner/<id>``)."""
+
+    KIND: ClassVar[str] = "task"
+    MAX_BYTES: ClassVar[int] = 16 * 1024 * 1024
+    sender_id: str
+    descriptor: TaskDescriptor
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "TaskInfo":
+        return cls(sender_id=ident("sender_id", m.get("sender_id")),
+                   descriptor=TaskDescriptor.from_wire(m.get("descriptor")))
 
 
 _STAT_NUMBERS = ("steps", "ret", "action_cost", "obstacle_cost", "passage_cost", "obstacle_steps", "interventions",
@@ -226,7 +272,7 @@ class EpisodeReport(Message):
     stats: dict
 
     @classmethod
-    def from_wire(cls, m: dict) -> "EpisodeReport":
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "EpisodeReport":
         stats = typ("stats", m.get("stats"), dict)
         typ("stats.episode", stats.get("episode"), int, low=1)
         for f in _STAT_NUMBERS:
@@ -237,99 +283,6 @@ class EpisodeReport(Message):
         if scale_max is not None:
             vec("stats.scale_max", scale_max, len(scale_max) if isinstance(scale_max, list) else -1)
         return cls(actor=ident("actor", m.get("actor")), stats=dict(stats))
-
-
-# ------------------------------------------------------------------------------------ status
-_COUNTS = dict[str, int]
-
-
-def _check_info(cls, info: Any, where: str):
-    """A status info map checked against the dataclass ``cls``: every field present with its type (ints,
-    floats, bools, strings, optional floats, and {str: int} maps); unknown fields rejected."""
-    info = typ(where, info, dict)
-    hints = get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    extra = set(info) - names
-    if extra:
-        raise ProtocolError(f"{where}: unknown fields {sorted(extra)}")
-    kw = {}
-    for f in dataclasses.fields(cls):
-        if f.name not in info:
-            raise ProtocolError(f"{where}.{f.name}: missing")
-        v, t, name = info[f.name], hints[f.name], f"{where}.{f.name}"
-        if t == _COUNTS:
-            typ(name, v, dict)
-            for k, n in v.items():
-                typ(f"{name} key", k, str)
-                typ(f"{name}[{k}]", n, int)
-        elif t == (float | None):
-            if v is not None:
-                typ(name, v, (int, float))
-        else:
-            typ(name, v, (int, float) if t is float else t)
-        kw[f.name] = v
-    return cls(**kw)
-
-
-@dataclass(frozen=True)
-class ActorInfo:
-    """``status/actor/<id>``: the actor's stream, flow control and corrections."""
-
-    id: str
-    episode: int
-    t: int
-    transitions: int
-    sent: int
-    next_seq: int
-    outbox: int
-    received: int
-    durable: int
-    trained: int
-    weights_version: int
-    ack_version: int
-    learner_alive: bool
-    waits: int
-    wait_s: float
-    resends: int
-    corrections: _COUNTS
-    intervening: bool
-    rejects: _COUNTS
-    paused: bool
-    period_ms_p50: float | None
-
-
-@dataclass(frozen=True)
-class LearnerInfo:
-    """``status/learner/<id>``: ingest, training, weights and checkpoints."""
-
-    id: str
-    epoch: str
-    ingested: int
-    iterations: int
-    gradient_steps: int
-    grad_steps_per_s: float
-    version: int
-    pending_iterations: int
-    queue_depth: int
-    rejects: _COUNTS
-    paused: bool
-    checkpoints: int
-    next_seq: _COUNTS
-    durable: _COUNTS
-    duplicates: _COUNTS
-    weights_queries: int
-
-
-@dataclass(frozen=True)
-class HumanInfo:
-    """``status/human/<id>``: a human-input client's traffic."""
-
-    frames: int
-    corrections: int
-    rejects: _COUNTS
-
-
-_INFO = {"actor": ActorInfo, "learner": LearnerInfo, "human": HumanInfo}
 
 
 @dataclass(frozen=True)
@@ -346,11 +299,11 @@ class Status(Message):
             raise ProtocolError(f"status of role {self.role!r} needs a {_INFO.get(self.role, ActorInfo).__name__}")
 
     @classmethod
-    def from_wire(cls, m: dict) -> "Status":
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Status":
         role = typ("role", m.get("role"), str)
         if role not in _INFO:
             raise ProtocolError(f"role {role!r} not one of {sorted(_INFO)}")
-        return cls(role=role, info=_check_info(_INFO[role], m.get("info"), "info"))
+        return cls(role=role, info=check_info(_INFO[role], m.get("info"), "info"))
 
 
 @dataclass(frozen=True)
@@ -361,7 +314,7 @@ class Control(Message):
     command: str
 
     @classmethod
-    def from_wire(cls, m: dict) -> "Control":
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Control":
         command = typ("command", m.get("command"), str)
         if command not in COMMANDS:
             raise ProtocolError(f"unknown command {command!r}")

@@ -18,19 +18,33 @@ from typing import Any, TypeVar
 import msgpack
 import numpy as np
 
-from common.messages import Ack, Control, Correction, EpisodeReport, Frame, Message, Scale, Status, Transitions, Weights
-from common.spaces import ACT_DIM, OBS_DIM
+from common.messages import (
+    ANY_DIMS,
+    Ack,
+    Control,
+    Correction,
+    Dims,
+    EpisodeReport,
+    Frame,
+    Message,
+    Scale,
+    Status,
+    TaskInfo,
+    Transitions,
+    Weights,
+)
 from common.wire import MAX_ID_LEN, ProtocolError, RejectCounter, ident, pack_array, typ, unpack_array
 
 __all__ = ["SCHEMA_VERSION", "Keys", "Envelope", "encode", "decode", "decode_any", "KINDS", "ProtocolError",
            "RejectCounter", "pack_array", "unpack_array", "Message", "Transitions", "Ack", "Weights", "Correction",
-           "Frame", "Scale", "EpisodeReport", "Status", "Control", "OBS_DIM", "ACT_DIM", "with_base_seq"]
+           "Frame", "Scale", "EpisodeReport", "Status", "Control", "TaskInfo", "Dims", "ANY_DIMS", "with_base_seq"]
 
 SCHEMA_VERSION = 1
 M = TypeVar("M", bound=Message)
 
 KINDS: dict[str, type[Message]] = {
-    cls.KIND: cls for cls in (Transitions, Ack, Weights, Correction, Frame, Scale, EpisodeReport, Status, Control)
+    cls.KIND: cls
+    for cls in (Transitions, Ack, Weights, Correction, Frame, Scale, EpisodeReport, Status, Control, TaskInfo)
 }
 
 
@@ -70,6 +84,9 @@ class Keys:
 
     def control(self, target: str = "*") -> str:
         return f"{self.root}/control/{target}"
+
+    def task(self, role: str = "*", ident: str = "*") -> str:
+        return f"{self.root}/task/{role}/{ident}"
 
     def alive(self, role: str = "*", ident: str = "*") -> str:
         return f"{self.root}/alive/{role}/{ident}"
@@ -156,17 +173,20 @@ def _envelope(msg: dict, kind: str) -> Envelope:
                     ts=float(typ("ts", msg.get("ts"), (int, float))))
 
 
-def decode(cls: type[M], payload: bytes) -> M:
-    """Unpack and validate a message that must be of class ``cls``; raises :class:`ProtocolError` with the reason."""
-    return _validate(cls, _unpack(payload, cls.MAX_BYTES, cls.KIND))
+def decode(cls: type[M], payload: bytes, dims: Dims = ANY_DIMS) -> M:
+    """Unpack and validate a message that must be of class ``cls``; raises :class:`ProtocolError` with the reason.
+
+    :param dims: the observation and command sizes the receiver's task has (default: any, consistent).
+    """
+    return _validate(cls, _unpack(payload, cls.MAX_BYTES, cls.KIND), dims)
 
 
-def _validate(cls: type[M], msg: dict) -> M:
+def _validate(cls: type[M], msg: dict, dims: Dims = ANY_DIMS) -> M:
     """The checks of a received map (envelope, then the kind's fields): shared by :func:`decode` and the sender's
     own check in :func:`encode`."""
     env = _envelope(msg, cls.KIND)
     try:
-        out = cls.from_wire(msg)
+        out = cls.from_wire(msg, dims)
     except ProtocolError:
         raise
     except Exception as exc:  # noqa: BLE001 - a malformed field that slipped past a type check

@@ -41,7 +41,8 @@ def _cmd_kmp_fit(args: argparse.Namespace) -> int:
     model, ref = fit_model(demos, config, constraints)
     out = Path(args.out)
     scenario = get_scenario(args.scenario) if args.scenario else None
-    plot_kmp(model, ref, demos, out, title=f"{Path(args.demos).name}: LC-NS-KMP", scenario=scenario)
+    plot_kmp(model, ref, demos, out, title=f"{Path(args.demos).name}: LC-NS-KMP (O = {o})", scenario=scenario,
+             workspace=None if args.box is None else ([args.box[0]] * o, [args.box[1]] * o))
     import numpy as np
 
     proj = np.linalg.eigvalsh(model.grid_projector)[:, -1]

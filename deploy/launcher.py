@@ -15,8 +15,10 @@ command from elsewhere; 2 a bad configuration or run directory; 128 + signal num
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -118,14 +120,32 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     :raises ValueError: a bad setting
     """
     cfg = _resolve_config(args)
+    if cfg.demos:
+        cfg = dataclasses.replace(cfg, demos=str(Path(cfg.demos).resolve()))
     run_dir = Path(cfg.run_dir)
     _check_run_dir(run_dir, args)
+    check_task(cfg)
     previous = previous_runtime(run_dir) if args.resume else {}
     run_id = cfg.run or str(previous.get("run") or "") or make_run_id(run_dir)
     Keys(run_id)  # a valid key chunk (ValueError otherwise)
     endpoint = cfg.connect or f"tcp/127.0.0.1:{cfg.port or free_port()}"
     return RunPlan(cfg=cfg, run_dir=run_dir, run_id=run_id, endpoint=endpoint, resume=args.resume,
                    overwrite=args.overwrite, progress=args.progress, argv=argv, previous=previous)
+
+
+def check_task(cfg: RunConfig) -> None:
+    """Build the run's task once before any process starts, so a bad task definition is one clear error here.
+
+    :param cfg: the run's settings
+    :raises TaskError: naming what is wrong with the task
+    """
+    from common.kgrl_env import KGRLEnv
+    from common.task import TaskError, load_task
+
+    task = load_task(cfg.task_spec, cfg.demos or None)
+    KGRLEnv(task, seed=cfg.seed).close()
+    if cfg.method == "khgrl" and cfg.human == "scripted" and task.scripted_human is None:
+        raise TaskError(f"task {task.name!r} has no scripted_human: choose --human gui or --human none")
 
 
 def prepare_run_dir(plan: RunPlan) -> None:
@@ -143,6 +163,11 @@ def prepare_run_dir(plan: RunPlan) -> None:
     if plan.resume:
         part = int(plan.previous.get("part", 1)) + 1
         archive_part(plan.run_dir, part - 1)
+    if plan.cfg.demos and not plan.resume:  # the run keeps the demonstrations it was trained from
+        kept = plan.run_dir / f"demos{Path(plan.cfg.demos).suffix}"
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(plan.cfg.demos, kept)
+        plan.cfg = dataclasses.replace(plan.cfg, demos=str(kept.resolve()))
     runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "actor_ids": plan.cfg.actor_ids(),
                "argv": plan.argv, "started": started, "resumed": plan.resume, "part": part,
                "first_started": plan.previous.get("first_started", plan.previous.get("started", started))}

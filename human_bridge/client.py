@@ -23,9 +23,10 @@ from common.config import ProcessConfig
 from common.messages import Control, Correction, EpisodeReport, Frame, HumanInfo, Message, Scale, Status
 from common.process import StopFlag
 from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from common.task_link import fetch_task
 from common.transport import Inbox, open_client, undeclare_all
 
-__all__ = ["CorrectionPublisher", "HumanClient", "connected", "read", "KINDS"]
+__all__ = ["CorrectionPublisher", "HumanClient", "connected", "read", "KINDS", "fetch_task"]
 
 log = logging.getLogger("khgrl.human")
 

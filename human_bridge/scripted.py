@@ -1,9 +1,10 @@
 """The scripted human: a reproducible stand-in for a person who drags the robot's desired position.
 
-It knows a safe path through the gaps (and around the obstacle) -- the scenario's ``human_waypoints`` --
-and, in the given episodes, over the part of the task where help is needed (the scenario's
-``human_window``, in workspace x), sets the desired position P_h on that path at the point the KMP mean
-has reached in x; optional seeded noise imitates an unsteady hand. Outside the window it releases.
+In the given episodes it asks the task's ``scripted_human`` (:class:`common.task.Task`) for P_h at each step's
+KMP mean; optional seeded noise imitates an unsteady hand; None releases. The passage world's
+(:class:`common.passage_task.PassageGuide`) knows a safe path through the gaps (and around the obstacle) -- the
+scenario's ``human_waypoints`` -- and, over the part of the task where help is needed (the scenario's
+``human_window``, in workspace x), sets P_h on that path at the point the KMP mean has reached in x.
 
 Its output is a correction P_h or ``None`` (released) per step: exactly what a person's drag produces.
 In one process it is applied with ``PassageEnv.set_correction`` (:class:`HumanCorrectionWrapper`); in the
@@ -16,14 +17,17 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass
+from typing import Callable
 
 import gymnasium as gym
 import numpy as np
 
 from common.config import PAPER_EPISODES, ProcessConfig
+from common.passage_task import PassageGuide
 from common.process import StopFlag, install_stop_handlers
 from common.protocol import Frame
 from common.scenarios import Scenario, get_scenario
+from common.task import TaskError, load_task
 from human_bridge.client import CorrectionPublisher, connected
 
 __all__ = ["PAPER_EPISODES", "ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper", "ScriptedAnswers",
@@ -33,29 +37,29 @@ __all__ = ["PAPER_EPISODES", "ScriptedHuman", "ScriptedHumanConfig", "HumanCorre
 @dataclass(frozen=True)
 class ScriptedHumanConfig:
     episodes: tuple[int, ...] = PAPER_EPISODES  # 1-based episode numbers in which the human helps
-    window: tuple[float, float] | None = None  # x-range where it helps (default: the scenario's)
+    window: tuple[float, float] | None = None  # passage world: x-range where it helps (default: the scenario's)
     noise: float = 0.0  # std of Gaussian noise on P_h (workspace units)
     seed: int = 0
 
 
 class ScriptedHuman:
-    """Decides P_h (or None) from what a person watching the screen sees: episode, robot and KMP mean."""
+    """Decides P_h (or None) from what a person watching the screen sees: episode, robot and KMP mean.
 
-    def __init__(self, scenario: Scenario | str, config: ScriptedHumanConfig = ScriptedHumanConfig()) -> None:
-        self.scenario = get_scenario(scenario) if isinstance(scenario, str) else scenario
-        if not self.scenario.human_waypoints:
-            raise ValueError(f"scenario {self.scenario.name} has no safe path for a scripted human")
+    :param guide: the task's ``scripted_human`` (mean -> P_h or None), or a passage scenario (its name).
+    :param config: episodes, noise and seed (``window``: the passage world's only).
+    """
+
+    def __init__(self, guide: Callable[[np.ndarray], np.ndarray | None] | Scenario | str,
+                 config: ScriptedHumanConfig = ScriptedHumanConfig()) -> None:
+        if isinstance(guide, (str, Scenario)):
+            guide = PassageGuide(get_scenario(guide) if isinstance(guide, str) else guide, config.window)
+        self.guide = guide
         self.config = config
-        self.window = config.window if config.window is not None else self.scenario.human_window
-        way = np.asarray(self.scenario.human_waypoints, dtype=np.float64)
-        if np.any(np.diff(way[:, 0]) <= 0):
-            raise ValueError("human waypoints must increase in x")
-        self._way = way
         self._rng = np.random.default_rng(config.seed)
 
     def path_y(self, x: float) -> float:
-        """The safe path's y at workspace x (piecewise linear through the waypoints)."""
-        return float(np.interp(x, self._way[:, 0], self._way[:, 1]))
+        """The passage world's safe path at workspace x."""
+        return self.guide.path_y(x)
 
     def active_in(self, episode: int) -> bool:
         return episode in self.config.episodes
@@ -64,12 +68,14 @@ class ScriptedHuman:
         """P_h for this step, or None. ``mean`` is the KMP mean eta0_t at the current step (the red line)."""
         if not self.active_in(episode):
             return None
-        x = float(mean[0])
-        if not (self.window[0] <= x <= self.window[1]):
+        p_h = self.guide(np.asarray(mean, dtype=np.float64))
+        if p_h is None:
             return None
-        p_h = np.array([x, self.path_y(x)])
+        p_h = np.asarray(p_h, dtype=np.float64).reshape(-1)
+        if p_h.shape != np.shape(mean) or not np.all(np.isfinite(p_h)):
+            raise ValueError(f"the task's scripted human gave {p_h}, expected {np.size(mean)} finite values")
         if self.config.noise > 0:
-            p_h = p_h + self._rng.normal(0.0, self.config.noise, size=2)
+            p_h = p_h + self._rng.normal(0.0, self.config.noise, size=p_h.size)
         return p_h
 
 
@@ -161,8 +167,17 @@ def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
     :param proc: the resolved run settings (run id, endpoint, scenario, seed, human_episodes, human_noise).
     """
     cfg = proc.cfg
-    human = ScriptedHuman(cfg.scenario, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes), noise=cfg.human_noise,
-                                                            seed=cfg.seed))
+    try:
+        task = load_task(cfg.task_spec, cfg.demos or None)
+    except TaskError as exc:
+        print(f"khgrl human scripted: error: {exc}", file=sys.stderr, flush=True)
+        return 2
+    if task.scripted_human is None:
+        print(f"khgrl human scripted: error: task {task.name!r} has no scripted_human: use --human gui or none",
+              file=sys.stderr, flush=True)
+        return 2
+    human = ScriptedHuman(task.scripted_human, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes),
+                                                                   noise=cfg.human_noise, seed=cfg.seed))
     flag = StopFlag()
     install_stop_handlers(flag)
     print(f"khgrl human scripted ({args.id}) driving actor {args.actor} of run {proc.run} in episodes "

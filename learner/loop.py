@@ -17,9 +17,22 @@ from pathlib import Path
 from typing import Any, Callable, Protocol
 
 from common.config import TQCSettings
+from common.descriptor import TaskDescriptor
 from common.messages import LearnerInfo
 from common.process import StopFlag
-from common.protocol import Ack, Control, Keys, ProtocolError, RejectCounter, Status, Transitions, Weights, decode
+from common.protocol import (
+    ANY_DIMS,
+    Ack,
+    Control,
+    Dims,
+    Keys,
+    ProtocolError,
+    RejectCounter,
+    Status,
+    Transitions,
+    Weights,
+    decode,
+)
 from common.spaces import SpacesEnv
 from learner.checkpoint import CheckpointError, find_checkpoint, load_checkpoint, save_checkpoint
 from learner.ingest import StreamTable
@@ -53,7 +66,7 @@ class _Inbox(Protocol):
 
 
 def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume: bool,
-                 logger_formats: tuple[str, ...] = ("csv", "tensorboard")) -> tuple[Trainer, StreamTable]:
+                 logger_formats: tuple[str, ...] = ("csv", "tensorboard"), task=None) -> tuple[Trainer, StreamTable]:
     """A fresh model and empty stream table, or (``resume``) both as the newest checkpoint left them.
 
     :param tqc: the run's TQC settings (schedule: ``learning_starts``, ``train_freq``)
@@ -61,17 +74,18 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     :param learner_dir: ``RUN_DIR/learner`` (checkpoint, SB3 logs under ``tb/``)
     :param resume: continue from the checkpoint (:class:`CheckpointError` if there is none)
     :param logger_formats: SB3 logger output formats
+    :param task: the run's :class:`~common.descriptor.TaskDescriptor` (None: the passage world's spaces)
     """
     learner_dir = Path(learner_dir)
     learner_dir.mkdir(parents=True, exist_ok=True)
     kw = dict(learning_starts=tqc.learning_starts, train_freq=tqc.train_freq, log_dir=learner_dir / "tb",
               logger_formats=logger_formats)
     if not resume:
-        return Trainer(build_model(tqc, seed), **kw), StreamTable()
+        return Trainer(build_model(tqc, seed, task), **kw), StreamTable()
     ckpt = find_checkpoint(learner_dir)
     if ckpt is None:
         raise CheckpointError(f"--resume: no checkpoint under {learner_dir}")
-    model, state = load_checkpoint(ckpt, SpacesEnv())
+    model, state = load_checkpoint(ckpt, SpacesEnv(task))
     trainer, streams = Trainer(model, **kw), StreamTable.from_state(state)
     trainer.restore(state)
     log.info("resumed from %s: %d transitions (buffer pos %d), version %d, %d iterations, actors %s", ckpt,
@@ -110,6 +124,8 @@ class LearnerLoop:
         self.train_time = 0.0
         self.touched: set[str] = set()
         self.inbox: _Inbox | None = None
+        self.task: TaskDescriptor | None = None  # the run's task: batches of other sizes or tasks are refused
+        self.dims = ANY_DIMS
         now = clock()
         self._status_t, self._status_steps = now, trainer.gradient_steps
 
@@ -123,9 +139,12 @@ class LearnerLoop:
         """
         try:
             if kind == "transitions":
-                msg = decode(Transitions, payload)
+                msg = decode(Transitions, payload, self.dims)
                 if msg.actor != Keys.chunk(key, 3):
                     raise ProtocolError(f"actor {msg.actor!r} published on {key}")
+                if self.task is not None and msg.task is not None and msg.task != self.task.digest:
+                    raise ProtocolError(f"actor {msg.actor} runs a task with digest {msg.task}, this learner was built "
+                                        f"for {self.task.name!r} (digest {self.task.digest}): start them with one task")
                 self.offer(msg)
             else:
                 cmd = decode(Control, payload)
@@ -133,6 +152,18 @@ class LearnerLoop:
                 self.control(cmd)
         except ProtocolError as exc:
             self.rejects.reject(kind, key, exc)
+
+    def set_task(self, task) -> None:
+        """The run's task descriptor: transitions are checked against its sizes and digest, acks carry its digest.
+
+        :param task: a :class:`~common.descriptor.TaskDescriptor`
+        """
+        self.task = task
+        self.dims = Dims(obs=task.obs_dim, out=task.out_dim)
+
+    def _ack(self, actor: str) -> Ack:
+        ack = self.trainer.ack(self.streams[actor])
+        return ack if self.task is None else ack.replace(task=self.task.digest)
 
     def offer(self, msg: Transitions) -> str:
         """A decoded batch: ordered into its actor's stream and, when accepted, stored (with any batches it
@@ -185,12 +216,12 @@ class LearnerLoop:
     def ack_all(self) -> None:
         """Ack every known actor stream."""
         for actor in self.streams:
-            self.pub.ack(self.trainer.ack(self.streams[actor]))
+            self.pub.ack(self._ack(actor))
 
     def ack_touched(self) -> None:
         """Ack the actors whose batches arrived since the last call."""
         for actor in sorted(self.touched):
-            self.pub.ack(self.trainer.ack(self.streams[actor]))
+            self.pub.ack(self._ack(actor))
         self.touched.clear()
 
     def step(self) -> None:

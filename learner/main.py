@@ -21,8 +21,10 @@ import sys
 from pathlib import Path
 
 from common.config import ProcessConfig, add_process_flags, resolve_process
+from common.messages import TaskInfo
 from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
-from common.protocol import Keys
+from common.protocol import Keys, decode, encode
+from common.task_link import TaskAnnouncer, fetch_task
 from common.transport import Inbox, open_client, undeclare_all
 from learner.checkpoint import CheckpointError, find_checkpoint
 
@@ -37,6 +39,7 @@ LEARNER_SETTINGS = {"run", "connect", "run_dir", "seed", "learning_rate", "tau",
 # Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
 # batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
 INBOX_SIZE = 100_000
+TASK_FILE = "task.msgpack"  # the run's task descriptor as the learner first got it (a resumed learner keeps it)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -99,9 +102,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     flag = StopFlag()
     install_stop_handlers(flag)
     formats = ("csv", "tensorboard") if cfg.tensorboard else ("csv",)
-    trainer, streams = open_learner(cfg.tqc, cfg.seed, learner_dir, resume=resume, logger_formats=formats)
-    log.info("khgrl learner %s: run %s, epoch %s, learning_starts %d, connecting to %s", learner_id, pc.run,
-             trainer.epoch, trainer.learning_starts, pc.endpoint)
+    log.info("khgrl learner %s: run %s, connecting to %s", learner_id, pc.run, pc.endpoint)
     try:
         session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag))
     except ConnectionError as exc:  # stopped while waiting for the router, or an endpoint Zenoh refuses
@@ -111,6 +112,14 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         print(f"khgrl learner: error: {exc}", file=sys.stderr)
         return 1
     with session:
+        task = run_task(session, keys, learner_dir, flag)
+        if task is None:
+            return 0
+        trainer, streams = open_learner(cfg.tqc, cfg.seed, learner_dir, resume=resume, logger_formats=formats,
+                                        task=task)
+        log.info("task %s (O = %d, %d observations, digest %s); epoch %s, learning_starts %d", task.name,
+                 task.out_dim, task.obs_dim, task.digest, trainer.epoch, trainer.learning_starts)
+        announcer = TaskAnnouncer(session, keys, "learner", learner_id, task)
         pub = ZenohPublisher(session, keys, learner_id)
         inbox = Inbox(maxsize=INBOX_SIZE, overflow="drop_newest")
         subs = [session.declare_subscriber(keys.transitions("*"), inbox.callback("transitions")),
@@ -119,6 +128,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
                 session.declare_queryable(keys.weights, pub.answer)]
         loop = LearnerLoop(trainer, streams, pub, learner_id=learner_id, learner_dir=learner_dir,
                            checkpoint_every=cfg.stream.checkpoint_every, flag=flag)
+        loop.set_task(task)
         loop.start()
         token = session.liveliness().declare_token(keys.alive("learner", learner_id))
         print(f"khgrl learner {learner_id} ready (epoch {trainer.epoch}, version {trainer.version}, "
@@ -129,9 +139,31 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
             loop.checkpoint()
         finally:
             undeclare_all(*subs, token)
+            announcer.undeclare()
             pub.close()
     log.info("learner %s done: %s; inbox dropped %s", learner_id, loop.summary(), inbox.dropped)
     return 0
+
+
+def run_task(session, keys: Keys, learner_dir: Path, flag: StopFlag):
+    """The run's task descriptor: the one this learner saved (``learner/task.msgpack``, a resumed run), or the
+    first an actor announces (waited for until a stop). The learner never imports a task's code.
+
+    :param session: the open Zenoh session
+    :param keys: the run's key expressions
+    :param learner_dir: ``RUN_DIR/learner``
+    :param flag: the stop flag (None is returned when it is set first)
+    """
+    path = learner_dir / TASK_FILE
+    if path.is_file():
+        return decode(TaskInfo, path.read_bytes()).descriptor
+    log.info("waiting for an actor to announce the run's task (%s)", keys.task("actor"))
+    while not flag:
+        task = fetch_task(session, keys, "actor", timeout=1.0, stop=lambda: bool(flag))
+        if task is not None:
+            path.write_bytes(encode(TaskInfo(sender_id="learner", descriptor=task), "learner", 0))
+            return task
+    return None
 
 
 if __name__ == "__main__":

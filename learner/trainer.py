@@ -29,16 +29,17 @@ __all__ = ["Trainer", "build_model"]
 log = logging.getLogger("khgrl.learner")
 
 
-def build_model(tqc: TQCSettings, seed: int):
-    """A fresh sb3-contrib TQC with the run's settings on the passage world's spaces, whose replay buffer is a
+def build_model(tqc: TQCSettings, seed: int, task=None):
+    """A fresh sb3-contrib TQC with the run's settings on the task's spaces, whose replay buffer is a
     :class:`StreamReplayBuffer` (which draws no random numbers: the seeded model is SB3's own).
 
     :param tqc: the TQC settings (``common.config.TQCSettings``)
     :param seed: the model's seed
+    :param task: the run's :class:`~common.descriptor.TaskDescriptor` (None: the passage world's spaces)
     """
     from sb3_contrib import TQC
 
-    return TQC("MlpPolicy", SpacesEnv(), **tqc.sb3_kwargs(seed), replay_buffer_class=StreamReplayBuffer)
+    return TQC("MlpPolicy", SpacesEnv(task), **tqc.sb3_kwargs(seed), replay_buffer_class=StreamReplayBuffer)
 
 
 def _configure_logger(model: Any, folder: Path, formats: tuple[str, ...]) -> None:

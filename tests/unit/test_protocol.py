@@ -13,11 +13,10 @@ import msgpack
 import numpy as np
 import pytest
 
-from common.messages import ActorInfo, HumanInfo, LearnerInfo
+from common.messages import ActorInfo, Dims, HumanInfo, LearnerInfo, TaskInfo
+from common.spaces import ACT_DIM, OBS_DIM
 from common.protocol import (
-    ACT_DIM,
     KINDS,
-    OBS_DIM,
     SCHEMA_VERSION,
     Ack,
     Control,
@@ -63,7 +62,7 @@ def _transitions(n: int = 4, **over) -> Transitions:
 
 def _frame(**over) -> Frame:
     fields = dict(actor="a0", episode=1, t=3, phase=0.1, robot=np.array([0.1, 0.2]), desired=np.array([0.1, 0.25]),
-                  mean=np.array([0.1, 0.3]), scale=np.array([20.0, 20.0]), intervening=False, scenario="high_cov")
+                  mean=np.array([0.1, 0.3]), scale=np.array([20.0, 20.0]), intervening=False, task="passage-high_cov")
     fields.update(over)
     return Frame(**fields)
 
@@ -116,7 +115,14 @@ def _samples() -> list[Message]:
         Status(role="learner", info=_learner_info()),
         Status(role="human", info=_human_info()),
         *[Control(command=c) for c in ("pause", "resume", "stop", "checkpoint")],
+        TaskInfo(sender_id="a0", descriptor=_descriptor()),
     ]
+
+
+def _descriptor():
+    from common.env import PassageEnv
+
+    return PassageEnv("high_cov").descriptor("passage:high_cov")
 
 
 def _assert_same(a, b, where: str = "") -> None:
@@ -220,7 +226,7 @@ def test_schema_version_1_is_accepted() -> None:
     [
         (Correction(client="pad", actor="a0", active=True, p_h=np.array([0.5, np.nan])), "not finite"),
         (Correction(client="pad", actor="a0", active=True, p_h=np.array([0.5, np.inf])), "not finite"),
-        (Correction(client="pad", actor="a0", active=True, p_h=np.array([0.5])), "p_h"),
+        (Correction(client="pad", actor="a0", active=True, p_h=np.zeros(65)), "p_h"),
         (Correction(client="pad", actor="a0", active=False, step=3), "needs its episode"),
         (Correction(client="a/b", actor="a0", active=False), "bad identifier"),
         (_transitions(action=np.full((4, ACT_DIM), 1.5, np.float32)), "outside"),
@@ -351,7 +357,7 @@ def test_with_base_seq_restamps_only_base_seq() -> None:
         (_raw(seq=True), "seq"),
         (_raw(ts=float("nan")), "ts"),
         (_raw(active="yes"), "active"),
-        (_raw(p_h=[0.5]), "p_h"),
+        (_raw(p_h=[]), "p_h"),
         (_raw(p_h=[0.5, float("nan")]), "not finite"),
         (_raw(p_h=[0.5, float("inf")]), "not finite"),
         (_raw(p_h=["a", 0.5]), "p_h"),
@@ -457,3 +463,35 @@ def test_nothing_but_common_protocol_imports_msgpack() -> None:
                 offenders.append(str(path.relative_to(REPO)))
     assert offenders == [], f"msgpack imported outside common/protocol.py: {offenders}"
     assert _imports_msgpack(REPO / "common" / "protocol.py")
+
+
+# ------------------------------------------------------------------------------------ sizes from the task
+def test_sizes_any_but_consistent_without_a_task() -> None:
+    """Without the receiver's sizes, any O (here 3) and observation size pass if the message agrees with itself."""
+    n = 4
+    tr = _transitions().replace(obs=np.zeros((n, 9), np.float32), next_obs=np.zeros((n, 9), np.float32),
+                                action=np.zeros((n, 3), np.float32))
+    msg = decode(Transitions, encode(tr, "a0", 3))
+    assert msg.obs.shape == (n, 9) and msg.action.shape == (n, 3)
+    with pytest.raises(ProtocolError, match="obs"):
+        decode(Transitions, encode(tr, "a0", 3), Dims(obs=OBS_DIM, out=ACT_DIM))
+    with pytest.raises(ProtocolError, match="action"):
+        decode(Transitions, encode(tr, "a0", 3), Dims(obs=9, out=2))
+    assert decode(Transitions, encode(tr, "a0", 3), Dims(obs=9, out=3)).n == n
+
+
+def test_frame_and_correction_sizes_checked_against_the_task() -> None:
+    p3 = np.array([0.1, 0.2, 0.3])
+    f = Frame(actor="a0", episode=1, t=0, phase=0.0, robot=p3, desired=p3, mean=p3, scale=p3, intervening=False,
+              task="own")
+    assert decode(Frame, encode(f, "a0", 0)).robot.shape == (3,)
+    with pytest.raises(ProtocolError, match="robot"):
+        decode(Frame, encode(f, "a0", 0), Dims(out=2))
+    ragged = msgpack.unpackb(encode(f, "a0", 0), raw=False)
+    ragged["mean"] = [0.1, 0.2]
+    with pytest.raises(ProtocolError, match="mean"):
+        decode(Frame, msgpack.packb(ragged, use_bin_type=True))
+    c = Correction(client="h", actor="a0", active=True, p_h=p3)
+    assert decode(Correction, encode(c, "h", 0), Dims(out=3)).p_h.shape == (3,)
+    with pytest.raises(ProtocolError, match="p_h"):
+        decode(Correction, encode(c, "h", 0), Dims(out=2))

@@ -19,7 +19,7 @@ def test_corrections_only_in_episodes_and_window(name):
     sc = get_scenario(name)
     h = ScriptedHuman(name, ScriptedHumanConfig(episodes=(2, 5)))
     lo, hi = sc.human_window
-    assert h.window == sc.human_window
+    assert h.guide.window == sc.human_window
     xs = np.linspace(0.0, 1.0, 201)
     for ep in range(1, 8):
         for x in xs:
@@ -133,7 +133,7 @@ def test_no_intervention_outside_configured_episodes(run):
 
 def test_intervened_exactly_in_window_with_expected_actions(run):
     env, human, _, episodes = run
-    lo, hi = human.window
+    lo, hi = human.guide.window
     model = env.world.model
     n_iv = 0
     for s in episodes[1]["steps"]:
@@ -213,7 +213,7 @@ def _frames(name: str, episode: int, steps: int):
     m = env.mapping
     for t in range(steps):
         yield Frame(actor="a0", episode=episode, t=t, phase=t / (env.horizon - 1), robot=m.mean(t), desired=m.mean(t),
-                    mean=m.mean(t), scale=np.array([15.0, 15.0]), intervening=False, scenario=name,
+                    mean=m.mean(t), scale=np.array([15.0, 15.0]), intervening=False, task=name,
                     next_mean=m.mean(t + 1), last=True if t == steps - 1 else None)
 
 
