@@ -85,7 +85,8 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
     return ActorParts(env=env, policy=policy, link=link, inbox=inbox, stream=stream,
                       arbiter=CorrectionArbiter(actor, cfg.stream.correction_timeout, enabled=khgrl),
                       weights=PolicyWeights(policy, actor, receiver), scale=scale,
-                      record=CorrectionRecord(out_dir / "corrections.csv", pc.run, actor, append=resume),
+                      record=CorrectionRecord(out_dir / "corrections.csv", pc.run, actor, append=resume,
+                                             dim=env.mapping.model.out_dim),
                       episodes=episodes, tensorboard=TensorBoard(out_dir / "tb" if cfg.tensorboard else None),
                       rejects=rejects, task=task, announcer=announcer)
 

@@ -18,12 +18,15 @@ class CorrectionRecord:
     :param run: run id.
     :param actor: actor id.
     :param append: continue an existing file (``--resume``: no second header); otherwise start it afresh.
+    :param dim: O, the size of P_h (columns p_h_x, p_h_y, p_h_z, p_h_3, ...).
     """
 
     FIELDS = ("run", "actor", "episode", "step", "time", "client", "p_h_x", "p_h_y", "projected", "clipped")
 
-    def __init__(self, path: Path, run: str, actor: str, append: bool = False) -> None:
+    def __init__(self, path: Path, run: str, actor: str, append: bool = False, dim: int = 2) -> None:
         self.path = Path(path)
+        names = tuple(f"p_h_{'xyz'[k] if k < 3 else k}" for k in range(dim))
+        self.FIELDS = ("run", "actor", "episode", "step", "time", "client", *names, "projected", "clipped")
         self.run, self.actor = run, actor
         has_rows = append and self.path.is_file() and self.path.stat().st_size > 0
         self._fh = open(self.path, "a" if has_rows else "w", newline="")
@@ -44,7 +47,7 @@ class CorrectionRecord:
         if self._fh.closed:
             return
         self._w.writerow((self.run, self.actor, int(episode), int(t), f"{time.time():.6f}", client or "",
-                          repr(float(p_h[0])), repr(float(p_h[1])), int(bool(info.get("projected"))),
+                          *(repr(float(v)) for v in p_h), int(bool(info.get("projected"))),
                           int(bool(info.get("clipped")))))
         self.rows += 1
 

@@ -119,6 +119,9 @@ def _add_demos(sub) -> None:
     p.add_argument("--n-steps", type=int, default=400, help="points per demonstration (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
     p.set_defaults(func=_cmd_demos_make)
+    from human_bridge.record import add_parser as _add_record
+
+    _add_record(demos)
 
 
 def _add_kmp(sub) -> None:
@@ -203,6 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_demos(sub)
     _add_kmp(sub)
     _add_reference(sub)
+    from deploy.evaluate import add_parser as _add_eval
+
+    _add_eval(sub)
     _add_bench(sub)
     return parser
 
