@@ -27,7 +27,8 @@ from human_bridge.gui import main as gui
 __all__ = ["main", "build_parser", "SETTINGS"]
 
 # the run settings a human-input client uses (each a flag that overrides --config)
-SETTINGS = {"run", "connect", "run_dir", "task", "scenario", "demos", "seed", "human_episodes", "human_noise", "lease_ms"}
+SETTINGS = {"run", "connect", "run_dir", "task", "scenario", "demos", "seed", "human_episodes", "human_noise",
+            "lease_ms"}
 
 # each client module has add_arguments(parser) and run(args, proc)
 CLIENTS = {

@@ -1,11 +1,17 @@
-"""The GUI's state and input logic (no drawing, no network): what it knows of each actor, and what a person's
-mouse and keys do.
+"""The GUI's state and input logic (no drawing, no network): the run's task, what it knows of each actor, and
+what a person's mouse and keys do.
 
-A drag: pressing the left button on the scene sets the desired position P_h to the pointer's workspace point
-and sends an ``active`` correction; while the button is held, one more for every frame of the driven actor (and
-at least every :data:`KEEPALIVE_S` when no frame comes, e.g. the actor is paused); releasing the button sends
-the release. A live hold ends with its episode: on the episode's last frame (``last``) the GUI releases, and the
-person presses again to correct the next episode. Keys: space pauses / resumes the actors, tab chooses the
+The task comes as a :class:`~common.descriptor.TaskDescriptor` (:meth:`GuiApp.set_task`); its views' geometry
+(:class:`~common.task_render.TaskRenderer`: view 0 shows the task's two view axes, view 1, if the task has a
+third axis, the first against the third) turns a pointer position into command coordinates. A drag in a view
+sets that view's two coordinates of P_h; the others stay where the driven robot's desired position is when the
+button goes down (so a 3-D task is corrected from its two views, one pair of axes at a time).
+
+A drag: pressing the left button in a view sets the desired position P_h there and sends an ``active``
+correction; while the button is held, one more for every frame of the driven actor (and at least every
+:data:`KEEPALIVE_S` when no frame comes, e.g. the actor is paused); releasing the button sends the release.
+A live hold ends with its episode: on the episode's last frame (``last``) the GUI releases, and the person
+presses again to correct the next episode. Keys: space pauses / resumes the actors, tab chooses the
 actor to drive, o toggles the overlays, q or Esc quits (releasing first).
 """
 
@@ -17,8 +23,9 @@ from typing import Callable
 
 import numpy as np
 
+from common.descriptor import TaskDescriptor
 from common.messages import ActorInfo
-from common.protocol import EpisodeReport, Frame, Message, ProtocolError, RejectCounter, Scale, Status
+from common.protocol import EpisodeReport, Frame, Message, ProtocolError, RejectCounter, Scale, Status, TaskInfo
 
 __all__ = ["GuiApp", "ActorState", "window_size", "KEEPALIVE_S", "CURVE_HEIGHT", "HELP"]
 
@@ -28,9 +35,9 @@ HELP = "drag: P_h  space: pause  tab: actor  o: overlays  q: quit"
 TRAIL_MAX = 2000
 
 
-def window_size(size: int, strip_height: int = 80) -> tuple[int, int]:
-    """(width, height) of the window: the scene, the text strip, the L(s) curve."""
-    return int(size), int(size) + int(strip_height) + CURVE_HEIGHT
+def window_size(size: int, strip_height: int = 80, views: int = 1) -> tuple[int, int]:
+    """(width, height) of the window: ``views`` scenes side by side, the text strip, the L(s) curve."""
+    return int(size) * int(views), int(size) + int(strip_height) + CURVE_HEIGHT
 
 
 @dataclass
@@ -39,8 +46,8 @@ class ActorState:
 
     actor: str
     frame: Frame | None = None
-    trail: list[np.ndarray] = field(default_factory=list)  # robot positions in the current episode
-    table: np.ndarray | None = None  # (N, 2) L on the KMP grid, from the actor's scale messages
+    trail: list[np.ndarray] = field(default_factory=list)  # robot positions (O,) in the current episode
+    table: np.ndarray | None = None  # (N, O) L on the KMP grid, from the actor's scale messages
     model: dict | None = None  # the actor's scale model, when its scale message has no table
     scale_version: int = 0  # counts scale messages (cache key of the drawn band)
     last_episode: dict | None = None  # stats of the last finished episode
@@ -55,7 +62,8 @@ class GuiApp:
         (:meth:`human_bridge.client.CorrectionPublisher.send`).
     :param control: ``control(command)`` publishes ``pause`` / ``resume`` to the actors.
     :param actor: the actor to drive (``*`` or None: the first that sends a frame).
-    :param size: the scene's size in pixels.
+    :param task: the run's task (None: until :meth:`set_task`; frames are kept, nothing is drawn or dragged).
+    :param size: the size of one view's scene in pixels.
     :param strip_height: the text strip's height in pixels.
     :param client: the client id (for the reject log).
     :param run: the run id (shown while waiting).
@@ -63,8 +71,8 @@ class GuiApp:
     """
 
     def __init__(self, send: Callable, control: Callable | None = None, *, actor: str | None = None,
-                 size: int = 600, strip_height: int = 80, client: str = "gui", run: str = "",
-                 rejects: RejectCounter | None = None) -> None:
+                 task: TaskDescriptor | None = None, size: int = 600, strip_height: int = 80, client: str = "gui",
+                 run: str = "", rejects: RejectCounter | None = None) -> None:
         self.send = send
         self.control = control
         self.current: str | None = None if actor in (None, "", "*") else actor
@@ -82,6 +90,30 @@ class GuiApp:
         self.quit = False
         self.sent = 0
         self.last_send = 0.0
+        self.task: TaskDescriptor | None = None
+        self.layout = None  # the views' geometry (a TaskRenderer), with the task
+        self.drag_view = 0  # the view the current drag started in
+        if task is not None:
+            self.set_task(task)
+
+    def set_task(self, task: TaskDescriptor) -> None:
+        """The run's task: lay out its views (the window is ``views`` scenes wide). A second, different task
+        (another digest) is refused; frames of another size than the task's O are refused from now on."""
+        if self.task is not None:
+            if task.digest != self.task.digest:
+                self.rejects.reject("task", task.name, ProtocolError(f"task {task.name!r} ({task.digest}) is not "
+                                                                     f"the run's task {self.task.name!r}"))
+            return
+        from common.task_render import TaskRenderer
+
+        views = 1 if task.third is None else 2
+        self.width, self.height = window_size(self.size, self.strip_height, views)
+        self.layout = TaskRenderer(task, size=(self.width, self.size + self.strip_height),
+                                   strip_height=self.strip_height)
+        self.task = task
+        for v in self.actors.values():
+            if v.frame is not None and len(v.frame.robot) != task.out_dim:
+                v.frame, v.trail = None, []
 
     # ------------------------------------------------------------------ messages in
     def state(self, actor: str) -> ActorState:
@@ -101,17 +133,30 @@ class GuiApp:
     def offer(self, msg: Message) -> None:
         """One decoded message from the wire.
 
-        :param msg: a :class:`Frame`, :class:`Scale`, :class:`EpisodeReport` or an actor's :class:`Status`.
+        :param msg: a :class:`Frame`, :class:`Scale`, :class:`EpisodeReport`, an actor's :class:`Status` or a
+            :class:`TaskInfo`.
         """
-        if isinstance(msg, Status):
+        if isinstance(msg, TaskInfo):
+            self.set_task(msg.descriptor)
+        elif isinstance(msg, Status):
             if isinstance(msg.info, ActorInfo) and msg.info.id in self.actors:
                 self.actors[msg.info.id].status = msg.info
         elif isinstance(msg, Frame):
-            self.on_frame(self.state(msg.actor), msg)
+            if self._fits(msg.actor, "frame", len(msg.robot)):
+                self.on_frame(self.state(msg.actor), msg)
         elif isinstance(msg, Scale):
-            self.on_scale(self.state(msg.actor), msg)
+            if msg.table is None or self._fits(msg.actor, "scale", msg.table.shape[1]):
+                self.on_scale(self.state(msg.actor), msg)
         elif isinstance(msg, EpisodeReport):
             self.state(msg.actor).last_episode = msg.stats
+
+    def _fits(self, actor: str, kind: str, o: int) -> bool:
+        """Whether a message of ``o`` outputs fits the task (counted as refused if not)."""
+        if self.task is None or o == self.task.out_dim:
+            return True
+        self.rejects.reject(kind, actor, ProtocolError(f"{o} outputs, the task {self.task.name!r} has "
+                                                       f"{self.task.out_dim}"))
+        return False
 
     def on_frame(self, v: ActorState, f: Frame) -> None:
         """A frame: extend the trail; while dragging this actor, answer it (or release on its episode's last)."""
@@ -139,10 +184,20 @@ class GuiApp:
         v.scale_version += 1
 
     # ------------------------------------------------------------------ corrections out
-    def pixel_to_world(self, pos) -> np.ndarray:
-        """A scene pixel's workspace point (as ``SceneRenderer.pixel_to_world`` at this size)."""
-        span = float(self.size - 1)
-        return np.array([pos[0] / span, 1.0 - pos[1] / span], dtype=np.float64)
+    def point_at(self, pos, view: int | None = None) -> np.ndarray | None:
+        """P_h for the pointer at ``pos``: in ``view`` (default: the view under it, None if there is none), the
+        view's two coordinates from the pointer, the others from the held P_h or the driven robot's desired
+        position (the KMP mean's start before any frame)."""
+        if self.layout is None:
+            return None
+        if view is None:
+            view = self.layout.view_at(pos)
+            if view is None:
+                return None
+        v = self.driven
+        base = self.p_h if self.p_h is not None else \
+            (v.frame.desired if v is not None and v.frame is not None else self.task.mean[0])
+        return self.layout.point_at(view, pos, base)
 
     def _send(self, p_h: np.ndarray | None) -> None:
         v = self.driven
@@ -154,17 +209,22 @@ class GuiApp:
         self.last_send = time.monotonic()
 
     def press(self, pos) -> None:
-        """Left button down at ``pos``: start dragging (on the scene only)."""
-        if self.current is None or pos[1] >= self.size:
+        """Left button down at ``pos``: start dragging (in a view only)."""
+        if self.current is None or self.layout is None:
             return
+        view = self.layout.view_at(pos)
+        if view is None:
+            return
+        self.p_h = None
+        self.p_h = self.point_at(pos, view)
+        self.drag_view = view
         self.dragging = True
-        self.p_h = self.pixel_to_world(pos)
         self._send(self.p_h)
 
     def move(self, pos) -> None:
         """The pointer moved: P_h follows it while dragging (sent with the next frame or keepalive)."""
         if self.dragging:
-            self.p_h = self.pixel_to_world(pos)
+            self.p_h = self.point_at(pos, self.drag_view)
 
     def release(self) -> None:
         """Let go (button up, focus lost, actor switched, episode ended, quit)."""

@@ -2,12 +2,15 @@
 
 Wiring, top to bottom: resolve the run settings; open the window (or fail loudly, exit code 3, when there is no
 usable display); connect a :class:`~human_bridge.client.HumanClient` that takes the actors' frames, scale models,
-episode reports and status; then, every display frame: hand the network's messages to the :class:`GuiApp`
-(:class:`GuiSession`), the window's events to the app (which publishes corrections directly), redraw
-(:class:`GuiView`).
+episode reports and status; ask the actors for the run's task (``task/actor/*``, a
+:class:`~common.descriptor.TaskDescriptor`; asked again every :data:`TASK_RETRY_S` until one answers, the
+window is then resized to the task's views); then, every display frame: hand the network's messages to the
+:class:`GuiApp` (:class:`GuiSession`), the window's events to the app (which publishes corrections directly),
+redraw (:class:`GuiView`).
 
-``--screenshot FILE`` renders one frame offscreen after the first frame(s) arrived (or from synthetic frames with
-``--offline``, no router needed), writes a PNG and exits; it needs no display. A window needs one: a desktop
+``--screenshot FILE`` renders one frame offscreen after the first frame(s) arrived (or, with ``--offline``, from
+synthetic frames of the run's task built here -- ``--task``/``--scenario`` -- no router needed), writes a PNG and
+exits; it needs no display. A window needs one: a desktop
 session (``DISPLAY`` or ``WAYLAND_DISPLAY``), or an explicit ``SDL_VIDEODRIVER`` (``dummy`` for a headless
 window, as the tests use).
 """
@@ -24,14 +27,17 @@ import numpy as np
 from common.config import ProcessConfig
 from common.process import StopFlag, install_stop_handlers
 from common.protocol import Frame
+from common.task_link import fetch_tasks
 from human_bridge.client import HumanClient, connected
 from human_bridge.gui.app import GuiApp, window_size
 from human_bridge.gui.view import GuiView
 
-__all__ = ["GuiSession", "GUI_KINDS", "display_problem", "synthetic_frames", "add_arguments", "run", "NO_DISPLAY_EXIT"]
+__all__ = ["GuiSession", "GUI_KINDS", "display_problem", "synthetic_frames", "add_arguments", "run", "NO_DISPLAY_EXIT",
+           "TASK_RETRY_S"]
 
 GUI_KINDS = ("frame", "scale", "episode", "status")
 NO_DISPLAY_EXIT = 3
+TASK_RETRY_S = 1.0  # while the task is unknown, ask the actors this often
 
 
 class GuiSession:
@@ -43,6 +49,17 @@ class GuiSession:
 
     def __init__(self, link: HumanClient) -> None:
         self.link = link
+        self._t_task = -TASK_RETRY_S
+
+    def fetch_task(self, app: GuiApp, timeout: float = 0.3) -> bool:
+        """Until ``app`` knows the run's task: ask the actors for it (at most every :data:`TASK_RETRY_S`, waiting
+        up to ``timeout`` s for replies); True once the app has it."""
+        if app.task is None and time.monotonic() - self._t_task >= TASK_RETRY_S:
+            self._t_task = time.monotonic()
+            found = fetch_tasks(self.link.session, self.link.keys, "actor", timeout, self.link.rejects)
+            if found:
+                app.set_task(found[sorted(found)[0]])
+        return app.task is not None
 
     def app(self, **kw) -> GuiApp:
         """A :class:`GuiApp` that publishes with this client (``kw``: :class:`GuiApp`'s keyword arguments)."""
@@ -93,6 +110,8 @@ def window_loop(app: GuiApp, view: GuiView, net: GuiSession, screen, flag: StopF
 
     clock = pygame.time.Clock()
     while not flag and not app.quit:
+        if app.task is None and net.fetch_task(app):
+            screen = pygame.display.set_mode((app.width, app.height))  # the task's views
         net.pump(app)
         for event in pygame.event.get():
             app.handle(event)
@@ -108,9 +127,10 @@ def screenshot_live(app: GuiApp, view: GuiView, net: GuiSession, args: argparse.
     deadline = time.monotonic() + args.wait
     seen_iv = counted = 0
     while not flag and time.monotonic() < deadline:
+        net.fetch_task(app)
         net.pump(app)
         v = app.driven
-        if v is not None and v.frame is not None:
+        if app.task is not None and v is not None and v.frame is not None:
             seen_iv += v.frame.intervening and v.frames > counted
             counted = v.frames
             if v.frames >= args.screenshot_frames or (args.screenshot_intervening
@@ -118,41 +138,47 @@ def screenshot_live(app: GuiApp, view: GuiView, net: GuiSession, args: argparse.
                 view.save_png(args.screenshot)
                 return 0
         time.sleep(0.01)
-    if app.driven is not None and app.driven.frame is not None:
+    if app.task is not None and app.driven is not None and app.driven.frame is not None:
         view.save_png(args.screenshot)
         return 0
-    print(f"khgrl human gui: no frame within {args.wait} s", flush=True)
+    print(f"khgrl human gui: no {'frame' if app.task is not None else 'task'} within {args.wait} s", flush=True)
     return 1
 
 
-def synthetic_frames(scenario: str, steps: int = 150, drag_from: int = 110, actor: str = "a0") -> list[Frame]:
-    """Frames like an actor's, from a local PassageEnv that follows the KMP mean (zero action) and is dragged
-    above the mean from step ``drag_from`` on: for ``--offline`` screenshots and tests without a run."""
-    from common.env import PassageEnv
-
-    env = PassageEnv(scenario)
+def synthetic_frames(env, steps: int = 150, drag_from: int = 110, actor: str = "a0", lift: float = 0.08
+                     ) -> list[Frame]:
+    """Frames like an actor's, from a local :class:`~common.kgrl_env.KGRLEnv` that follows the KMP mean (zero
+    action) and is dragged ``lift`` (a fraction of the workspace) off the mean along the main view's vertical axis
+    from step ``drag_from`` on: for ``--offline`` screenshots and tests without a run."""
+    o, up = env.world.out_dim, env.world.view.axes[1]
+    offset = np.zeros(o)
+    offset[up] = lift * float(env.world.high[up] - env.world.low[up])
     env.reset()
     frames, ret = [], 0.0
     for k in range(steps):
         if k >= drag_from:
-            m = env.mapping.mean(env.t)
-            env.set_correction(np.array([m[0], m[1] + 0.08]))
-        _, r, term, trunc, info = env.step(np.zeros(2))
+            env.set_correction(env.mapping.mean(env.t) + offset)
+        _, r, term, trunc, info = env.step(np.zeros(o))
         ret += r
         t = int(info["t"])
-        frames.append(Frame(actor=actor, episode=1, t=t, phase=float(info["phase"]), robot=env.robot.copy(),
+        frames.append(Frame(actor=actor, episode=1, t=t, phase=float(info["phase"]), robot=env.position.copy(),
                             desired=np.asarray(info["desired"]), mean=env.mapping.mean(t),
-                            scale=np.asarray(info["scale"]), intervening=bool(info["intervened"]), scenario=scenario,
+                            scale=np.asarray(info["scale"]), intervening=bool(info["intervened"]), task=env.task.name,
                             ret=float(ret), last=True if term or trunc else None))
         if term or trunc:
             break
     return frames
 
 
-def offline_screenshot(args: argparse.Namespace, scenario: str) -> int:
-    """``--screenshot FILE --offline``: the window drawn from synthetic frames."""
-    app = GuiApp(lambda *a: None, None, actor="a0", size=args.size, client=args.id, run="offline")
-    frames = synthetic_frames(scenario)
+def offline_screenshot(args: argparse.Namespace, spec: str, demos: str = "") -> int:
+    """``--screenshot FILE --offline``: the window drawn from synthetic frames of the task built here."""
+    from common.kgrl_env import KGRLEnv
+    from human_bridge.gui.task import local_descriptor, local_world
+
+    world = local_world(spec, demos or None)
+    app = GuiApp(lambda *a: None, None, actor="a0", task=local_descriptor(spec, world=world), size=args.size,
+                 client=args.id, run="offline")
+    frames = synthetic_frames(KGRLEnv(world=world))
     for f in frames:
         app.offer(f)
     if frames[-1].intervening:  # show the drag that produced the last frames
@@ -178,7 +204,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--wait", type=float, default=120.0,
                         help="with --screenshot: give up after this many seconds (default: %(default)s)")
     parser.add_argument("--offline", action="store_true",
-                        help="with --screenshot: synthetic frames of --scenario, no router needed (default: off)")
+                        help="with --screenshot: synthetic frames of the run's task (--task or --scenario) built "
+                             "here, no router needed (default: off)")
 
 
 def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
@@ -193,7 +220,13 @@ def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
     if args.screenshot:
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # offscreen: no display needed
     if args.offline:
-        return offline_screenshot(args, proc.cfg.scenario)
+        from common.task import TaskError
+
+        try:
+            return offline_screenshot(args, proc.cfg.task_spec, proc.cfg.demos)
+        except TaskError as exc:
+            print(f"khgrl human gui: {exc}", file=sys.stderr, flush=True)
+            return 2
     import pygame
 
     try:
@@ -209,7 +242,6 @@ def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
             net = GuiSession(link)
             app = net.app(actor=args.actor, size=args.size, run=proc.run)
             view = GuiView(app)
-            view.renderer(proc.cfg.scenario)  # build the run's world now, not when the first frame comes
             if args.screenshot:
                 return screenshot_live(app, view, net, args, flag)
             print(f"khgrl human gui ({args.id}) on run {proc.run}: drag the robot with the mouse", flush=True)

@@ -1,7 +1,8 @@
 """``khgrl human gui``: the pygame human-input client.
 
 Unit level: typed frames and synthetic pygame events drive :class:`human_bridge.gui.app.GuiApp` (no Zenoh), and
-:class:`human_bridge.gui.view.GuiView` draws it. Process level: the real ``khgrl human gui`` process fails loudly
+:class:`human_bridge.gui.view.GuiView` draws it, for the passage world (2-D, one view) and a 3-D task (two views:
+a drag in either sets that view's two coordinates). Process level: the real ``khgrl human gui`` process fails loudly
 without a display, writes offline screenshots, and runs its window (``SDL_VIDEODRIVER=dummy``) against a router
 until stopped. Integration: a GUI in this process, connected to a real router + learner + actor, receives the
 actor's frames; synthetic mouse events (``pygame.event.post``) produce real correction messages on the wire, and
@@ -11,6 +12,7 @@ the actor stores intervened transitions (episodes.csv, corrections.csv, the lear
 from __future__ import annotations
 
 import csv
+import functools
 import os
 import subprocess
 import time
@@ -24,17 +26,72 @@ import pygame  # noqa: E402
 import pytest  # noqa: E402
 
 from common.messages import ActorInfo, LearnerInfo  # noqa: E402
-from common.protocol import Correction, Frame, RejectCounter, Scale, Status, decode, encode  # noqa: E402
+from common.protocol import Correction, Frame, RejectCounter, Scale, Status, TaskInfo, decode, encode  # noqa: E402
 from helpers import REPO, ProcGroup, python_main, read_json, unique_run, wait_for  # noqa: E402
 from human_bridge.gui.app import GuiApp  # noqa: E402
 from human_bridge.gui.view import GuiView  # noqa: E402
 
 
-def _frame(actor="a0", episode=1, t=5, scenario="low_cov", intervening=False, scale=(15.0, 15.0), **kw) -> Frame:
+@functools.lru_cache(maxsize=None)
+def _task(spec: str = "passage:low_cov"):
+    """The descriptor an actor of ``spec`` announces (built here once)."""
+    from human_bridge.gui.task import local_descriptor
+
+    return local_descriptor(spec)
+
+
+class _Point3:
+    """A 3-D point robot that goes where it is told (a minimal task environment)."""
+
+    @staticmethod
+    def env(seed: int = 0):
+        import gymnasium as gym
+
+        class Point3(gym.Env):
+            observation_space = gym.spaces.Box(0.0, 1.0, shape=(3,), dtype=np.float64)
+            action_space = gym.spaces.Box(0.0, 1.0, shape=(3,), dtype=np.float64)
+
+            def reset(self, *, seed=None, options=None):
+                super().reset(seed=seed)
+                self.p = np.array([0.1, 0.5, 0.2])
+                return self.p.copy(), {}
+
+            def step(self, action):
+                self.p = np.clip(np.asarray(action, np.float64), 0.0, 1.0)
+                return self.p.copy(), 0.0, False, False, {}
+
+        return Point3()
+
+    @staticmethod
+    def task():
+        """Demonstrations from (0.1, 0.5, 0.2) to (0.9, 0.5, 0.2) over a box, fanning in y and lifting in z."""
+        from common.task import Box, Point, Task, View
+
+        s = np.linspace(0.0, 1.0, 60)
+        demos = np.stack([np.c_[0.1 + 0.8 * s, 0.5 + dy * np.sin(np.pi * s), 0.2 + dz * np.sin(np.pi * s)]
+                          for dy, dz in ((-0.2, 0.5), (-0.1, 0.6), (0.1, 0.55), (0.2, 0.45))])
+        view = View(axes=(0, 1), third=2, names=("x", "y", "z"),
+                    shapes=(Box("keep-out", (0.4, 0.4, 0.0), (0.6, 0.6, 0.4)), Point("start", (0.1, 0.5, 0.2)),
+                            Point("goal", (0.9, 0.5, 0.2))))
+        return Task(name="point3", make_env=_Point3.env, demos=demos, workspace=((0, 0, 0), (1, 1, 1)),
+                    default_scale=0.5, position=lambda obs: obs, view=view)
+
+
+@functools.lru_cache(maxsize=None)
+def _task3():
+    from common.task_world import build_task_world
+    from human_bridge.gui.task import local_descriptor
+
+    return local_descriptor("tests.point3:task", world=build_task_world(_Point3.task()))
+
+
+def _frame(actor="a0", episode=1, t=5, task="passage-low_cov", intervening=False, scale=15.0,
+           at=(0.1, 0.5), **kw) -> Frame:
     """A frame as it comes off the wire (encoded and decoded)."""
-    f = Frame(actor=actor, episode=episode, t=t, phase=t / 399, robot=np.array([0.1, 0.5]),
-              desired=np.array([0.1, 0.5]), mean=np.array([0.1, 0.5]), scale=np.array(scale),
-              intervening=intervening, scenario=scenario, ret=-1.5, **kw)
+    at = np.asarray(at, dtype=np.float64)
+    f = Frame(actor=actor, episode=episode, t=t, phase=t / 399, robot=at, desired=at, mean=at,
+              scale=np.broadcast_to(np.asarray(scale, np.float64), at.shape).copy(), intervening=intervening, task=task,
+              ret=-1.5, **kw)
     return decode(Frame, encode(f, actor, t))
 
 
@@ -84,27 +141,27 @@ def _env(**over) -> dict:
 
 # ------------------------------------------------------------------------------------------ unit level
 def test_drag_sends_pointer_position_each_frame_and_release(display):
-    from common.render import SceneRenderer
-    from common.scenarios import get_scenario
-
     sink = Sink()
-    app = GuiApp(sink.send, sink.control, size=600)
+    app = GuiApp(sink.send, sink.control, size=600, task=_task())
     view = GuiView(app)
     app.offer(_frame(t=5))
     assert app.current == "a0" and app.actors["a0"].frame.t == 5
+    assert (app.width, app.height) == (600, 770) and len(app.layout.views) == 1
     view.draw(display)
-    ref = SceneRenderer(get_scenario("low_cov"), None, None, size=600)
+    ref = app.layout
     _post_and_handle(app, _ev(pygame.MOUSEBUTTONDOWN, pos=(300, 150), button=1))
     assert app.dragging
     a, p, ep, t = sink.sent[-1]
     assert (a, ep, t) == ("a0", 1, 5)
-    np.testing.assert_allclose(p, ref.pixel_to_world(np.array([300, 150])))
+    np.testing.assert_allclose(p, ref.to_world(0, (300, 150)))
+    np.testing.assert_allclose(ref.to_pixel(0, p), (300, 150), atol=1e-6)  # the pointer's point, where it is drawn
+    assert 0.0 < p[0] < 1.0 and 0.5 < p[1] < 1.0  # right of the left edge, above the middle of the passage world
     _post_and_handle(app, _ev(pygame.MOUSEMOTION, pos=(320, 100), rel=(20, -50), buttons=(1, 0, 0)))
     n = len(sink.sent)
     app.offer(_frame(t=6))
     app.offer(_frame(t=7))
     assert len(sink.sent) == n + 2  # one active correction per frame while held
-    np.testing.assert_allclose(sink.sent[-1][1], ref.pixel_to_world(np.array([320, 100])))
+    np.testing.assert_allclose(sink.sent[-1][1], ref.to_world(0, (320, 100)))
     assert sink.sent[-1][2:] == (1, 7)
     app.last_send -= 1.0  # keepalive while no frame arrives
     app.keepalive()
@@ -117,13 +174,99 @@ def test_drag_sends_pointer_position_each_frame_and_release(display):
     app.offer(_frame(t=8))
     app.keepalive()
     assert len(sink.sent) == n  # released: nothing more
-    _post_and_handle(app, _ev(pygame.MOUSEBUTTONDOWN, pos=(300, 650), button=1))  # the strip is not the scene
+    _post_and_handle(app, _ev(pygame.MOUSEBUTTONDOWN, pos=(300, 650), button=1))  # the strip is not a view
     assert not app.dragging and len(sink.sent) == n
+
+
+def test_a_3d_task_is_corrected_from_its_two_views(display):
+    """Two views side by side: a drag in the (x, z) view sets x and z and keeps y where the desired position is;
+    one in the (x, y) view sets x and y. Frames and tables of another size are refused; the window is drawn."""
+    d = _task3()
+    sink = Sink()
+    rejects = RejectCounter("test")
+    app = GuiApp(sink.send, sink.control, task=d, size=300, rejects=rejects)
+    view = GuiView(app)
+    lay = app.layout
+    assert (app.width, app.height) == (600, 300 + 80 + 90) and [v.axes for v in lay.views] == [(0, 1), (0, 2)]
+    app.offer(_frame(t=5, task="point3", at=(0.2, 0.3, 0.4)))
+    px = lay.to_pixel(1, np.array([0.5, 0.0, 0.8]))
+    assert lay.view_at(px) == 1
+    _post_and_handle(app, _ev(pygame.MOUSEBUTTONDOWN, pos=tuple(px), button=1))
+    np.testing.assert_allclose(sink.sent[-1][1], [0.5, 0.3, 0.8], atol=0.01)
+    assert sink.sent[-1][1][1] == 0.3  # y: the desired position's, not the pointer's
+    px2 = lay.to_pixel(1, np.array([0.6, 0.0, 0.7]))
+    _post_and_handle(app, _ev(pygame.MOUSEMOTION, pos=tuple(px2), rel=(1, 1), buttons=(1, 0, 0)))
+    app.offer(_frame(t=6, task="point3", at=(0.5, 0.3, 0.8)))
+    np.testing.assert_allclose(sink.sent[-1][1], [0.6, 0.3, 0.7], atol=0.01)
+    view.draw(display)
+    _post_and_handle(app, _ev(pygame.MOUSEBUTTONUP, pos=tuple(px2), button=1))
+    assert sink.sent[-1][1] is None
+    app.offer(_frame(t=7, task="point3", at=(0.6, 0.3, 0.7)))
+    px3 = lay.to_pixel(0, np.array([0.7, 0.9, 0.0]))
+    _post_and_handle(app, _ev(pygame.MOUSEBUTTONDOWN, pos=tuple(px3), button=1))
+    np.testing.assert_allclose(sink.sent[-1][1], [0.7, 0.9, 0.7], atol=0.01)
+    assert sink.sent[-1][1][2] == 0.7
+    # what does not fit the task is refused and changes nothing
+    app.offer(_frame(t=8, task="passage-low_cov", at=(0.1, 0.5)))
+    assert app.actors["a0"].frame.t == 7 and rejects.by_kind() == {"frame": 1}
+    n = d.horizon
+    app.offer(decode(Scale, encode(Scale(actor="a0", model={}, table=np.ones((n, 2))), "a0", 0)))
+    app.offer(decode(Scale, encode(Scale(actor="a0", model={}, table=np.c_[np.linspace(0.2, 1.0, n), np.ones((n, 2))]),
+                                   "a0", 1)))
+    assert rejects.by_kind() == {"frame": 1, "scale": 1}
+    phases, L = view.scale_curve(app.actors["a0"])
+    assert L.shape == (n, 3) and L[-1, 0] == 1.0
+    band = view.band(app.actors["a0"])
+    assert band.shape == (n, 2, 3) and np.all(band[:, 1] >= band[:, 0])
+    surf = pygame.Surface((app.width, app.height))
+    view.draw(surf)
+    img = pygame.surfarray.array3d(surf)
+    left, right = img[:300, :380], img[300:, :380]
+    assert left.std() > 10 and right.std() > 10 and not np.array_equal(left, right)  # two different views
+
+
+def test_the_task_comes_over_the_wire_and_sizes_the_window():
+    """Frames before the task are kept; a TaskInfo sets the task (and the window's width); another task's
+    descriptor is refused."""
+    rejects = RejectCounter("test")
+    app = GuiApp(Sink().send, size=300, rejects=rejects)
+    view = GuiView(app)
+    assert "waiting for the run's task" in view.text(None)[0]
+    app.press((100, 100))  # nothing to drag in yet
+    assert not app.dragging
+    app.offer(_frame(t=3, task="point3", at=(0.2, 0.3, 0.4)))
+    assert app.width == 300
+    app.offer(decode(TaskInfo, encode(TaskInfo(sender_id="a0", descriptor=_task3()), "a0", 0)))
+    assert app.task.digest == _task3().digest and (app.width, app.height) == (600, 470)
+    assert app.actors["a0"].frame.t == 3
+    app.offer(decode(TaskInfo, encode(TaskInfo(sender_id="a1", descriptor=_task()), "a1", 0)))
+    assert app.task.digest == _task3().digest and rejects.by_kind() == {"task": 1}
+    pygame.font.init()
+    surf = pygame.Surface((app.width, app.height))
+    view.draw(surf)
+
+
+def test_synthetic_frames_of_a_3d_task_make_a_screenshot(tmp_path):
+    from common.kgrl_env import KGRLEnv
+    from common.task_world import build_task_world
+    from human_bridge.gui.main import synthetic_frames
+
+    env = KGRLEnv(world=build_task_world(_Point3.task()))
+    frames = synthetic_frames(env, steps=40, drag_from=30)
+    assert len(frames) == 40 and frames[-1].intervening and not frames[0].intervening
+    assert all(len(f.robot) == 3 for f in frames)
+    np.testing.assert_allclose(frames[-1].desired[1] - frames[-1].mean[1], 0.08)  # dragged up in the main view
+    app = GuiApp(Sink().send, task=_task3(), size=300)
+    for f in frames:
+        app.offer(f)
+    pygame.font.init()
+    GuiView(app).save_png(str(tmp_path / "g3.png"))
+    assert pygame.image.load(str(tmp_path / "g3.png")).get_size() == (600, 470)
 
 
 def test_a_live_hold_ends_with_its_episode():
     sink = Sink()
-    app = GuiApp(sink.send, sink.control)
+    app = GuiApp(sink.send, sink.control, task=_task())
     app.offer(_frame(episode=3, t=40))
     app.press((300, 150))
     app.offer(_frame(episode=3, t=41))
@@ -143,7 +286,7 @@ def test_a_live_hold_ends_with_its_episode():
 
 
 def test_status_is_read_through_the_typed_actor_info():
-    app = GuiApp(Sink().send)
+    app = GuiApp(Sink().send, task=_task())
     view = GuiView(app)
     app.offer(_frame())
     assert "running" in view.text(app.driven)[1]
@@ -160,10 +303,10 @@ def test_status_is_read_through_the_typed_actor_info():
 
 def test_keys_pause_overlays_tab_quit(display):
     sink = Sink()
-    app = GuiApp(sink.send, sink.control)
+    app = GuiApp(sink.send, sink.control, task=_task())
     view = GuiView(app)
     app.offer(_frame("a0"))
-    app.offer(_frame("a1", scenario="high_cov"))
+    app.offer(_frame("a1", at=(0.3, 0.4)))
     assert app.current == "a0"
     _post_and_handle(app, _ev(pygame.KEYDOWN, key=pygame.K_SPACE, mod=0, unicode=" "))
     _post_and_handle(app, _ev(pygame.KEYDOWN, key=pygame.K_SPACE, mod=0, unicode=" "))
@@ -176,7 +319,7 @@ def test_keys_pause_overlays_tab_quit(display):
     _post_and_handle(app, _ev(pygame.KEYDOWN, key=pygame.K_TAB, mod=0, unicode="\t"))
     assert app.current == "a1" and not app.dragging
     assert sink.sent[-1][0] == "a0" and sink.sent[-1][1] is None  # released a0 before switching
-    view.draw(display)  # the other actor's scenario
+    view.draw(display)  # the other actor
     _post_and_handle(app, _ev(pygame.MOUSEBUTTONDOWN, pos=(200, 200), button=1))
     assert sink.sent[-1][0] == "a1" and sink.sent[-1][1] is not None
     _post_and_handle(app, _ev(pygame.KEYDOWN, key=pygame.K_q, mod=0, unicode="q"))
@@ -190,7 +333,7 @@ def test_scale_table_drives_curve_and_band_and_bad_input_is_rejected(display):
     from common.env import build_world
     from human_bridge.client import read
 
-    app = GuiApp(Sink().send)
+    app = GuiApp(Sink().send, task=_task())
     view = GuiView(app)
     app.offer(_frame(scale=(15.0, 15.0)))
     v = app.actors["a0"]
@@ -311,9 +454,9 @@ def test_gui_mouse_drag_over_real_actor_produces_intervened_transitions(tmp_path
                 decode(Correction, s.payload.to_bytes())))
             st = session.declare_subscriber(keys.status("actor", "a0"), lambda s: statuses.update(
                 info=decode(Status, s.payload.to_bytes()).info))
-            app = net.app(actor="a0", run=run)
+            app = net.app(actor="a0", run=run, task=_task())  # built before the actor's (short) episodes run
             view = GuiView(app)
-            r = view.renderer("low_cov")  # the world is built before the actor's (short) episodes run
+            r = app.layout
             actor = g.actor(run, ep, "--scenario", "low_cov", "--method", "khgrl", "--episodes", "2", "--rate", "50",
                             "--learning-starts", "16", "--max-lead", "100000", run_dir=run_dir)
 
@@ -333,8 +476,10 @@ def test_gui_mouse_drag_over_real_actor_produces_intervened_transitions(tmp_path
 
             try:
                 wait_for(at(30), 120, "frames of episode 1 from the actor", procs=[actor, learner])
+                asked = GuiApp(lambda *a: None)  # a GUI that starts without the task asks the actors for it
+                assert net.fetch_task(asked, timeout=5.0) and asked.task.digest == _task().digest
                 mean = np.asarray(app.actors["a0"].frame.mean)
-                px = r.world_to_pixel(mean + np.array([0.0, 0.05]))
+                px = r.to_pixel(0, mean + np.array([0.0, 0.05]))
                 tick(_ev(pygame.MOUSEBUTTONDOWN, pos=tuple(int(v) for v in px), button=1))
                 t0 = time.monotonic()
                 k = 0
@@ -377,7 +522,7 @@ def test_gui_mouse_drag_over_real_actor_produces_intervened_transitions(tmp_path
     assert mine[-1].active is False
     assert all(m.actor == "a0" for m in mine)
     drag_eps = {m.episode for m in mine}  # a drag may run over the end of a (short, random-policy) episode
-    np.testing.assert_allclose(active[0].p_h, r.pixel_to_world(np.asarray(px, dtype=np.float64)))
+    np.testing.assert_allclose(active[0].p_h, r.to_world(0, tuple(int(v) for v in px)))
     # ... and the actor applied them: intervened steps in its episode statistics, its corrections record and the
     # learner's replay buffer
     with open(run_dir / "actor-a0" / "episodes.csv", newline="") as fh:
