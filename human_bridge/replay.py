@@ -34,7 +34,7 @@ __all__ = ["load_record", "ReplayPlan", "ReplayAnswers", "add_arguments", "run"]
 
 
 def load_record(path: str | Path) -> list[dict]:
-    """Rows of a corrections.csv (or .jsonl), typed: episode, step (int), p_h (2,), actor, client.
+    """Rows of a corrections.csv (or .jsonl), typed: episode, step (int), p_h (O,), actor, client.
 
     :param path: the record file.
     """
@@ -46,9 +46,9 @@ def load_record(path: str | Path) -> list[dict]:
         with open(path, newline="") as fh:
             raw = list(csv.DictReader(fh))
     for r in raw:
-        p_h = r["p_h"] if "p_h" in r else [r["p_h_x"], r["p_h_y"]]
+        p_h = r["p_h"] if "p_h" in r else [v for k, v in r.items() if k.startswith("p_h_")]
         p = np.array([float(v) for v in p_h], dtype=np.float64)
-        if p.shape != (2,) or not np.all(np.isfinite(p)):
+        if p.ndim != 1 or not 1 <= p.size <= 64 or not np.all(np.isfinite(p)):
             raise ValueError(f"{path}: bad p_h in row {r}")
         rows.append({"actor": str(r["actor"]), "episode": int(r["episode"]), "step": int(r["step"]), "p_h": p,
                      "client": str(r.get("client", ""))})

@@ -200,6 +200,33 @@ def test_record_three_demos_through_the_window_and_train_from_them(tmp_path):
     assert run_record(_args("--out", str(out), "--steps", "120"), events=events) == 2
     assert run_record(_args("--out", str(out), "--steps", "120", "--overwrite"), events=events) == 1
     np.testing.assert_allclose(load_demos(out), demos)
+    _train_from(out, tmp_path / "run", demos)
+
+
+def _train_from(path, run_dir, demos) -> None:
+    """``khgrl up --demos FILE``: the run trains on the recorded demonstrations (horizon 120) and keeps a copy."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    from helpers import REPO
+
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "RUST_LOG": "error"}
+    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "up", "--demos", str(path), "--episodes", "2",
+                           "--method", "kgrl", "--learning-starts", "32", "--run-dir", str(run_dir), "--no-progress"],
+                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    config = json.loads((run_dir / "config.json").read_text())
+    kept = run_dir / "demos.csv"
+    assert config["demos"] == str(kept.resolve())
+    from common.demos import load_demos
+
+    np.testing.assert_allclose(load_demos(kept), demos)
+    episodes = json.loads((run_dir / "actor-a0" / "episodes.json").read_text())
+    assert len(episodes) == 2 and all(e["steps"] <= 120 for e in episodes)
+    state = json.loads((run_dir / "learner" / "checkpoint" / "state.json").read_text())
+    assert state["total_ingested"] == sum(e["steps"] for e in episodes) and state["iterations"] > 0
 
 
 def test_without_a_display_exit_3(tmp_path, monkeypatch, capsys):

@@ -52,7 +52,7 @@ def _frame(episode: int, t: int):
 
     p = np.array([0.5, 0.5])
     return Frame(actor="a0", episode=episode, t=t, phase=0.5, robot=p, desired=p, mean=p, scale=np.array([1.0, 1.0]),
-                 intervening=False, scenario="low_cov")
+                 intervening=False, task="passage-low_cov")
 
 
 def test_replay_answers_each_frame_with_the_recorded_word_for_the_next_step():

@@ -495,7 +495,7 @@ def _hostile_corrections(spoof_key: str) -> list[tuple[str, bytes, str]]:
 
 def _hostile_frames() -> list[tuple[str, bytes, str]]:
     frame = _env_msg("frame", sender="a0", actor="a0", episode=HUMAN_EPISODE, t=10, phase=0.5, robot=[0.6, 0.5],
-                     desired=[0.6, 0.5], mean=[0.6, 0.5], scale=[15.0, 15.0], intervening=False, scenario="low_cov")
+                     desired=[0.6, 0.5], mean=[0.6, 0.5], scale=[15.0, 15.0], intervening=False, task="passage-low_cov")
     return _generic("frame", frame, "episode") + [
         ("robot NaN", _pack(dict(frame, robot=[float("nan"), 0.5])), "robot[0]: not finite"),
         ("mean inf", _pack(dict(frame, mean=[float("inf"), 0.5])), "mean[0]: not finite"),

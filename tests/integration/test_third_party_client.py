@@ -38,7 +38,7 @@ def test_client_speaks_the_typed_protocol_both_ways():
     spec.loader.exec_module(client)
     p = np.array([0.25, 0.5])
     frame = Frame(actor="a0", episode=2, t=7, phase=0.1, robot=p, desired=p, mean=p, scale=np.array([1.0, 1.0]),
-                  intervening=False, scenario="low_cov", ret=-1.0, next_mean=p, last=True)
+                  intervening=False, task="passage-low_cov", ret=-1.0, next_mean=p, last=True)
     assert client.parse_frame(encode(frame, "a0", 7)) == {"episode": 2, "t": 7, "mean": [0.25, 0.5], "last": True}
     assert client.parse_frame(encode(frame.replace(last=None), "a0", 8))["last"] is False
     assert client.parse_frame(b"\xc1") is None

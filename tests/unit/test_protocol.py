@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 from common.messages import ActorInfo, Dims, HumanInfo, LearnerInfo, TaskInfo
-from common.spaces import ACT_DIM, OBS_DIM
 from common.protocol import (
     KINDS,
     SCHEMA_VERSION,
@@ -37,6 +36,7 @@ from common.protocol import (
     pack_array,
     with_base_seq,
 )
+from common.spaces import ACT_DIM, OBS_DIM
 
 REPO = Path(__file__).resolve().parents[2]
 
