@@ -6,8 +6,8 @@ and monitors draw from it, a third-party client reads sizes from it. It is plain
 lists and two arrays), checked on receipt like every message (docs/protocol.md, ``task``).
 
 ``digest`` identifies the task: it hashes everything a learner and an actor must agree on (names, sizes,
-bounds, constraints, horizon, L0, the demonstrations) but not the fitted KMP mean, which a different BLAS may
-round differently. A learner and an actor whose digests differ refuse each other.
+bounds, constraints, horizon, L0, the demonstrations) but not the fitted KMP (mean and projector), which a
+different BLAS may round differently. A learner and an actor whose digests differ refuse each other.
 """
 
 from __future__ import annotations
@@ -50,6 +50,8 @@ class TaskDescriptor:
     :param shapes: named objects to draw: {"kind": box|sphere|point, "name", and low/high, center/radius or at}.
     :param mean: (N, O) the KMP mean eta0 over the grid.
     :param demos: (M, N, O) the demonstrations.
+    :param projector: (N, O, O) the KMP's null-space projector N_t on the grid (the exploration band a viewer
+        draws is eta0 +- |N_t| L_t).
     """
 
     name: str
@@ -71,11 +73,12 @@ class TaskDescriptor:
     shapes: tuple[dict, ...]
     mean: np.ndarray
     demos: np.ndarray
+    projector: np.ndarray
 
     @property
     def digest(self) -> str:
         """16 hex characters identifying the task (see the module docstring)."""
-        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("mean", "demos")}
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("mean", "demos", "projector")}
         text = json.dumps(d, sort_keys=True, default=list)
         h = hashlib.sha256(text.encode())
         h.update(np.ascontiguousarray(self.demos, dtype="<f8").tobytes())
@@ -87,8 +90,9 @@ class TaskDescriptor:
 
     def to_wire(self) -> dict:
         """The descriptor as a map for msgpack (arrays as array maps)."""
-        d = {k: _lists(v) for k, v in asdict(self).items() if k not in ("mean", "demos")}
-        d["mean"], d["demos"] = pack_array(np.asarray(self.mean, "<f8")), pack_array(np.asarray(self.demos, "<f8"))
+        arrays = ("mean", "demos", "projector")
+        d = {k: _lists(v) for k, v in asdict(self).items() if k not in arrays}
+        d.update({k: pack_array(np.asarray(getattr(self, k), "<f8")) for k in arrays})
         return d
 
     @classmethod
@@ -118,7 +122,8 @@ class TaskDescriptor:
                    view_axes=(axes[0], axes[1]), view_third=third,
                    shapes=tuple(_shape(s, o) for s in shapes),
                    mean=unpack_array(m.get("mean"), "mean", dtype="<f8", shape=(n, o)),
-                   demos=unpack_array(m.get("demos"), "demos", dtype="<f8", shape=(None, n, o)))
+                   demos=unpack_array(m.get("demos"), "demos", dtype="<f8", shape=(None, n, o)),
+                   projector=unpack_array(m.get("projector"), "projector", dtype="<f8", shape=(n, o, o)))
 
 
 def _lists(v):

@@ -212,7 +212,7 @@ class KGRLEnv(gym.Env):
             axis_names=tuple(w.view.names), view_axes=tuple(w.view.axes),
             view_third=-1 if w.view.third is None else int(w.view.third),
             shapes=tuple(_shape_dict(s) for s in w.view.shapes), mean=np.asarray(w.model.grid_mean, np.float64),
-            demos=np.asarray(w.demos, np.float64))
+            demos=np.asarray(w.demos, np.float64), projector=np.asarray(w.model.grid_projector, np.float64))
 
     def render(self):
         """An RGB image of the task's views (:class:`common.task_render.TaskRenderer`), or None without a mode."""

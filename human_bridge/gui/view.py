@@ -3,7 +3,7 @@
 The task's views are drawn by :class:`common.task_render.TaskRenderer` from the run's task descriptor (the app's
 ``layout``): workspace, shapes, demonstrations, the red KMP mean; on top the exploration band the current L
 allows (the actor's L table from its ``scale`` messages, or its scale model tabulated here; without either, L is
-flat at the frame's ``scale``; no band when the task's KMP cannot be rebuilt here, :mod:`human_bridge.gui.task`),
+flat at the frame's ``scale``; the band from the descriptor's projector, :mod:`human_bridge.gui.task`),
 the robot, its trail in the episode, the desired position and, while dragging, the person's P_h. The strip shows
 actor, episode, step, return, the intervention state and a help line; below it, one L(s) curve per output.
 """
