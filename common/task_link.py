@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 from typing import Any, Callable
 
 from common.descriptor import TaskDescriptor
@@ -13,7 +14,9 @@ from common.messages import TaskInfo
 from common.protocol import Keys, decode, encode
 from common.wire import ProtocolError, RejectCounter
 
-__all__ = ["TaskAnnouncer", "fetch_task", "fetch_tasks"]
+__all__ = ["TaskAnnouncer", "fetch_task", "fetch_tasks", "TASK_FILE", "save_task", "load_task_file"]
+
+TASK_FILE = "task.msgpack"  # RUN_DIR/learner/task.msgpack: the run's task as the learner builds from it
 
 log = logging.getLogger("khgrl.task")
 
@@ -94,3 +97,19 @@ def fetch_task(session: Any, keys: Keys, role: str = "actor", timeout: float = 3
             return found[sorted(found)[0]]
         time.sleep(0.2)
     return None
+
+
+def save_task(path: Path, task: TaskDescriptor, sender: str = "launcher") -> None:
+    """Write ``task`` to ``path`` as a ``task`` message (our own encoding, checked again when read).
+
+    :param path: the file (usually ``RUN_DIR/learner/task.msgpack``).
+    :param task: the descriptor.
+    :param sender: who wrote it.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(encode(TaskInfo(sender_id=sender, descriptor=task), sender, 0))
+
+
+def load_task_file(path: Path) -> TaskDescriptor:
+    """The descriptor :func:`save_task` wrote (:class:`ProtocolError` if the file is not one)."""
+    return decode(TaskInfo, path.read_bytes()).descriptor

@@ -23,11 +23,13 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from common.config import RunConfig, add_config_flags, resolve, write_run_config
 from common.messages import Control, EpisodeReport, Status
 from common.process import StopFlag, install_stop_handlers
 from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from common.task_link import TASK_FILE, save_task
 from common.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
 from deploy.progress import ProgressView
 from deploy.rundir import (
@@ -81,6 +83,7 @@ class RunPlan:
     progress: bool = True
     argv: list[str] = field(default_factory=list)
     previous: dict = field(default_factory=dict)  # runtime of the part before (resume)
+    task: Any = None  # the run's TaskDescriptor (the learner gets it from RUN_DIR/learner/task.msgpack)
 
     @property
     def config_json(self) -> Path:
@@ -124,17 +127,18 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
         cfg = dataclasses.replace(cfg, demos=str(Path(cfg.demos).resolve()))
     run_dir = Path(cfg.run_dir)
     _check_run_dir(run_dir, args)
-    check_task(cfg)
+    task = check_task(cfg)
     previous = previous_runtime(run_dir) if args.resume else {}
     run_id = cfg.run or str(previous.get("run") or "") or make_run_id(run_dir)
     Keys(run_id)  # a valid key chunk (ValueError otherwise)
     endpoint = cfg.connect or f"tcp/127.0.0.1:{cfg.port or free_port()}"
     return RunPlan(cfg=cfg, run_dir=run_dir, run_id=run_id, endpoint=endpoint, resume=args.resume,
-                   overwrite=args.overwrite, progress=args.progress, argv=argv, previous=previous)
+                   overwrite=args.overwrite, progress=args.progress, argv=argv, previous=previous, task=task)
 
 
-def check_task(cfg: RunConfig) -> None:
-    """Build the run's task once before any process starts, so a bad task definition is one clear error here.
+def check_task(cfg: RunConfig):
+    """Build the run's task once before any process starts, so a bad task definition is one clear error here;
+    returns its descriptor.
 
     :param cfg: the run's settings
     :raises TaskError: naming what is wrong with the task
@@ -143,9 +147,11 @@ def check_task(cfg: RunConfig) -> None:
     from common.task import TaskError, load_task
 
     task = load_task(cfg.task_spec, cfg.demos or None)
-    KGRLEnv(task, seed=cfg.seed).close()
+    env = KGRLEnv(task, seed=cfg.seed)
+    env.close()
     if cfg.method == "khgrl" and cfg.human == "scripted" and task.scripted_human is None:
         raise TaskError(f"task {task.name!r} has no scripted_human: choose --human gui or --human none")
+    return env.descriptor(cfg.task_spec)
 
 
 def prepare_run_dir(plan: RunPlan) -> None:
@@ -172,6 +178,11 @@ def prepare_run_dir(plan: RunPlan) -> None:
                "argv": plan.argv, "started": started, "resumed": plan.resume, "part": part,
                "first_started": plan.previous.get("first_started", plan.previous.get("started", started))}
     write_run_config(plan.run_dir, plan.cfg, runtime)
+    # the learner builds its spaces from the task at once (instead of waiting for an actor to announce it), so it
+    # is up before the actors step, as a learner of any task must be for a seeded run to repeat
+    task_file = plan.run_dir / "learner" / TASK_FILE
+    if plan.task is not None and not task_file.is_file():
+        save_task(task_file, plan.task)
 
 
 # ------------------------------------------------------------------------------------ the run

@@ -21,10 +21,9 @@ import sys
 from pathlib import Path
 
 from common.config import ProcessConfig, add_process_flags, resolve_process
-from common.messages import TaskInfo
 from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
-from common.protocol import Keys, decode, encode
-from common.task_link import TaskAnnouncer, fetch_task
+from common.protocol import Keys
+from common.task_link import TASK_FILE, TaskAnnouncer, fetch_task, load_task_file, save_task
 from common.transport import Inbox, open_client, undeclare_all
 from learner.checkpoint import CheckpointError, find_checkpoint
 
@@ -39,7 +38,6 @@ LEARNER_SETTINGS = {"run", "connect", "run_dir", "seed", "learning_rate", "tau",
 # Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
 # batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
 INBOX_SIZE = 100_000
-TASK_FILE = "task.msgpack"  # the run's task descriptor as the learner first got it (a resumed learner keeps it)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -146,8 +144,9 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
 
 
 def run_task(session, keys: Keys, learner_dir: Path, flag: StopFlag):
-    """The run's task descriptor: the one this learner saved (``learner/task.msgpack``, a resumed run), or the
-    first an actor announces (waited for until a stop). The learner never imports a task's code.
+    """The run's task descriptor: the one in ``learner/task.msgpack`` (written by ``khgrl up``, or saved by this
+    learner in an earlier part of the run), or else the first an actor announces (waited for until a stop). The
+    learner never imports a task's code.
 
     :param session: the open Zenoh session
     :param keys: the run's key expressions
@@ -156,12 +155,12 @@ def run_task(session, keys: Keys, learner_dir: Path, flag: StopFlag):
     """
     path = learner_dir / TASK_FILE
     if path.is_file():
-        return decode(TaskInfo, path.read_bytes()).descriptor
+        return load_task_file(path)
     log.info("waiting for an actor to announce the run's task (%s)", keys.task("actor"))
     while not flag:
         task = fetch_task(session, keys, "actor", timeout=1.0, stop=lambda: bool(flag))
         if task is not None:
-            path.write_bytes(encode(TaskInfo(sender_id="learner", descriptor=task), "learner", 0))
+            save_task(path, task, "learner")
             return task
     return None
 
