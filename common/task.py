@@ -153,7 +153,9 @@ def _import_factory(spec: str) -> tuple[Callable, list[str]]:
     try:
         mod = _import(module)
     except Exception as exc:  # noqa: BLE001 - a user module can fail to import in any way
-        raise TaskError(f"task {spec!r}: cannot import {module!r}: {type(exc).__name__}: {exc}") from None
+        hint = (" (run khgrl from the directory that holds it, or put that directory on PYTHONPATH)"
+                if isinstance(exc, ModuleNotFoundError) else "")
+        raise TaskError(f"task {spec!r}: cannot import {module!r}: {type(exc).__name__}: {exc}{hint}") from None
     fn = getattr(mod, attr, None)
     if not callable(fn):
         raise TaskError(f"task {spec!r}: {module!r} has no callable {attr!r}")

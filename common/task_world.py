@@ -69,7 +69,30 @@ def build_task_world(task: Task) -> TaskWorld:
     violated = np.all(mean @ G.T < c - 1e-9, axis=0)  # per constraint row: violated at every step
     if np.any(violated):
         k = int(np.argmax(violated))
-        raise TaskError(f"task {task.name!r}: the KMP mean violates hard constraint {k} (G[{k}] = {G[k].tolist()}, "
-                        f"c[{k}] = {c[k]:g}) at every step: the constraints contradict the demonstrations")
+        which = (f"workspace {'low' if k < o else 'high'} of output {k % o}" if k < 2 * o
+                 else f"your constraint {k - 2 * o}")
+        raise TaskError(f"task {task.name!r}: the KMP mean violates hard constraint {k}, {which} "
+                        f"(G[{k}] = {G[k].tolist()}, c[{k}] = {c[k]:g}), at every step: the constraints contradict "
+                        f"the demonstrations")
+    _check_scripted_human(task, mean)
     return TaskWorld(task=task, demos=demos, model=model, low=low, high=high, G=G, c=c, view=view,
                      default_scale=scale)
+
+
+def _check_scripted_human(task: Task, mean: np.ndarray) -> None:
+    """Call the task's scripted human at every grid point of the KMP mean: it must give None or O finite values."""
+    if task.scripted_human is None:
+        return
+    o = mean.shape[1]
+    for t in range(mean.shape[0]):
+        try:
+            p_h = task.scripted_human(mean[t].copy())
+        except Exception as exc:  # noqa: BLE001 - the user's function
+            raise TaskError(f"task {task.name!r}: scripted_human raised {type(exc).__name__}: {exc} (for the KMP "
+                            f"mean at step {t})") from None
+        if p_h is None:
+            continue
+        arr = np.asarray(p_h, dtype=np.float64).reshape(-1) if np.ndim(p_h) <= 1 else np.zeros(0)
+        if arr.shape != (o,) or not np.all(np.isfinite(arr)):
+            raise TaskError(f"task {task.name!r}: scripted_human must return None or {o} finite values, got "
+                            f"{p_h!r} for the KMP mean at step {t}")
