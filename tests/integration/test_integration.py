@@ -205,7 +205,7 @@ def test_intervened_transitions_store_the_scripted_humans_actions(up_run, low_co
     of the actor's process."""
     from stable_baselines3.common.save_util import load_from_pkl
 
-    from common.env import _segment_blocked
+    from common.passage_task import segment_blocked as _segment_blocked
     from human_bridge.scripted import ScriptedHuman, ScriptedHumanConfig
 
     assert up_run["proc"].returncode == 0, up_run["proc"].stderr

@@ -1,0 +1,392 @@
+"""``khgrl eval RUN_DIR``: how well a trained policy does on its own -- deterministic episodes, no human, no
+learning.
+
+The run's ``config.json`` names the task (``--task``, ``--demos``) and the network; the learner's checkpoint
+(``RUN_DIR/learner/checkpoint``) holds the policy; an actor's ``scale_model.json`` holds the exploration scale L
+it learned (KhGRL), with which the policy's actions were trained -- without it L is the task's L0. Each episode
+is reset with ``seed + i``; the policy acts deterministically (the mean action). Output: a per-episode table
+and success rate / return mean ± std on stdout, a CSV (``RUN_DIR/eval/eval.csv`` by default; an existing file is
+never overwritten: ``eval-2.csv``, ...), and with ``--gif`` an animation of the first episode drawn with
+:mod:`common.task_render`. A missing or unusable run directory, checkpoint or task is one line and exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+__all__ = ["EvalError", "EpisodeResult", "Evaluation", "evaluate", "add_parser", "free_path", "report"]
+
+GIF_MAX_FRAMES = 100  # the first episode is subsampled to about this many frames (~16 kB each)
+GIF_SIZE = (720, 360)
+
+
+class EvalError(RuntimeError):
+    """An evaluation that cannot run (no config, no checkpoint, a task that does not load); one line."""
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """One evaluated episode (a row of the CSV)."""
+
+    episode: int
+    seed: int
+    steps: int
+    ret: float  # the KGRLEnv reward: the task environment's plus the action cost r_a
+    env_return: float  # the task environment's reward alone
+    action_cost: float  # sum of r_a (<= 0)
+    success: bool
+    terminated: bool
+
+
+@dataclass
+class Evaluation:
+    """What :func:`evaluate` did: the episodes, and where it read and wrote."""
+
+    task: str
+    spec: str
+    checkpoint: Path
+    trained: dict
+    scale: str
+    episodes: list[EpisodeResult]
+    csv: Path | None = None
+    gif: Path | None = None
+    gif_frames: int = 0
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean([e.success for e in self.episodes])) if self.episodes else 0.0
+
+    def returns(self) -> np.ndarray:
+        return np.array([e.ret for e in self.episodes], dtype=np.float64)
+
+
+# ------------------------------------------------------------------------------------ inputs
+def free_path(path: Path) -> Path:
+    """``path`` if nothing is there, else ``stem-2.ext``, ``stem-3.ext``, ... (never overwrite a result).
+
+    :param path: the wanted file.
+    """
+    path = Path(path)
+    k = 2
+    candidate = path
+    while candidate.exists():
+        candidate = path.with_name(f"{path.stem}-{k}{path.suffix}")
+        k += 1
+    return candidate
+
+
+def read_config(run_dir: Path) -> tuple[Any, dict]:
+    """The run's settings and runtime facts from ``RUN_DIR/config.json``.
+
+    :param run_dir: the run directory.
+    :raises EvalError: no such file, or it does not parse.
+    """
+    from common.config import read_run_file
+
+    path = Path(run_dir) / "config.json"
+    if not path.is_file():
+        raise EvalError(f"{run_dir}: no config.json (not a run directory of khgrl up)")
+    try:
+        return read_run_file(path)
+    except (ValueError, OSError) as exc:
+        raise EvalError(f"{path}: {exc}") from None
+
+
+def find_model(run_dir: Path, checkpoint: str | Path | None) -> Path:
+    """The ``model.zip`` to evaluate: ``--checkpoint`` (a checkpoint directory, a learner directory or a
+    model.zip) or the run's newest complete learner checkpoint.
+
+    :param run_dir: the run directory.
+    :param checkpoint: what ``--checkpoint`` gave (None: the run's).
+    :raises EvalError: nothing to load.
+    """
+    from learner.checkpoint import MODEL_FILE, find_checkpoint
+
+    if checkpoint is None:
+        found = find_checkpoint(Path(run_dir) / "learner")
+        if found is None or not (found / MODEL_FILE).is_file():
+            raise EvalError(f"{run_dir}: no learner checkpoint in {Path(run_dir) / 'learner'} "
+                            "(did the run train? give --checkpoint PATH)")
+        return found / MODEL_FILE
+    p = Path(checkpoint)
+    for cand in (p, p / MODEL_FILE, p / "checkpoint" / MODEL_FILE):
+        if cand.is_file():
+            return cand
+    raise EvalError(f"--checkpoint {checkpoint}: no {MODEL_FILE} there")
+
+
+def load_run_task(cfg: Any, cwd: str | None = None) -> tuple[Any, str]:
+    """The run's task (``--task`` / ``--scenario``, ``--demos``) and its spec.
+
+    :param cfg: the run's :class:`~common.config.RunConfig`.
+    :param cwd: the directory ``khgrl up`` ran in, if the run recorded it: the task's module and a relative
+        ``--demos`` path are also looked for there.
+    :raises EvalError: the task does not load.
+    """
+    from common.task import TaskError, load_task, task_spec
+
+    demos = cfg.demos or None
+    if cwd and Path(cwd).is_dir():
+        if cwd not in sys.path:
+            sys.path.append(cwd)
+        demos = demos if demos is None or Path(demos).exists() else str(Path(cwd) / demos)
+    spec = task_spec(cfg.task, cfg.scenario)
+    try:
+        return load_task(spec, demos), spec
+    except TaskError as exc:
+        raise EvalError(str(exc)) from None
+
+
+def load_scale(run_dir: Path, actor: str, dim: int) -> tuple[Any, str]:
+    """The exploration scale model an actor of the run ended with (``actor-ID/scale_model.json``), or None
+    (the task's L0), and a few words saying which.
+
+    :param run_dir: the run directory.
+    :param actor: the actor id.
+    :param dim: the task's command size O.
+    """
+    from common.scale import ScaleModel
+
+    path = Path(run_dir) / f"actor-{actor}" / "scale_model.json"
+    if not path.is_file():
+        return None, "L0 (no learned scale)"
+    try:
+        model = ScaleModel.from_dict(json.loads(path.read_text()))
+    except (ValueError, KeyError, TypeError) as exc:
+        raise EvalError(f"{path}: not a scale model ({exc})") from None
+    if model.dim != dim:
+        raise EvalError(f"{path}: a scale for {model.dim} outputs, the task has {dim}")
+    if model.n_points == 0:
+        return model, "L0 (never refitted)"
+    return model, f"learned by actor-{actor} ({model.n_points} points)"
+
+
+def load_policy(model_zip: Path, env: Any, net_arch: tuple[int, ...], lr: float) -> Any:
+    """A TQC policy on ``env``'s spaces with the checkpoint's weights, in evaluation mode.
+
+    :param model_zip: the learner's ``model.zip``.
+    :param env: the evaluation environment (its spaces).
+    :param net_arch: the run's hidden layer sizes.
+    :param lr: the run's learning rate (the policy's optimiser is built but unused).
+    :raises EvalError: the file does not load or does not fit the task's spaces.
+    """
+    from sb3_contrib.tqc.policies import TQCPolicy
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    try:
+        _, params, _ = load_from_zip_file(model_zip, device="cpu", load_data=False)
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign zip
+        raise EvalError(f"{model_zip}: cannot read the model ({type(exc).__name__}: {exc})") from None
+    if not params or "policy" not in params:
+        raise EvalError(f"{model_zip}: no policy weights in it")
+    policy = TQCPolicy(env.observation_space, env.action_space, lr_schedule=lambda _: lr, net_arch=list(net_arch))
+    state = params["policy"]
+    want = {k: tuple(v.shape) for k, v in policy.state_dict().items()}
+    got = {k: tuple(v.shape) for k, v in state.items()}
+    if want != got:
+        bad = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
+        raise EvalError(f"{model_zip}: the policy does not fit this task's spaces (observation "
+                        f"{env.observation_space.shape[0]}, action {env.action_space.shape[0]}) and net_arch "
+                        f"{list(net_arch)}: {bad[0]} is {got.get(bad[0])} in the checkpoint, {want.get(bad[0])} here")
+    policy.load_state_dict(state)
+    policy.set_training_mode(False)
+    return policy
+
+
+def _trained(model_zip: Path) -> dict:
+    """Counters of the checkpoint's ``state.json`` (transitions, gradient steps, weights version)."""
+    path = model_zip.parent / "state.json"
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return {k: state[k] for k in ("total_ingested", "gradient_steps", "version") if k in state}
+
+
+# ------------------------------------------------------------------------------------ rollouts
+def run_episode(env: Any, policy: Any, episode: int, seed: int,
+                on_step: Callable[[Any, bool], None] | None = None) -> EpisodeResult:
+    """One deterministic episode without a human.
+
+    :param env: a :class:`~common.kgrl_env.KGRLEnv`.
+    :param policy: the TQC policy.
+    :param episode: the episode number (from 1).
+    :param seed: the reset seed.
+    :param on_step: ``on_step(env, done)`` after the reset and after every step (the GIF's frames).
+    """
+    obs, _ = env.reset(seed=seed)
+    if on_step is not None:
+        on_step(env, False)
+    ret = cost = 0.0
+    steps, success, terminated, done = 0, False, False, False
+    while not done:
+        action, _ = policy.predict(obs, deterministic=True)
+        obs, r, terminated, truncated, info = env.step(action)
+        ret += float(r)
+        cost += float(info["r_a"])
+        steps += 1
+        success = success or bool(info.get("success", False))
+        done = terminated or truncated
+        if on_step is not None:
+            on_step(env, done)
+    return EpisodeResult(episode=episode, seed=seed, steps=steps, ret=ret, env_return=ret - cost, action_cost=cost,
+                         success=success, terminated=bool(terminated))
+
+
+class GifRecorder:
+    """Frames of one episode drawn by :class:`common.task_render.TaskRenderer`, written as an animated GIF.
+
+    :param env: the evaluation environment (its descriptor sets up the drawing).
+    :param every: keep every ``every``-th step.
+    """
+
+    def __init__(self, env: Any, every: int = 1) -> None:
+        from common.task_render import TaskRenderer, frame_from_env
+
+        self.renderer = TaskRenderer(env.descriptor(env.task.name), size=GIF_SIZE)
+        self.frame_from_env = frame_from_env
+        self.every = max(1, int(every))
+        self.frames: list[np.ndarray] = []
+        self.calls = 0
+
+    def __call__(self, env: Any, done: bool) -> None:
+        if self.calls % self.every == 0 or done:  # the last frame always
+            self.frames.append(self.renderer.render_rgb(self.frame_from_env(env)))
+        self.calls += 1
+
+    def save(self, path: Path, fps: int = 20) -> int:
+        """Write the frames to ``path``; returns how many.
+
+        :param path: the GIF file.
+        :param fps: frames per second of the animation.
+        """
+        from PIL import Image
+
+        images = [Image.fromarray(np.ascontiguousarray(f, dtype=np.uint8)) for f in self.frames]
+        first = images[0].quantize(colors=255, method=Image.Quantize.MEDIANCUT)  # one palette: no colour flicker
+        rest = [im.quantize(palette=first, dither=Image.Dither.NONE) for im in images[1:]]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        first.save(path, save_all=True, append_images=rest, duration=int(1000 / fps), loop=0)
+        return len(images)
+
+
+def _write_csv(path: Path, episodes: list[EpisodeResult]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["episode", "seed", "steps", "return", "env_return", "action_cost", "success", "terminated"])
+        for e in episodes:
+            w.writerow([f"{v:.10g}" if isinstance(v, float) else v for v in asdict(e).values()])
+
+
+def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes: int = 10, seed: int | None = None,
+             gif: str | Path | None = None, csv_path: str | Path | None = None, actor: str = "a0") -> Evaluation:
+    """Evaluate a run's policy (see the module docstring).
+
+    :param run_dir: the run directory of ``khgrl up``.
+    :param checkpoint: a checkpoint directory or model.zip (None: the run's learner checkpoint).
+    :param episodes: episodes to run.
+    :param seed: seed of the first episode's reset (episode i: seed + i - 1; None: the run's seed).
+    :param gif: write an animation of the first episode here (None: none).
+    :param csv_path: the CSV of the episodes (None: RUN_DIR/eval/eval.csv); an existing file is not overwritten.
+    :param actor: the actor whose learned exploration scale is used.
+    :raises EvalError: one line saying what is missing.
+    """
+    import torch
+
+    from common.kgrl_env import KGRLEnv
+    from common.task import TaskError
+    from common.task_world import build_task_world
+
+    run_dir = Path(run_dir)
+    if episodes < 1:
+        raise EvalError("--episodes must be >= 1")
+    cfg, runtime = read_config(run_dir)
+    model_zip = find_model(run_dir, checkpoint)
+    task, spec = load_run_task(cfg, runtime.get("cwd"))
+    seed = cfg.seed if seed is None else int(seed)
+    torch.manual_seed(seed)
+    try:
+        world = build_task_world(task)
+        scale_model, scale_text = load_scale(run_dir, actor, world.out_dim)
+        env = KGRLEnv(world=world, seed=seed, scale_model=scale_model)
+    except TaskError as exc:
+        raise EvalError(str(exc)) from None
+    policy = load_policy(model_zip, env, cfg.tqc.net_arch, cfg.tqc.learning_rate)
+    result = Evaluation(task=task.name, spec=spec, checkpoint=model_zip.parent, trained=_trained(model_zip),
+                        scale=scale_text, episodes=[])
+    recorder = GifRecorder(env, every=-(-env.horizon // GIF_MAX_FRAMES)) if gif else None
+    with torch.no_grad():
+        for i in range(episodes):
+            result.episodes.append(run_episode(env, policy, i + 1, seed + i, recorder if i == 0 else None))
+    env.close()
+    result.csv = free_path(Path(csv_path) if csv_path else run_dir / "eval" / "eval.csv")
+    _write_csv(result.csv, result.episodes)
+    if recorder is not None:
+        result.gif = free_path(Path(gif))
+        result.gif_frames = recorder.save(result.gif)
+    return result
+
+
+# ------------------------------------------------------------------------------------ command
+def report(ev: Evaluation) -> str:
+    """The text ``khgrl eval`` prints: the inputs, one line per episode, the summary and the files.
+
+    :param ev: the evaluation.
+    """
+    trained = ", ".join(f"{k} {v}" for k, v in ev.trained.items()) or "no state.json"
+    lines = [f"task {ev.task} ({ev.spec}); checkpoint {ev.checkpoint} ({trained}); scale {ev.scale}",
+             f"{'episode':>7} {'seed':>6} {'steps':>6} {'return':>10} {'env':>10} {'r_a':>9}  success"]
+    for e in ev.episodes:
+        lines.append(f"{e.episode:>7} {e.seed:>6} {e.steps:>6} {e.ret:>10.2f} {e.env_return:>10.2f} "
+                     f"{e.action_cost:>9.2f}  {'yes' if e.success else 'no'}")
+    r = ev.returns()
+    n_ok = sum(e.success for e in ev.episodes)
+    lines.append(f"success {n_ok}/{len(ev.episodes)} ({100 * ev.success_rate:.0f} %); return {r.mean():.2f} ± "
+                 f"{r.std():.2f}; steps {np.mean([e.steps for e in ev.episodes]):.1f}")
+    lines.append(f"wrote {ev.csv}")
+    if ev.gif is not None:
+        lines.append(f"wrote {ev.gif} ({ev.gif_frames} frames of episode 1)")
+    return "\n".join(lines)
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    try:
+        ev = evaluate(args.run_dir, checkpoint=args.checkpoint, episodes=args.episodes, seed=args.seed,
+                      gif=args.gif, csv_path=args.csv, actor=args.actor)
+    except EvalError as exc:
+        print(f"khgrl eval: error: {exc}", file=sys.stderr)
+        return 2
+    print(report(ev))
+    return 0
+
+
+def add_parser(sub: Any) -> argparse.ArgumentParser:
+    """Register ``khgrl eval`` on the subcommands ``sub`` of the ``khgrl`` parser.
+
+    :param sub: the ``add_subparsers()`` object.
+    """
+    p = sub.add_parser("eval", help="run a trained policy deterministically (no human, no learning): success "
+                                    "rate, returns, CSV, GIF")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory of khgrl up (reads its config.json)")
+    p.add_argument("--checkpoint", default=None, metavar="PATH",
+                   help="a learner checkpoint directory or model.zip (default: RUN_DIR/learner/checkpoint)")
+    p.add_argument("--episodes", type=int, default=10, help="episodes (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="reset seed of the first episode, episode i gets SEED + i - 1 (default: the run's seed)")
+    p.add_argument("--gif", default=None, metavar="FILE", help="animate episode 1 into this GIF (default: none)")
+    p.add_argument("--csv", default=None, metavar="FILE",
+                   help="per-episode results (default: RUN_DIR/eval/eval.csv; never overwritten: eval-2.csv, ...)")
+    p.add_argument("--actor", default="a0", metavar="ID",
+                   help="use the exploration scale this actor learned (default: %(default)s)")
+    p.set_defaults(func=_cmd_eval)
+    return p
+
