@@ -174,7 +174,7 @@ def prepare_run_dir(plan: RunPlan) -> None:
         kept.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(plan.cfg.demos, kept)
         plan.cfg = dataclasses.replace(plan.cfg, demos=str(kept.resolve()))
-    runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "actor_ids": plan.cfg.actor_ids(),
+    runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "cwd": os.getcwd(), "actor_ids": plan.cfg.actor_ids(),
                "argv": plan.argv, "started": started, "resumed": plan.resume, "part": part,
                "first_started": plan.previous.get("first_started", plan.previous.get("started", started))}
     write_run_config(plan.run_dir, plan.cfg, runtime)
