@@ -118,10 +118,14 @@ class ActorLoop:
         return bool(self.learners)
 
     def join(self) -> None:
-        """Before the first step: who is alive right now, and the current weights (late joiner)."""
+        """Before the first step: who is alive (waiting up to ``learner_wait`` s for a learner that is starting up),
+        and the current weights (late joiner)."""
         self.learners = self.p.link.learners_alive(timeout=1.0)
         if self.learners:
             self._check_learner_task()
+        deadline = time.monotonic() + self.cfg.stream.learner_wait
+        while not self.learners and not self.flag and time.monotonic() < deadline:
+            self.service(block=0.1)  # a learner that appears is reported (and its task checked) by _on_alive
         self._query_weights(timeout=2.0)
         w = self.p.weights
         w.initial_version = w.version if w.version >= 0 else None

@@ -47,7 +47,7 @@ log = logging.getLogger("khgrl.actor")
 ACTOR_SETTINGS = {"task", "scenario", "demos", "method", "episodes", "seed", "run_dir", "run", "connect", "rate",
                   "actor_rt_priority",
                   "tensorboard", "learning_starts", "train_freq", "net_arch", "batch", "max_lead", "outbox_memory",
-                  "resend_after_s", "flush_timeout", "correction_timeout", "lease_ms"}
+                  "resend_after_s", "flush_timeout", "correction_timeout", "learner_wait", "lease_ms"}
 
 
 def build_parser() -> argparse.ArgumentParser:

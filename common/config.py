@@ -86,6 +86,8 @@ class StreamSettings:
     resend_after_s: float = _opt(2.0, "re-send un-acknowledged batches after this long without ack progress (s)")
     flush_timeout: float = _opt(120.0, "at the end, an actor waits this long for the learner to confirm (s)")
     correction_timeout: float = _opt(0.5, "a silent correction client loses the robot after this (s)")
+    learner_wait: float = _opt(10.0, "at start, an actor waits this long for a learner before acting without one, "
+                                     "so processes started together are in lock-step from the first step (s)")
     checkpoint_every: int = _opt(2000, "learner checkpoint every N ingested transitions (0: only at the end)")
     lease_ms: int = _opt(3000, "Zenoh link lease: how fast a dead process is noticed (ms)")
 
@@ -96,8 +98,8 @@ class StreamSettings:
             # the learner trains at multiples of train_freq: a smaller lead could wait forever after a short
             # end-of-episode batch
             raise ValueError(f"max_lead must be >= the learner's train frequency ({train_freq})")
-        if self.checkpoint_every < 0 or self.lease_ms < 500:
-            raise ValueError("checkpoint_every must be >= 0 and lease_ms >= 500")
+        if self.checkpoint_every < 0 or self.lease_ms < 500 or self.learner_wait < 0:
+            raise ValueError("checkpoint_every and learner_wait must be >= 0 and lease_ms >= 500")
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ def parse_frame(payload):
         return None
     try:
         ep, t, mean = m["episode"], m["t"], m["mean"]
-        ok = isinstance(ep, int) and isinstance(t, int) and len(mean) == 2 and all(
+        ok = isinstance(ep, int) and isinstance(t, int) and 1 <= len(mean) <= 64 and all(
             isinstance(v, (int, float)) and math.isfinite(v) for v in mean)
     except (KeyError, TypeError):
         return None
@@ -52,7 +52,8 @@ def main(argv=None):
     p.add_argument("--episode", type=int, default=1, help="episode (1-based) in which to drag")
     p.add_argument("--start", type=int, default=20, help="first step t of that episode to react to")
     p.add_argument("--steps", type=int, default=40, help="frames to hold P_h for")
-    p.add_argument("--dy", type=float, default=0.05, help="P_h = KMP mean + (0, dy)")
+    p.add_argument("--dy", type=float, default=0.05, help="P_h = KMP mean + dy along --axis (default: %(default)s)")
+    p.add_argument("--axis", type=int, default=1, help="the output --dy moves (default: %(default)s, the task's y)")
     p.add_argument("--wait", type=float, default=120.0, help="give up after this many seconds without the drag")
     args = p.parse_args(argv)
 
@@ -89,7 +90,7 @@ def main(argv=None):
                     continue
                 if f["last"]:  # the episode ended, and a live hold ends with it (the actor ends it too)
                     break
-                p_h = [f["mean"][0], f["mean"][1] + args.dy]
+                p_h = [v + (args.dy if k == args.axis else 0.0) for k, v in enumerate(f["mean"])]
                 pub.put(envelope("correction", args.client, seq, client=args.client, actor=args.actor, active=True,
                                  p_h=p_h, episode=f["episode"], t=f["t"]))
                 seq += 1

@@ -143,7 +143,7 @@ def test_arbitration_timeout_projection_and_rejects_with_a_real_actor(tmp_path):
     with ProcGroup(tmp_path) as g:
         ep = g.router()
         actor = g.actor(run, ep, "--scenario", "low_cov", "--method", "khgrl", "--episodes", "3", "--rate", "50",
-                        "--learning-starts", "100000", "--flush-timeout", "0.5",
+                        "--learning-starts", "100000", "--flush-timeout", "0.5", "--learner-wait", "0",
                         "--correction-timeout", str(TIMEOUT_S), run_dir=run_dir)
         with open_client(ep) as s:
             clients = Clients(s, keys)

@@ -73,7 +73,7 @@ def test_replay_answers_each_frame_with_the_recorded_word_for_the_next_step():
 
 # as fast as allowed (no --rate): step-addressed corrections keep the record and the replay on their steps
 ACTOR = ["--scenario", "low_cov", "--method", "khgrl", "--episodes", "2",
-         "--learning-starts", "100000", "--flush-timeout", "0.5"]
+         "--learning-starts", "100000", "--flush-timeout", "0.5", "--learner-wait", "0"]
 
 
 @pytest.mark.integration
