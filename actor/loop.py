@@ -109,8 +109,7 @@ class ActorLoop:
         tf = cfg.tqc.train_freq
         self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
         self._t_status = time.monotonic()
-        out = parts.env.mapping.model.out_dim
-        self.dims = Dims(out=out)  # corrections carry O coordinates
+        self.dims = Dims(out=parts.env.mapping.model.out_dim)  # corrections carry O coordinates
         self.wrong_task: str | None = None  # why this actor refused its learner (exit code 2)
 
     @property
@@ -118,8 +117,7 @@ class ActorLoop:
         return bool(self.learners)
 
     def join(self) -> None:
-        """Before the first step: who is alive (waiting up to ``learner_wait`` s for a learner that is starting up),
-        and the current weights (late joiner)."""
+        """Before the first step: who is alive (waiting ``learner_wait`` s for one starting up), the current weights."""
         self.learners = self.p.link.learners_alive(timeout=1.0)
         if self.learners:
             self._check_learner_task()
