@@ -132,7 +132,7 @@ class Task:
 
 
 # ------------------------------------------------------------------------------------ loading
-BUILTIN_TASKS = {"passage": "common.passage_task:make_task"}
+BUILTIN_TASKS = {"passage": "common.passage_task:make_task", "fetch": "common.fetch_task:make_task"}
 
 
 def task_spec(task: str, scenario: str) -> str:
