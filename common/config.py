@@ -32,7 +32,7 @@ __all__ = ["SCENARIOS", "METHODS", "HUMANS", "PAPER_EPISODES", "TQCSettings", "S
 
 SCENARIOS = tuple(_PASSAGE_SCENARIOS)  # the passage world's scenarios: "high_cov", "low_cov"
 METHODS = ("khgrl", "kgrl")
-HUMANS = ("scripted", "gui", "none")
+HUMANS = ("scripted", "gui", "keyboard", "gamepad", "none")
 PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)
 
 
@@ -117,7 +117,7 @@ class RunConfig:
     run: str = _opt("", "run id, the key prefix khgrl/<run>/ (default: derived from the run directory)")
     actors: int = _opt(1, "number of actor processes")
     human: str = _opt("scripted", "human-input client (khgrl only): scripted, gui (a window to drag the robot), "
-                                  "none", HUMANS)
+                                  "keyboard, gamepad (move the desired position with keys / a stick), none", HUMANS)
     human_episodes: tuple[int, ...] = _opt(PAPER_EPISODES, "episodes with scripted corrections (the paper's)")
     human_noise: float = _opt(0.0, "std of the scripted human's hand noise (workspace units)")
     connect: str = _opt("", "join the router at this endpoint (tcp/HOST:PORT) instead of starting one")

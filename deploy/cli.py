@@ -101,7 +101,7 @@ PROCESS_COMMANDS = {
     "router": ("deploy.router", "main", "a Zenoh router (zenoh-python in router mode)"),
     "learner": ("learner.main", "main", "the learner process (TQC, replay buffer from the transition stream)"),
     "actor": ("actor.main", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
-    "human": ("human_bridge.main", "main", "a human-input process (scripted, gui or replay client)"),
+    "human": ("human_bridge.main", "main", "a human-input process (scripted, gui, keyboard, gamepad or replay client)"),
     "experiment": ("deploy.experiment", "main", "methods x scenarios x seeds through the real system (resumable)"),
     "report": ("deploy.report", "main", "per-episode results of runs: figure and markdown table"),
 }

@@ -8,6 +8,8 @@ Clients:
 * ``gui`` -- a pygame window: a person drags the robot with the mouse (:mod:`human_bridge.gui`).
 * ``replay`` -- feeds a recorded ``corrections.csv`` into a new run at the same episodes and steps
   (:mod:`human_bridge.replay`).
+* ``keyboard`` / ``gamepad`` -- hold a key / button to intervene and move the desired position with the arrow
+  keys / a stick in the task's view axes (:mod:`human_bridge.keyboard`, :mod:`human_bridge.gamepad`).
 
 Started by ``khgrl up`` as ``khgrl human CLIENT --config RUN_DIR/config.json``; by hand (another machine) with
 ``--run RUN --connect EP`` and any run setting as a flag.
@@ -21,7 +23,7 @@ import sys
 
 from common.config import ProcessConfig, add_process_flags, resolve_process
 from common.process import die_with_parent
-from human_bridge import replay, scripted
+from human_bridge import gamepad, keyboard, replay, scripted
 from human_bridge.gui import main as gui
 
 __all__ = ["main", "build_parser", "SETTINGS"]
@@ -35,6 +37,8 @@ CLIENTS = {
     "scripted": (scripted, "the scripted human: reproducible corrections along a safe path"),
     "gui": (gui, "a pygame window: watch an actor and drag its robot with the mouse"),
     "replay": (replay, "feed a recorded corrections.csv into a new run at the same episodes and steps"),
+    "keyboard": (keyboard, "a small window: hold Space and move the robot with the arrow keys (no mouse)"),
+    "gamepad": (gamepad, "hold button 0 and move the robot with the sticks of a game controller (no mouse)"),
 }
 
 
