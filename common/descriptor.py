@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import json
 from dataclasses import asdict, dataclass, fields
+from functools import cached_property
 
 import numpy as np
 
@@ -75,9 +76,10 @@ class TaskDescriptor:
     demos: np.ndarray
     projector: np.ndarray
 
-    @property
+    @cached_property
     def digest(self) -> str:
-        """16 hex characters identifying the task (see the module docstring)."""
+        """16 hex characters identifying the task (see the module docstring); computed once (the learner checks it
+        on every batch)."""
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("mean", "demos", "projector")}
         text = json.dumps(d, sort_keys=True, default=list)
         h = hashlib.sha256(text.encode())
