@@ -32,7 +32,7 @@ import numpy as np
 
 from common.model import KMPConfig
 
-__all__ = ["Task", "View", "Box", "Sphere", "Point", "TaskError", "load_task", "BUILTIN_TASKS", "task_spec",
+__all__ = ["Task", "View", "Box", "Sphere", "Point", "TaskError", "load_task", "BUILTIN_TASKS",
            "MAX_DIM"]
 
 MAX_DIM = 64  # command (O) and observation sizes a task may have (also the wire's bound)
@@ -133,11 +133,6 @@ class Task:
 
 # ------------------------------------------------------------------------------------ loading
 BUILTIN_TASKS = {"passage": "common.passage_task:make_task", "fetch": "common.fetch_task:make_task"}
-
-
-def task_spec(task: str, scenario: str) -> str:
-    """The task spec a run uses: ``task`` if given, else the passage world's ``scenario`` (the shorthand)."""
-    return task or f"passage:{scenario}"
 
 
 def _import_factory(spec: str) -> tuple[Callable, list[str]]:

@@ -131,14 +131,14 @@ def load_run_task(cfg: Any, cwd: str | None = None) -> tuple[Any, str]:
         ``--demos`` path are also looked for there.
     :raises EvalError: the task does not load.
     """
-    from common.task import TaskError, load_task, task_spec
+    from common.task import TaskError, load_task
 
     demos = cfg.demos or None
     if cwd and Path(cwd).is_dir():
         if cwd not in sys.path:
             sys.path.append(cwd)
         demos = demos if demos is None or Path(demos).exists() else str(Path(cwd) / demos)
-    spec = task_spec(cfg.task, cfg.scenario)
+    spec = cfg.task_spec
     try:
         return load_task(spec, demos), spec
     except TaskError as exc:

@@ -21,7 +21,7 @@ import pytest
 from common.config import RunConfig, TQCSettings, write_run_config
 from common.kgrl_env import KGRLEnv
 from common.scale import ScaleModel
-from common.task import load_task, task_spec
+from common.task import load_task
 from deploy.cli import main as khgrl
 from deploy.evaluate import EvalError, evaluate, free_path
 from deploy.examples.own_task import BOX_HIGH, BOX_LOW, GOAL, PointRobot3D, box_entry, lift_over_box, make_task
@@ -39,7 +39,7 @@ def _fake_run(run_dir: Path, task: str = SPEC, seed: int = 0) -> Path:
 
     cfg = RunConfig(run_dir=str(run_dir), task=task, seed=seed, tqc=TQCSettings(net_arch=NET))
     write_run_config(run_dir, cfg, {"run": "evaltest"})
-    env = KGRLEnv(load_task(task_spec(cfg.task, cfg.scenario)))
+    env = KGRLEnv(load_task(cfg.task_spec))
     ckpt = run_dir / "learner" / "checkpoint"
     ckpt.mkdir(parents=True)
     TQC("MlpPolicy", env, **cfg.tqc.sb3_kwargs(seed)).save(ckpt / "model.zip")
