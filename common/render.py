@@ -16,14 +16,12 @@ content. A frame is then one blit plus a few small dynamic shapes. Colours, font
 
 from __future__ import annotations
 
-import hashlib
 import sys
-from collections import OrderedDict
 
 import numpy as np
 import pygame
 
-from common.render_layers import band_layer, static_layers
+from common.render_layers import SurfaceCache, band_key, band_layer, static_layers
 from common.render_style import COLORS, FrameState, get_font
 from common.scenarios import Scenario
 
@@ -61,7 +59,7 @@ class SceneRenderer:
         self.height = self.size + self.strip_height
         self._span = float(self.size - 1)  # world [0, 1] -> pixel [0, size - 1]
         self._static: dict[tuple[bool, bool], tuple[pygame.Surface, pygame.Surface]] = {}
-        self._composites: OrderedDict[tuple, pygame.Surface] = OrderedDict()
+        self._composites = SurfaceCache(_CACHE_SIZE)
         self._offscreen: pygame.Surface | None = None
         self._text_cache: dict[str, pygame.Surface] = {}
         self._sprites: dict[str, pygame.Surface] = {}
@@ -114,25 +112,17 @@ class SceneRenderer:
         return layers
 
     def _composite(self, band: np.ndarray | None, show_demos: bool, show_mean: bool) -> pygame.Surface:
-        if band is None or len(band) == 0:
-            digest = None
-        else:
-            b = np.ascontiguousarray(band, dtype=np.float64)
-            digest = (b.shape, hashlib.blake2b(b.tobytes(), digest_size=16).digest())
+        digest = band_key(band)
         key = (digest, show_demos, show_mean)
         surf = self._composites.get(key)
         if surf is not None:
-            self._composites.move_to_end(key)
             return surf
         bg, fg = self._static_layers(show_demos, show_mean)
         surf = bg.copy()
         if digest is not None:
             surf.blit(band_layer(band, self.size, self._w2p), (0, 0))
         surf.blit(fg, (0, 0), special_flags=pygame.BLEND_PREMULTIPLIED)
-        self._composites[key] = surf
-        while len(self._composites) > _CACHE_SIZE:
-            self._composites.popitem(last=False)
-        return surf
+        return self._composites.put(key, surf)
 
     # ------------------------------------------------------------------ frame
     def draw(

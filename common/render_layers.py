@@ -11,6 +11,8 @@ Coordinates: ``w2p(p, k)`` maps (..., 2) workspace points to float pixel coordin
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from collections.abc import Callable
 
 import numpy as np
@@ -19,7 +21,7 @@ import pygame
 from common.render_style import BAND_ALPHA, COLORS, get_font
 from common.scenarios import Scenario
 
-__all__ = ["SUPERSAMPLE", "static_layers", "band_layer", "dashed_runs"]
+__all__ = ["SUPERSAMPLE", "static_layers", "band_layer", "dashed_runs", "band_key", "SurfaceCache"]
 
 SUPERSAMPLE = 2  # static layer is drawn at this factor and smooth-scaled down
 
@@ -277,3 +279,34 @@ def band_layer(band: np.ndarray, size: int, w2p: WorldToPixel) -> pygame.Surface
     del pixels  # unlock
     surf.set_alpha(BAND_ALPHA)
     return surf
+
+
+def band_key(band: np.ndarray | None) -> tuple | None:
+    """A cache key of an exploration band's values (None: no band to draw)."""
+    if band is None or len(band) == 0:
+        return None
+    b = np.ascontiguousarray(band, dtype=np.float64)
+    return b.shape, hashlib.blake2b(b.tobytes(), digest_size=16).digest()
+
+
+class SurfaceCache:
+    """The last ``size`` composited (static layers + band) surfaces, least recently used dropped first.
+
+    :param size: surfaces kept.
+    """
+
+    def __init__(self, size: int = 8) -> None:
+        self.size = int(size)
+        self._items: OrderedDict[tuple, pygame.Surface] = OrderedDict()
+
+    def get(self, key: tuple) -> pygame.Surface | None:
+        surf = self._items.get(key)
+        if surf is not None:
+            self._items.move_to_end(key)
+        return surf
+
+    def put(self, key: tuple, surf: pygame.Surface) -> pygame.Surface:
+        self._items[key] = surf
+        while len(self._items) > self.size:
+            self._items.popitem(last=False)
+        return surf

@@ -19,8 +19,6 @@ that view's two axis values; :meth:`TaskRenderer.view_at` says which view a pixe
 
 from __future__ import annotations
 
-import hashlib
-from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -29,7 +27,7 @@ import pygame
 
 from common.descriptor import TaskDescriptor
 from common.render import _surface_rgb
-from common.render_layers import band_layer
+from common.render_layers import SurfaceCache, band_key, band_layer
 from common.render_style import COLORS, get_font
 
 __all__ = ["TaskFrame", "TaskRenderer", "frame_from_env", "view_extent", "nice_ticks"]
@@ -137,7 +135,7 @@ class TaskRenderer:
         self.views: list[_View] = [self._layout(pygame.Rect(k * pw, 0, pw, h - strip_height), (a, b), lo, hi,
                                                 equal_aspect) for k, (a, b) in enumerate(pairs)]
         self._static: dict[tuple[bool, bool], tuple[pygame.Surface, pygame.Surface]] = {}
-        self._composites: OrderedDict[tuple, pygame.Surface] = OrderedDict()
+        self._composites = SurfaceCache(_CACHE_SIZE)
         self._offscreen: pygame.Surface | None = None
         self._text: dict[tuple[int, str], pygame.Surface] = {}
         self._r = max(4, round(0.012 * min(v.rect.h for v in self.views)))
@@ -285,28 +283,22 @@ class TaskRenderer:
             fg.blit(font.render(s["name"], True, (255, 255, 255) if s["kind"] == "box" else COLORS["text"]), label_at)
 
     def _composite(self, band: np.ndarray | None, show_demos: bool, show_mean: bool) -> pygame.Surface:
-        digest = None
-        if band is not None and len(band):
-            b = np.ascontiguousarray(band, dtype=np.float64)
-            digest = (b.shape, hashlib.blake2b(b.tobytes(), digest_size=16).digest())
+        digest = band_key(band)
         key = (digest, show_demos, show_mean)
         surf = self._composites.get(key)
         if surf is not None:
-            self._composites.move_to_end(key)
             return surf
         bg, fg = self._static_layers(show_demos, show_mean)
         surf = bg.copy()
         if digest is not None:
+            b = np.asarray(band, dtype=np.float64)
             for v in self.views:
                 layer = band_layer(b[:, :, list(v.axes)], max(self.width, self.height), lambda q, v=v: self._v2p(v, q))
                 surf.set_clip(v.rect)
                 surf.blit(layer, (0, 0))
                 surf.set_clip(None)
         surf.blit(fg, (0, 0))
-        self._composites[key] = surf
-        while len(self._composites) > _CACHE_SIZE:
-            self._composites.popitem(last=False)
-        return surf
+        return self._composites.put(key, surf)
 
     # ------------------------------------------------------------------ frame
     def draw(self, surface: pygame.Surface, frame: TaskFrame, *, show_demos: bool = True, show_mean: bool = True,
