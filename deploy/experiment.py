@@ -7,6 +7,10 @@ grid; command-line options override it::
 
     khgrl experiment experiments/paper.toml --jobs 2
     khgrl experiment --scenarios high_cov --methods khgrl kgrl --seeds 0 1 2 --episodes 60 --out runs/exp
+    khgrl experiment --tasks fetch:control fetch:moved --episodes 40 --out runs/fetch
+
+``tasks`` (any ``--task`` of ``khgrl up``) replaces the passage world's ``scenarios``; a task's run directories are
+named after it with ``:`` and ``.`` as ``_`` (``fetch:moved`` -> ``fetch_moved-khgrl-seed0``).
 
 Resumable: a run whose directory holds a finished result (every process exited 0, all episodes) is not
 redone; any other run directory (an interrupted or failed run) is wiped and the run starts again from
@@ -33,7 +37,7 @@ from pathlib import Path
 
 from common.config import METHODS, PAPER_EPISODES, SCENARIOS, TQCSettings
 
-__all__ = ["ExperimentConfig", "RunSpec", "load_config", "plan_runs", "run_is_done", "main", "build_parser"]
+__all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main", "build_parser"]
 
 SYSTEMS = ("distributed", "reference")
 _EPISODE_LINE = re.compile(r"\[a0\] episode (\d+):|^\s*(\d+)/(\d+) episodes")
@@ -45,6 +49,7 @@ class ExperimentConfig:
 
     out: str = "runs/experiment"
     scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
+    tasks: list[str] = field(default_factory=list)  # task specs (khgrl up --task); when given, used instead of scenarios
     methods: list[str] = field(default_factory=lambda: list(METHODS))
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3, 4])
     episodes: int = 60
@@ -58,6 +63,14 @@ class ExperimentConfig:
         bad = [s for s in self.scenarios if s not in SCENARIOS] + [m for m in self.methods if m not in METHODS]
         if bad:
             raise ValueError(f"unknown scenario/method {bad}; choose from {SCENARIOS} and {METHODS}")
+        bad_tasks = [t for t in self.tasks if not isinstance(t, str) or ":" not in t]
+        if bad_tasks:
+            raise ValueError(f"tasks {bad_tasks}: expected 'passage:SCENARIO', 'fetch:SCENARIO' or "
+                             "'package.module:callable'")
+        if self.tasks and self.system == "reference":
+            raise ValueError("the single-process reference runs the passage world's scenarios only, not tasks")
+        if len({task_label(t) for t in self.tasks}) != len(self.tasks):
+            raise ValueError(f"tasks {self.tasks}: two of them would share a run directory name")
         if self.system not in SYSTEMS:
             raise ValueError(f"system must be one of {SYSTEMS}, not {self.system!r}")
         if not self.seeds or any(int(s) < 0 for s in self.seeds) or len(set(self.seeds)) != len(self.seeds):
@@ -93,11 +106,17 @@ def load_config(path: str | Path | None, overrides: dict) -> ExperimentConfig:
     return ExperimentConfig(**values).validate()
 
 
+def task_label(spec: str) -> str:
+    """The name of a task's runs: ``fetch:moved`` -> ``fetch_moved``."""
+    return re.sub(r"[^A-Za-z0-9_]", "_", spec)
+
+
 @dataclass(frozen=True)
 class RunSpec:
-    scenario: str
+    scenario: str  # a passage-world scenario, or the label of a task (see ``task``)
     method: str
     seed: int
+    task: str = ""  # the task spec, for runs of a task
 
     @property
     def name(self) -> str:
@@ -106,6 +125,8 @@ class RunSpec:
 
 def plan_runs(cfg: ExperimentConfig) -> list[RunSpec]:
     """Seed-major order, so that an experiment cut short has every method and scenario at the same seeds."""
+    if cfg.tasks:
+        return [RunSpec(task_label(t), m, int(s), t) for s in cfg.seeds for t in cfg.tasks for m in cfg.methods]
     return [RunSpec(sc, m, int(s)) for s in cfg.seeds for sc in cfg.scenarios for m in cfg.methods]
 
 
@@ -131,7 +152,8 @@ def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
     if cfg.system == "reference":
         return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
                 "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]
-    argv = [*khgrl, "up", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
+    world = ["--task", spec.task] if spec.task else ["--scenario", spec.scenario]
+    argv = [*khgrl, "up", *world, "--method", spec.method, "--seed", str(spec.seed),
             "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead),
             "--no-progress"]
     if spec.method == "khgrl":
@@ -283,7 +305,7 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
-    overrides = {"out": args.out, "scenarios": args.scenarios, "methods": args.methods, "seeds": args.seeds,
+    overrides = {"out": args.out, "scenarios": args.scenarios, "tasks": args.tasks, "methods": args.methods, "seeds": args.seeds,
                  "episodes": args.episodes, "human_episodes": args.human_episodes, "system": args.system,
                  "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout}
     try:
@@ -296,7 +318,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dry_run:
         for spec in specs:
             state = "done" if run_is_done(out / spec.name, cfg) else "to run"
-            print(f"{spec.name:<28} {state:<7} {' '.join(run_argv(spec, cfg, out / spec.name)[2:])}")
+            print(f"{spec.name:<32} {state:<7} {' '.join(run_argv(spec, cfg, out / spec.name)[2:])}")
         return 0
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
@@ -327,6 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="output directory (default runs/experiment)")
     p.add_argument("--scenarios", nargs="+", default=None, choices=SCENARIOS,
                    help=f"scenarios (default: {' '.join(SCENARIOS)})")
+    p.add_argument("--tasks", nargs="+", default=None, metavar="TASK",
+                   help="tasks (khgrl up --task), instead of the passage world's scenarios, e.g. fetch:control "
+                        "fetch:moved (default: none)")
     p.add_argument("--methods", nargs="+", default=None, choices=METHODS,
                    help=f"methods (default: {' '.join(METHODS)})")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default 0 1 2 3 4)")
