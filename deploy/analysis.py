@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from deploy.figures import FIGURE, plot_learning, plot_scale
+from deploy.figures import axis_names, figure_name, plot_learning, plot_scale
 from deploy.run_results import (
     STABLE_WINDOW,
     RunResult,
@@ -69,7 +69,7 @@ def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, sce
     _write_per_episode(data, episodes, out / "per_episode.csv")
     _write_scale(found, scales, out / "scale.csv")
     for scenario in sorted({k[0] for k in data}):
-        name, title = FIGURE[scenario]
+        name, title = figure_name(scenario)
         groups = {m: data[(scenario, m)] for m in ("khgrl", "kgrl") if (scenario, m) in data}
         plot_learning(scenario, groups, episodes, out / name, title)
     plot_scale(scales, out / "fig6_scale.png")
@@ -103,14 +103,16 @@ def _write_per_episode(data: dict, episodes: int, path: Path) -> None:
 def _write_scale(found, scales, path: Path) -> None:
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["scenario", "method", "seed", "phase", "L_x", "L_y"])
+        outputs = max(table.shape[1] for items in scales.values() for _, table, _ in items)
+        w.writerow(["scenario", "method", "seed", "phase", *(f"L_{a}" for a in axis_names(outputs))])
         index: dict[tuple[str, str], int] = {}
         for scenario, method, seed, _ in found:
             i = index.get((scenario, method), 0)
             index[(scenario, method)] = i + 1
             phases, table, _ = scales[(scenario, method)][i]
-            for p, (lx, ly) in zip(phases, table):
-                w.writerow([scenario, method, seed, f"{p:.5f}", f"{lx:.6g}", f"{ly:.6g}"])
+            for p, row in zip(phases, table):
+                w.writerow([scenario, method, seed, f"{p:.5f}", *(f"{v:.6g}" for v in row),
+                            *([""] * (outputs - len(row)))])
 
 
 def experiment_config(exp_dir: Path) -> dict | None:

@@ -37,7 +37,8 @@ from pathlib import Path
 
 from common.config import METHODS, PAPER_EPISODES, SCENARIOS, TQCSettings
 
-__all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main", "build_parser"]
+__all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main",
+           "build_parser"]
 
 SYSTEMS = ("distributed", "reference")
 _EPISODE_LINE = re.compile(r"\[a0\] episode (\d+):|^\s*(\d+)/(\d+) episodes")
@@ -49,7 +50,7 @@ class ExperimentConfig:
 
     out: str = "runs/experiment"
     scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
-    tasks: list[str] = field(default_factory=list)  # task specs (khgrl up --task); when given, used instead of scenarios
+    tasks: list[str] = field(default_factory=list)  # task specs (khgrl up --task); if given, instead of scenarios
     methods: list[str] = field(default_factory=lambda: list(METHODS))
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3, 4])
     episodes: int = 60
@@ -305,9 +306,9 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
-    overrides = {"out": args.out, "scenarios": args.scenarios, "tasks": args.tasks, "methods": args.methods, "seeds": args.seeds,
-                 "episodes": args.episodes, "human_episodes": args.human_episodes, "system": args.system,
-                 "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout}
+    overrides = {"out": args.out, "scenarios": args.scenarios, "tasks": args.tasks, "methods": args.methods,
+                 "seeds": args.seeds, "episodes": args.episodes, "human_episodes": args.human_episodes,
+                 "system": args.system, "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout}
     try:
         cfg = load_config(args.config, overrides)
     except (ValueError, OSError, TypeError) as exc:

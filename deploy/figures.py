@@ -8,15 +8,26 @@ import numpy as np
 
 from deploy.run_results import METHOD_LABEL, episode_matrix, human_episodes
 
-__all__ = ["FIGURE", "METHOD_COLOR", "plot_learning", "plot_scale"]
+__all__ = ["FIGURE", "METHOD_COLOR", "figure_name", "plot_learning", "plot_scale", "axis_names"]
 
 METHOD_COLOR = {"khgrl": "C3", "kgrl": "C0"}
 FIGURE = {"high_cov": ("fig4_high_cov.png", "Fig. 4 (high-covariance scenario A)"),
           "low_cov": ("fig5_low_cov.png", "Fig. 5 (low-covariance scenario B)")}
 
 
+def figure_name(scenario: str) -> tuple[str, str]:
+    """(file name, title) of a scenario's learning-curve figure: the paper's Fig. 4/5, or ``learning_<task>.png``."""
+    return FIGURE.get(scenario, (f"learning_{scenario}.png", scenario))
+
+
+def axis_names(outputs: int) -> str:
+    """Names of the outputs' axes in labels: x, y, z (or 0, 1, ... beyond three)."""
+    return "xyz" if outputs <= 3 else "".join(str(i) for i in range(outputs))
+
+
 def plot_learning(scenario: str, groups: dict[str, list[list[dict]]], episodes: int, path: Path, title: str) -> None:
-    """Return, obstacle cost, passage cost and success rate per episode: mean +- std over seeds per method."""
+    """Return, obstacle cost, passage cost and success rate per episode: mean +- std over seeds per method (the
+    cost panels only where some run has a cost: a task without an obstacle has none)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -24,7 +35,9 @@ def plot_learning(scenario: str, groups: dict[str, list[list[dict]]], episodes: 
 
     keys = [("ret", "return"), ("obstacle_cost", "obstacle cost"), ("passage_cost", "passage cost"),
             ("success", "success rate")]
-    fig, axes = plt.subplots(len(keys), 1, figsize=(9, 10), sharex=True, constrained_layout=True)
+    keys = [(k, name) for k, name in keys if k in ("ret", "success")
+            or any(r[k] != 0 for runs in groups.values() for rows in runs for r in rows)]
+    fig, axes = plt.subplots(len(keys), 1, figsize=(9, 2.5 * len(keys)), sharex=True, constrained_layout=True)
     ep = np.arange(1, episodes + 1)
     for method, runs in groups.items():
         color, label = METHOD_COLOR[method], f"{METHOD_LABEL[method]} ({len(runs)} seeds)"
@@ -52,31 +65,34 @@ def plot_learning(scenario: str, groups: dict[str, list[list[dict]]], episodes: 
 
 
 def plot_scale(scales: dict, path: Path) -> None:
-    """Fig. 6: L_x and L_y over phase at the end of each run, per scenario; where the human intervened, shaded."""
+    """Fig. 6: L of each output (L_x, L_y, ...) over phase at the end of each run, per scenario; where the human
+    intervened, shaded."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from common.scenarios import SCENARIOS, get_scenario
+
     scenarios = sorted({k[0] for k in scales})
-    fig, axes = plt.subplots(len(scenarios), 2, figsize=(11, 3.6 * len(scenarios)), squeeze=False,
+    outputs = max(table.shape[1] for items in scales.values() for _, table, _ in items)
+    fig, axes = plt.subplots(len(scenarios), outputs, figsize=(5.5 * outputs, 3.6 * len(scenarios)), squeeze=False,
                              constrained_layout=True)
     for row, scenario in enumerate(scenarios):
         for (sc, method), items in sorted(scales.items()):
             if sc != scenario:
                 continue
             for i, (phases, table, corrected) in enumerate(items):
-                for d, ax in enumerate(axes[row]):
+                for d, ax in enumerate(axes[row][:table.shape[1]]):
                     ax.plot(phases, table[:, d], color=METHOD_COLOR[method], lw=1.0, alpha=0.8,
                             label=f"{METHOD_LABEL[method]} ({len(items)} seeds)" if i == 0 else None)
                     if method == "khgrl" and corrected.size:
                         ax.axvspan(corrected.min(), corrected.max(), color="0.9", zorder=0, lw=0)
-        from common.scenarios import get_scenario
-
-        note = "grey: phases the human corrected" + ("" if get_scenario(scenario).learn_scale
-                                                      else "; L is not learned here, as in the paper")
+        note = "grey: phases the human corrected" + (
+            "; L is not learned here, as in the paper"
+            if scenario in SCENARIOS and not get_scenario(scenario).learn_scale else "")
         for d, ax in enumerate(axes[row]):
-            ax.set_title(f"{scenario}: L_{'xy'[d]} at the end of each run ({note})", fontsize=9)
+            ax.set_title(f"{scenario}: L_{axis_names(outputs)[d]} at the end of each run ({note})", fontsize=9)
             ax.set_xlabel("phase s")
             ax.set_yscale("log")
             ax.grid(alpha=0.3)

@@ -102,8 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="experiments: output directory (default EXP/report); runs: the figure "
                                                 "(default runs/report.png; the table is written beside it as .md)")
     p.add_argument("--seeds", type=int, nargs="+", default=None, help="experiments: only these seeds")
-    p.add_argument("--scenarios", nargs="+", default=None, choices=SCENARIOS,
-                   help="experiments: only these")
+    p.add_argument("--scenarios", nargs="+", default=None,
+                   help=f"experiments: only these scenarios ({', '.join(SCENARIOS)}) or task labels (fetch_moved, "
+                        "...) (default: all)")
     args = p.parse_args(argv)
     from deploy.analysis import analyse, find_runs
 
@@ -122,8 +123,8 @@ def main(argv: list[str] | None = None) -> int:
         except FileNotFoundError as exc:
             print(f"khgrl report: error: {exc}", file=sys.stderr)
             return 2
-        print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig4_high_cov.png, "
-              "fig5_low_cov.png, fig6_scale.png (for the scenarios present)")
+        print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig6_scale.png and the learning "
+              "curves of each scenario (fig4_high_cov.png, fig5_low_cov.png, learning_<task>.png)")
         return 0
     args.out = args.out or "runs/report.png"
     series: dict[str, list[dict]] = {}

@@ -11,6 +11,7 @@ each run's learning criteria (all in episodes, counted from 1; ``None`` = never 
 * **zero obstacle cost**: the episode from which no later episode touches the obstacle (obstacle cost 0
   in that episode and every one after it)
 * success rate over the last 10 episodes; episodes with a collision (obstacle cost < 0) during learning
+* the success rate of the final policy in ``khgrl eval RUN`` (``RUN/eval/eval.csv``), where it was run
 """
 
 from __future__ import annotations
@@ -35,10 +36,12 @@ __all__ = [
     "episode_matrix",
     "human_episodes",
     "load_scale",
+    "load_eval",
     "corrected_phases",
 ]
 
-RUN_NAME = re.compile(r"^(?P<scenario>high_cov|low_cov)-(?P<method>khgrl|kgrl)-seed(?P<seed>\d+)$")
+# <scenario>: a passage-world scenario (high_cov, low_cov) or a task's label (fetch_moved: ``khgrl experiment --tasks``)
+RUN_NAME = re.compile(r"^(?P<scenario>[A-Za-z0-9_]+)-(?P<method>khgrl|kgrl)-seed(?P<seed>\d+)$")
 STABLE_WINDOW = 5  # consecutive autonomous successes that count as "stable success"
 METHOD_LABEL = {"khgrl": "KhGRL", "kgrl": "KGRL"}
 
@@ -62,6 +65,8 @@ class RunResult:
     intervention_steps: int
     clipped_human_steps: int
     mean_return_last_10: float
+    eval_success: float | None = None  # success rate of ``khgrl eval RUN`` (RUN/eval/eval.csv), if it was run
+    eval_episodes: int = 0
 
 
 def stable_success(success: list[bool], human: list[bool], window: int = STABLE_WINDOW) -> int | None:
@@ -116,8 +121,18 @@ def load_run(run_dir: Path) -> list[dict]:
              "clipped_steps": int(r["clipped_steps"])} for r in rows]
 
 
+def load_eval(run_dir: Path) -> list[bool]:
+    """Success of each episode of the run's first ``khgrl eval`` (RUN/eval/eval.csv; [] if it was not run)."""
+    f = Path(run_dir) / "eval" / "eval.csv"
+    if not f.exists():
+        return []
+    with open(f, newline="") as fh:
+        return [r["success"] == "True" for r in csv.DictReader(fh)]
+
+
 def summarize_run(scenario: str, method: str, seed: int, run_dir: Path, rows: list[dict]) -> RunResult:
     succ = [r["success"] for r in rows]
+    evaluated = load_eval(run_dir)
     human = [r["intervention_steps"] > 0 for r in rows]
     last = rows[-10:]
     return RunResult(
@@ -132,6 +147,7 @@ def summarize_run(scenario: str, method: str, seed: int, run_dir: Path, rows: li
         human_episodes=sum(human), intervention_steps=sum(r["intervention_steps"] for r in rows),
         clipped_human_steps=sum(r["clipped_steps"] for r in rows),
         mean_return_last_10=float(np.mean([r["ret"] for r in last])) if last else float("nan"),
+        eval_success=sum(evaluated) / len(evaluated) if evaluated else None, eval_episodes=len(evaluated),
     )
 
 
@@ -154,8 +170,9 @@ def human_episodes(runs: list[list[dict]]) -> list[int]:
 
 def load_scale(run_dir: Path, scenario: str) -> tuple[np.ndarray, np.ndarray, bool]:
     """(phases (N,), L (N, O), recorded) at the end of a run. Runs without a recorded table (single-process
-    reference KGRL, or runs made before the actor wrote ``scale.npz``) never refit L: the scenario's default."""
-    from common.scenarios import get_scenario
+    reference KGRL, or runs made before the actor wrote ``scale.npz``) never refit L: the scenario's default
+    (passage-world scenarios only; a task's run without ``scale.npz`` is an error)."""
+    from common.scenarios import SCENARIOS, get_scenario
 
     f = run_dir / "actor-a0" / "scale.npz"
     if f.exists():
@@ -164,6 +181,8 @@ def load_scale(run_dir: Path, scenario: str) -> tuple[np.ndarray, np.ndarray, bo
     if (run_dir / "scale_table.npy").exists():
         table = np.load(run_dir / "scale_table.npy")
         return np.linspace(0.0, 1.0, table.shape[0]), table, True
+    if scenario not in SCENARIOS:
+        raise FileNotFoundError(f"{run_dir}: no actor-a0/scale.npz (the exploration scale at the end of the run)")
     sc = get_scenario(scenario)
     n = 400
     return np.linspace(0.0, 1.0, n), np.full((n, 2), sc.default_scale), False

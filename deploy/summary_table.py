@@ -4,6 +4,8 @@ within the run) ranked last."""
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from deploy.run_results import METHOD_LABEL, STABLE_WINDOW, RunResult
@@ -43,52 +45,81 @@ def _compare(a: list[int | None], b: list[int | None], episodes: int) -> float:
     return float(mannwhitneyu(xa, xb, alternative="less").pvalue)
 
 
+def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callable[[list[RunResult]], str]]]:
+    """(header, cell of a group of runs) of the table's columns; the obstacle columns only where some run has an
+    obstacle cost, the evaluation column only where some run was evaluated (``khgrl eval``)."""
+    def last10(rs: list[RunResult]) -> str:
+        last = np.array([r.success_last_10 for r in rs])
+        return f"{last.mean():.0%} ± {last.std():.0%} ({', '.join(f'{v:.0%}' for v in last)})"
+
+    def episode(attr: str) -> Callable[[list[RunResult]], str]:
+        return lambda rs: fmt_episode([getattr(r, attr) for r in rs], episodes)
+
+    def evaluated(rs: list[RunResult]) -> str:
+        vals = [r.eval_success for r in rs if r.eval_success is not None]
+        per_seed = ", ".join("-" if r.eval_success is None else f"{r.eval_success:.0%}" for r in rs)
+        return f"{np.mean(vals):.0%} ({per_seed}; {rs[0].eval_episodes} episodes)" if vals else "-"
+
+    mean_sd = lambda v: f"{np.mean(v):.1f} ± {np.std(v):.1f}"  # noqa: E731
+    cols = [("success, last 10 (mean ± std; per seed)", last10), ("first success", episode("first_success")),
+            ("first success w/o human", episode("first_success_without_human")),
+            (f"stable success ({STABLE_WINDOW} in a row)", episode("stable_success"))]
+    if any(r.collision_episodes or r.obstacle_steps for r in results):
+        cols += [("zero obstacle cost from", episode("zero_obstacle_cost_from")),
+                 ("collision episodes", lambda rs: f"{np.mean([r.collision_episodes for r in rs]):.1f} "
+                                                   f"({', '.join(str(r.collision_episodes) for r in rs)})")]
+    cols += [("human episodes", lambda rs: f"{np.mean([r.human_episodes for r in rs]):.1f}"),
+             ("clipped / human steps", lambda rs: f"{sum(r.clipped_human_steps for r in rs)} / "
+                                                  f"{sum(r.intervention_steps for r in rs)}"),
+             ("return, last 10", lambda rs: mean_sd([r.mean_return_last_10 for r in rs]))]
+    if any(r.eval_success is not None for r in results):
+        cols.append(("eval success of the final policy (mean; per seed)", evaluated))
+    return cols
+
+
+def _higher(a: list[float], b: list[float]) -> str:
+    """Mean difference and the one-sided Mann-Whitney U p-value that ``a`` is higher than ``b``."""
+    from scipy.stats import mannwhitneyu
+
+    p = 1.0 if len(set(a + b)) == 1 else float(mannwhitneyu(a, b, alternative="greater").pvalue)
+    return f"{np.mean(a) - np.mean(b):+.0%} (p = {p:.3f})"
+
+
 def summary_markdown(results: list[RunResult], episodes: int) -> str:
     groups: dict[tuple[str, str], list[RunResult]] = {}
     for r in results:
         groups.setdefault((r.scenario, r.method), []).append(r)
-    cols = ["scenario", "method", "seeds", "success, last 10 (mean ± std; per seed)", "first success",
-            "first success w/o human", f"stable success ({STABLE_WINDOW} in a row)", "zero obstacle cost from",
-            "collision episodes", "human episodes", "clipped / human steps", "return, last 10"]
+    cols = _columns(results, episodes)
     lines = [f"Episodes per run: {episodes}. Episode criteria: median over seeds ('never' = not within the run, ranked "
              "last; a median between an episode and 'never' is shown as a range), then each seed's value in seed "
              "order.",
              "",
-             "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+             "| scenario | method | seeds | " + " | ".join(h for h, _ in cols) + " |", "|" + "---|" * (len(cols) + 3)]
     for (scenario, method), rs in sorted(groups.items()):
         rs = sorted(rs, key=lambda r: r.seed)
-        last = np.array([r.success_last_10 for r in rs])
-        per_seed = ", ".join(f"{v:.0%}" for v in last)
-        iv = sum(r.intervention_steps for r in rs)
-        lines.append(
-            f"| {scenario} | {METHOD_LABEL[method]} | {', '.join(str(r.seed) for r in rs)} | "
-            f"{last.mean():.0%} ± {last.std():.0%} ({per_seed}) | "
-            f"{fmt_episode([r.first_success for r in rs], episodes)} | "
-            f"{fmt_episode([r.first_success_without_human for r in rs], episodes)} | "
-            f"{fmt_episode([r.stable_success for r in rs], episodes)} | "
-            f"{fmt_episode([r.zero_obstacle_cost_from for r in rs], episodes)} | "
-            f"{np.mean([r.collision_episodes for r in rs]):.1f} ({', '.join(str(r.collision_episodes) for r in rs)}) | "
-            f"{np.mean([r.human_episodes for r in rs]):.1f} | "
-            f"{sum(r.clipped_human_steps for r in rs)} / {iv} | "
-            f"{np.mean([r.mean_return_last_10 for r in rs]):.1f} ± {np.std([r.mean_return_last_10 for r in rs]):.1f} |")
+        lines.append(f"| {scenario} | {METHOD_LABEL[method]} | {', '.join(str(r.seed) for r in rs)} | "
+                     + " | ".join(cell(rs) for _, cell in cols) + " |")
+    criteria = ["first_success_without_human", "stable_success"]
+    if any(h == "zero obstacle cost from" for h, _ in cols):
+        criteria.append("zero_obstacle_cost_from")
+    evaluated = all(r.eval_success is not None for r in results)
+    heads = [c.replace("_", " ").replace("without", "w/o") for c in criteria] + ["success, last 10"] + (
+        ["eval success"] if evaluated else [])
     comp = ["", "KhGRL vs KGRL (episode criteria: median KhGRL vs median KGRL over seeds, 'never' ranked last, and "
-                "the one-sided Mann–Whitney U p-value that KhGRL's episodes come earlier; success rate over the last "
-                "10: mean KhGRL − mean KGRL and the one-sided p-value that KhGRL's is higher):", "",
-            "| scenario | seeds (KhGRL/KGRL) | first success w/o human | stable success | zero obstacle cost from | "
-            "success, last 10 |", "|---|---|---|---|---|---|"]
-    from scipy.stats import mannwhitneyu
-
+                "the one-sided Mann–Whitney U p-value that KhGRL's episodes come earlier; success rates: "
+                "mean KhGRL − mean KGRL and the one-sided p-value that KhGRL's is higher):", "",
+            "| scenario | seeds (KhGRL/KGRL) | " + " | ".join(heads) + " |", "|---|---|" + "---|" * len(heads)]
     for scenario in sorted({k[0] for k in groups}):
         a, b = groups.get((scenario, "khgrl")), groups.get((scenario, "kgrl"))
         if not a or not b:
             continue
         cells = []
-        for attr in ("first_success_without_human", "stable_success", "zero_obstacle_cost_from"):
+        for attr in criteria:
             va, vb = [getattr(r, attr) for r in a], [getattr(r, attr) for r in b]
             p = _compare(va, vb, episodes)
             cells.append(f"{median_text(va, episodes)} vs {median_text(vb, episodes)} (p = {p:.3f})")
-        sa, sb = [r.success_last_10 for r in a], [r.success_last_10 for r in b]
-        p = 1.0 if len(set(sa + sb)) == 1 else float(mannwhitneyu(sa, sb, alternative="greater").pvalue)
-        cells.append(f"{np.mean(sa) - np.mean(sb):+.0%} (p = {p:.3f})")
+        cells.append(_higher([r.success_last_10 for r in a], [r.success_last_10 for r in b]))
+        if evaluated:
+            cells.append(_higher([r.eval_success for r in a], [r.eval_success for r in b]))
         comp.append(f"| {scenario} | {len(a)}/{len(b)} | " + " | ".join(cells) + " |")
     return "\n".join(lines + comp) + "\n"

@@ -28,6 +28,9 @@ def test_config_file_then_overrides(tmp_path):
     ('seeds = [1, 1]', "distinct"),
     ('episodes = 0', ">= 1"),
     ('system = "cloud"', "system"),
+    ('tasks = ["fetch"]', "expected"),
+    ('tasks = ["a.b:c", "a_b:c"]', "share a run directory"),
+    ('tasks = ["fetch:moved"]\nsystem = "reference"', "scenarios only"),
 ])
 def test_bad_configs_are_refused(tmp_path, text, match):
     f = tmp_path / "bad.toml"
@@ -69,6 +72,24 @@ def test_run_argv_is_a_valid_khgrl_up_command(tmp_path):
     ref = run_argv(RunSpec("low_cov", "kgrl", 2), ExperimentConfig(system="reference", episodes=4), tmp_path / "r")
     args = cli_parser().parse_args(ref[ref.index("reference"):])
     assert (args.scenario, args.method, args.seed, args.episodes, args.quiet) == ("low_cov", "kgrl", 2, 4, True)
+
+
+def test_tasks_replace_scenarios_in_the_plan_and_the_commands(tmp_path):
+    """``tasks``: one run per task, method and seed, named after the task; each command is ``khgrl up --task``."""
+    from common.config import resolve
+    from deploy.launcher import build_parser
+
+    cfg = ExperimentConfig(seeds=[1], tasks=["fetch:control", "deploy.examples.own_task:make_task"], episodes=3,
+                           human_episodes=[2])
+    specs = plan_runs(cfg)
+    assert [s.name for s in specs] == ["fetch_control-khgrl-seed1", "fetch_control-kgrl-seed1",
+                                       "deploy_examples_own_task_make_task-khgrl-seed1",
+                                       "deploy_examples_own_task_make_task-kgrl-seed1"]
+    for spec in specs:
+        argv = run_argv(spec, cfg, tmp_path / spec.name)
+        assert "--scenario" not in argv
+        run = resolve(None, build_parser().parse_args(argv[argv.index("up") + 1:]))
+        assert (run.task_spec, run.method, run.seed, run.episodes) == (spec.task, spec.method, 1, 3)
 
 
 def test_run_is_done_only_for_a_complete_clean_run(tmp_path):

@@ -107,6 +107,36 @@ def test_report_cli_dispatches_and_rejects_mixed_input(tmp_path, capsys):
     assert np.isfinite(float(next(csv.DictReader(open(exp / "report" / "per_run.csv")))["mean_return_last_10"]))
 
 
+def test_task_runs_report_every_output_and_the_evaluation(tmp_path):
+    """Runs of a task (``khgrl experiment --tasks``): a 3-output scale table, no obstacle columns where no run has an
+    obstacle, and the success of ``khgrl eval`` where the runs were evaluated."""
+    exp = tmp_path / "exp"
+    n = 12
+    for method, seed, succ in [("khgrl", 0, [True] * n), ("khgrl", 1, [False] * 6 + [True] * 6),
+                               ("kgrl", 0, [False] * n), ("kgrl", 1, [False] * n)]:
+        run = exp / f"fetch_moved-{method}-seed{seed}"
+        _write_run(run, succ, [0.0] * n, human={4} if method == "khgrl" else frozenset())
+        table = np.full((50, 3), 5.0)
+        table[15:25, 1] = 900.0 if method == "khgrl" else 5.0
+        np.savez(run / "actor-a0" / "scale.npz", phases=np.linspace(0, 1, 50), table=table)
+        (run / "eval").mkdir()
+        with open(run / "eval" / "eval.csv", "w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["episode", "seed", "steps", "return", "env_return", "action_cost", "success", "terminated"])
+            for e in range(4):
+                w.writerow([e + 1, e, 100, 0.0, 0.0, 0.0, method == "khgrl" and (seed == 0 or e < 2), False])
+    out = tmp_path / "report"
+    text = analyse([exp], out)
+    assert (out / "learning_fetch_moved.png").stat().st_size > 0 and (out / "fig6_scale.png").stat().st_size > 0
+    scale = list(csv.DictReader(open(out / "scale.csv")))
+    assert {"L_x", "L_y", "L_z"} <= set(scale[0]) and max(float(r["L_y"]) for r in scale) == 900.0
+    assert "obstacle" not in text and "collision" not in text
+    assert "| 75% (100%, 50%; 4 episodes) |" in text and "| 0% (0%, 0%; 4 episodes) |" in text
+    assert "+75% (p = " in text  # KhGRL's eval success above KGRL's
+    runs = {(r["method"], r["seed"]): r for r in csv.DictReader(open(out / "per_run.csv"))}
+    assert (runs[("khgrl", "1")]["eval_success"], runs[("khgrl", "1")]["eval_episodes"]) == ("0.5", "4")
+
+
 def test_median_over_seeds_with_never():
     from deploy.summary_table import fmt_episode, median_text
 
