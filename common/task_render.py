@@ -36,7 +36,7 @@ _CACHE_SIZE = 8
 _MARGIN = dict(left=46, right=12, top=10, bottom=32)  # plot rectangle inside a view's panel
 _PANEL = (246, 246, 249)
 _DEMO = (150, 150, 158, 170)
-_SHAPE = {"box": (70, 70, 78, 200), "sphere": COLORS["obstacle"] + (170,)}
+_SHAPE = {"box": (70, 70, 78, 200), "box_aside": (70, 70, 78, 45), "sphere": COLORS["obstacle"] + (170,)}
 _POINTS = {"goal": COLORS["goal"], "start": COLORS["start"]}
 
 
@@ -242,9 +242,8 @@ class TaskRenderer:
         hi = self._v2p(v, np.array([d.workspace_high[a], d.workspace_low[b]]))
         pygame.draw.rect(fg, COLORS["border"] + (255,), pygame.Rect(lo[0], lo[1], hi[0] - lo[0] + 1,
                                                                    hi[1] - lo[1] + 1), 1)
-        for s in d.shapes:
-            if s["kind"] != "point":
-                self._draw_shape(fg, v, s)
+        for s in sorted((s for s in d.shapes if s["kind"] != "point"), key=lambda s: s["kind"] != "box"):
+            self._draw_shape(fg, v, s)  # boxes first: a sphere on a table stays visible
         if show_demos:
             for demo in self.demos:
                 pygame.draw.aalines(fg, _DEMO, False, self.to_pixel(k, demo))
@@ -256,6 +255,15 @@ class TaskRenderer:
             if s["kind"] == "point":
                 self._draw_shape(fg, v, s)
 
+    def _aside(self, v: _View, box: dict) -> bool:
+        """Whether ``box`` lies wholly beside the demonstrations along an axis the view does not show (a table
+        under the whole task seen from above): drawn faintly, so that it does not hide what is drawn over it."""
+        demos = np.asarray(self.descriptor.demos, np.float64).reshape(-1, self.descriptor.out_dim)
+        for c in set(range(self.descriptor.out_dim)) - set(v.axes):
+            if box["high"][c] <= demos[:, c].min() or box["low"][c] >= demos[:, c].max():
+                return True
+        return False
+
     def _draw_shape(self, fg: pygame.Surface, v: _View, s: dict) -> None:
         a, b = v.axes
         font = get_font(11)
@@ -263,7 +271,7 @@ class TaskRenderer:
             p0 = self._v2p(v, np.array([s["low"][a], s["high"][b]]))
             p1 = self._v2p(v, np.array([s["high"][a], s["low"][b]]))
             rect = pygame.Rect(round(p0[0]), round(p0[1]), max(1, round(p1[0] - p0[0])), max(1, round(p1[1] - p0[1])))
-            pygame.draw.rect(fg, _SHAPE["box"], rect)
+            pygame.draw.rect(fg, _SHAPE["box_aside"] if self._aside(v, s) else _SHAPE["box"], rect)
             label_at = (rect.left + 2, rect.top + 1) if font and font.size(s["name"])[0] < rect.w - 4 else None
         elif s["kind"] == "sphere":
             c = np.asarray(s["center"], np.float64)[[a, b]]
@@ -280,7 +288,8 @@ class TaskRenderer:
             pygame.draw.circle(fg, col, (x, y), 2)
             label_at = (round(x) + 8, round(y) - 16)
         if font is not None and label_at is not None and not s["name"].startswith("_"):
-            fg.blit(font.render(s["name"], True, (255, 255, 255) if s["kind"] == "box" else COLORS["text"]), label_at)
+            white = s["kind"] == "box" and not self._aside(v, s)
+            fg.blit(font.render(s["name"], True, (255, 255, 255) if white else COLORS["text"]), label_at)
 
     def _composite(self, band: np.ndarray | None, show_demos: bool, show_mean: bool) -> pygame.Surface:
         digest = band_key(band)

@@ -245,3 +245,22 @@ def test_cli_kmp_fit_o3(tmp_path, capsys) -> None:
     assert main(["kmp", "fit", str(src), "--out", str(png), "--components", "4", "--box", "-0.5", "1.5"]) == 0
     assert str(png) in capsys.readouterr().out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 5000
+
+
+def test_a_table_under_the_task_does_not_hide_the_object_seen_from_above() -> None:
+    """Fetch's table (below every demonstration in z) is drawn faintly in the top view, where the moved object
+    lies on it; in the side view it is the solid obstacle it is."""
+    from common.fetch_task import DEMO_OBJECT, MOVE, make_task
+
+    env = KGRLEnv(make_task("moved"))
+    r = TaskRenderer(env.descriptor("fetch:moved"), size=(800, 420))
+    start = np.asarray(env.descriptor("fetch:moved").mean)[0]
+    img = r.render_rgb(TaskFrame(position=start, desired=start))
+    obj = DEMO_OBJECT + MOVE
+    x, y = np.rint(r.to_pixel(0, obj)).astype(int)
+    assert img[y, x, 0] > img[y, x, 2] + 40  # the object's brown, not the table's grey over it
+    tx, ty = np.rint(r.to_pixel(0, obj + [0.15, 0.25, 0.0])).astype(int)  # table only, away from everything
+    assert img[ty, tx].min() > 170  # faint
+    sx, sy = np.rint(r.to_pixel(1, np.array([1.1, 0.75, 0.41]))).astype(int)  # the table's edge in the side view
+    assert img[sy, sx].max() < 130  # solid
+    env.close()
