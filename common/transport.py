@@ -20,12 +20,15 @@ import threading
 import time
 from typing import Any, Callable
 
-__all__ = ["DEFAULT_ENDPOINT", "client_config", "router_config", "free_port", "open_client", "open_router",
-           "wait_reachable", "Inbox", "undeclare_all", "endpoint_host_port"]
+__all__ = ["DEFAULT_ENDPOINT", "MAX_MESSAGE_BYTES", "client_config", "router_config", "free_port", "open_client",
+           "open_router", "wait_reachable", "Inbox", "undeclare_all", "endpoint_host_port"]
 
 log = logging.getLogger("khgrl.transport")
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# the largest message any process accepts (the weights' 64 MiB limit, plus slack for the envelope): Zenoh drops a
+# larger (fragmented) message at the link before it is reassembled, and an Inbox drops one before copying it
+MAX_MESSAGE_BYTES = 68 * 1024 * 1024
 
 
 def _base_config(mode: str, listen: list[str], connect: list[str], lease_ms: int):
@@ -42,6 +45,7 @@ def _base_config(mode: str, listen: list[str], connect: list[str], lease_ms: int
     conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", "60000000")
     # keep queries/replies off shared memory (zenoh#2628: SHM can drop queries when an RX thread stalls)
     conf.insert_json5("transport/shared_memory/enabled", "false")
+    conf.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
     return conf
 
 
@@ -139,7 +143,9 @@ class Inbox:
     """Zenoh callbacks put ``(kind, key, payload bytes, arrival)`` here and return at once; the process's own
     loop takes them out. Bounded: when ``maxsize`` items wait, the overflow policy decides --
     ``"drop_oldest"`` (keep the newest: frames, corrections) or ``"drop_newest"`` (keep what came first:
-    a stream whose sender re-sends what was not acknowledged). Dropped items are counted by kind."""
+    a stream whose sender re-sends what was not acknowledged). Dropped items are counted by kind. A payload
+    larger than its kind's limit is dropped in the callback before it is copied out of Zenoh (counted in
+    ``oversize``)."""
 
     POLICIES = ("drop_oldest", "drop_newest")
 
@@ -149,6 +155,7 @@ class Inbox:
         self.q: queue.Queue = queue.Queue(maxsize=maxsize)
         self.overflow = overflow
         self.dropped: dict[str, int] = {}
+        self.oversize: dict[str, int] = {}
         self._lock = threading.Lock()
 
     def put(self, item: tuple) -> None:
@@ -169,10 +176,18 @@ class Inbox:
                 except queue.Full:
                     pass
 
-    def callback(self, kind: str) -> Callable:
-        """A Zenoh sample callback that files samples under ``kind``."""
+    def callback(self, kind: str, max_bytes: int = MAX_MESSAGE_BYTES) -> Callable:
+        """A Zenoh sample callback that files samples under ``kind``.
+
+        :param kind: the name items are filed under
+        :param max_bytes: larger payloads are counted in ``oversize`` and dropped without being copied
+        """
 
         def cb(sample) -> None:
+            if len(sample.payload) > max_bytes:
+                with self._lock:
+                    self.oversize[kind] = self.oversize.get(kind, 0) + 1
+                return
             self.put((kind, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic()))
 
         return cb

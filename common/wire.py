@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter
 from typing import Any
 
@@ -109,12 +110,27 @@ def opt(m: dict, name: str, check, *args, **kwargs):
 
 
 class RejectCounter:
-    """Counts rejected messages by kind and reason; logs the first of each reason and then every 100th of a
-    kind, so a flood of garbage costs a few log lines, not one per message."""
+    """Counts rejected messages by kind and reason, and logs them rate-limited: the first ``first`` distinct reasons
+    of a kind each get a line; after that at most one line per kind every ``every`` seconds, saying how many were
+    rejected since the last line and the latest reason. A flood of garbage (random bytes give a new reason each
+    time) costs a few lines a minute and a bounded amount of memory (at most ``max_reasons`` reasons are told apart
+    per kind; the rest count as "other").
 
-    def __init__(self, role: str) -> None:
+    :param role: who rejects (in the log lines)
+    :param first: distinct reasons per kind logged at once
+    :param every: seconds between the later lines of a kind
+    :param max_reasons: reasons told apart per kind
+    :param clock: monotonic seconds
+    """
+
+    def __init__(self, role: str, *, first: int = 5, every: float = 10.0, max_reasons: int = 32,
+                 clock=time.monotonic) -> None:
         self.role = role
+        self.first, self.every, self.max_reasons, self.clock = first, every, max_reasons, clock
         self.counts: Counter = Counter()
+        self.logged = 0  # lines written
+        self._reasons: dict[str, set[str]] = {}
+        self._last: dict[str, tuple[float, int]] = {}  # kind -> (time of its last line, its count then)
         self._lock = threading.Lock()
 
     def reject(self, kind: str, key: str, err: Exception) -> None:
@@ -122,9 +138,22 @@ class RejectCounter:
         with self._lock:
             self.counts[kind] += 1
             n_kind = self.counts[kind]
-            n_reason = self.counts[(kind, reason)] = self.counts[(kind, reason)] + 1
-        if n_reason == 1 or n_kind % 100 == 0:
-            log.warning("%s rejected %s message on %s (#%d of this kind): %s", self.role, kind, key, n_kind, err)
+            seen = self._reasons.setdefault(kind, set())
+            new = reason not in seen and len(seen) < self.max_reasons
+            if new:
+                seen.add(reason)
+            self.counts[(kind, reason if reason in seen else "other")] += 1
+            now = self.clock()
+            last_t, last_n = self._last.get(kind, (-float("inf"), 0))
+            if new and len(seen) <= self.first:
+                line = f"(#{n_kind} of this kind): {err}"
+            elif now - last_t >= self.every:
+                line = f"(#{n_kind} of this kind, {n_kind - last_n} since the last line): {err}"
+            else:
+                return
+            self._last[kind] = (now, n_kind)
+            self.logged += 1
+        log.warning("%s rejected %s message on %s %s", self.role, kind, key, line)
 
     @property
     def total(self) -> int:

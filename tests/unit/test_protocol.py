@@ -438,6 +438,25 @@ def test_reject_counter_counts_by_kind() -> None:
     assert rc.by_kind() == {"correction": 2} and rc.total == 2
 
 
+def test_reject_logging_is_rate_limited_under_a_flood_of_distinct_garbage(caplog) -> None:
+    """100,000 random payloads (a new reason nearly every time): a handful of lines, every reject counted, and a
+    bounded number of reasons kept."""
+    now = [0.0]
+    rc = RejectCounter("test", first=5, every=10.0, max_reasons=32, clock=lambda: now[0])
+    rng = np.random.default_rng(0)
+    with caplog.at_level("WARNING", logger="khgrl.protocol"):
+        for i in range(100_000):
+            now[0] = i * 2.5e-4  # 25 s in all
+            try:
+                decode(Correction, rng.bytes(int(rng.integers(1, 40))))
+            except ProtocolError as exc:
+                rc.reject("correction", "k", exc)
+    assert rc.by_kind() == {"correction": 100_000}
+    assert rc.logged == len(caplog.records) <= 5 + 2  # the first 5 reasons, then one line per 10 s
+    assert len([k for k in rc.counts if isinstance(k, tuple)]) <= 33  # 32 reasons + "other"
+    assert "since the last line" in caplog.records[-1].getMessage()
+
+
 # ------------------------------------------------------------------------------------ one place for msgpack
 PACKAGES = ("common", "actor", "learner", "human_bridge", "deploy", "benchmarks")
 THIRD_PARTY = REPO / "deploy" / "examples"  # an example client written without our code: it must use msgpack
