@@ -149,30 +149,49 @@ class Inbox:
 
     POLICIES = ("drop_oldest", "drop_newest")
 
-    def __init__(self, maxsize: int = 10_000, overflow: str = "drop_oldest") -> None:
+    def __init__(self, maxsize: int = 10_000, overflow: str = "drop_oldest", max_bytes: int | None = None) -> None:
+        """:param maxsize: items waiting at most
+        :param overflow: what goes when it is full: ``drop_oldest`` or ``drop_newest``
+        :param max_bytes: payload bytes waiting at most (None: no byte bound), so that memory stays bounded
+            whatever the size of the messages
+        """
         if overflow not in self.POLICIES:
             raise ValueError(f"overflow policy must be one of {self.POLICIES}")
         self.q: queue.Queue = queue.Queue(maxsize=maxsize)
         self.overflow = overflow
+        self.max_bytes = max_bytes
+        self.bytes = 0  # payload bytes waiting
         self.dropped: dict[str, int] = {}
         self.oversize: dict[str, int] = {}
         self._lock = threading.Lock()
 
+    @staticmethod
+    def _size(item: tuple) -> int:
+        return len(item[2]) if isinstance(item[2], (bytes, bytearray)) else 0
+
     def put(self, item: tuple) -> None:
-        try:
-            self.q.put_nowait(item)
-            return
-        except queue.Full:
-            pass
+        """File ``item`` (``(kind, key, payload, arrival)``), or drop by the overflow policy when full."""
+        n = self._size(item)
         with self._lock:
-            self.dropped[item[0]] = self.dropped.get(item[0], 0) + 1
-            if self.overflow == "drop_oldest":
-                try:
-                    self.q.get_nowait()
-                except queue.Empty:
-                    pass
+            if self.max_bytes is None or self.bytes + n <= self.max_bytes:
                 try:
                     self.q.put_nowait(item)
+                    self.bytes += n
+                    return
+                except queue.Full:
+                    pass
+            self.dropped[item[0]] = self.dropped.get(item[0], 0) + 1
+            if self.overflow == "drop_newest":
+                return
+            while self.q.full() or (self.max_bytes is not None and self.bytes + n > self.max_bytes and self.q.qsize()):
+                try:
+                    self.bytes -= self._size(self.q.get_nowait())
+                except queue.Empty:
+                    break
+            if self.max_bytes is None or self.bytes + n <= self.max_bytes:
+                try:
+                    self.q.put_nowait(item)
+                    self.bytes += n
                 except queue.Full:
                     pass
 
@@ -204,9 +223,14 @@ class Inbox:
     def get(self, timeout: float = 0.0) -> tuple | None:
         """The next item, waiting up to ``timeout`` s (0: don't wait); None if there is none."""
         try:
-            return self.q.get(timeout=timeout) if timeout > 0 else self.q.get_nowait()
+            item = self.q.get(timeout=timeout) if timeout > 0 else self.q.get_nowait()
         except queue.Empty:
             return None
+        n = self._size(item)
+        if n:
+            with self._lock:
+                self.bytes -= n
+        return item
 
     def qsize(self) -> int:
         return self.q.qsize()

@@ -83,3 +83,15 @@ def test_opening_a_session_to_no_router_gives_up_on_time_and_on_stop():
     threading.Timer(0.3, stop.set).start()
     with pytest.raises(ConnectionError, match="stopped"):
         open_client(ep, stop=stop.is_set)
+
+
+@pytest.mark.parametrize("policy", ["drop_oldest", "drop_newest"])
+def test_a_byte_bound_keeps_the_waiting_payload_bytes_under_it(policy):
+    inbox = Inbox(maxsize=1000, overflow=policy, max_bytes=10_000)
+    for i in range(50):
+        inbox.put(("transitions", "k", bytes([i]) * 1000, 0.0))
+        assert inbox.bytes <= 10_000
+    inbox.put(("alive", "k", True, 0.0))  # not a payload: not counted
+    got = [item[2][0] for item in iter(inbox.get, None) if item[0] == "transitions"]
+    assert got == (list(range(40, 50)) if policy == "drop_oldest" else list(range(10)))
+    assert inbox.dropped["transitions"] == 40 and inbox.bytes == 0
