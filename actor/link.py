@@ -11,9 +11,28 @@ from common.messages import Control, Message
 from common.protocol import Keys, encode
 from common.transport import Inbox, undeclare_all
 
-__all__ = ["ActorLink"]
+__all__ = ["ActorLink", "actor_alive"]
 
 log = logging.getLogger("khgrl.actor")
+
+
+def actor_alive(session, keys: Keys, actor: str, timeout: float = 2.0) -> str | None:
+    """The liveliness key of a live process of actor ``actor`` on the router (None: there is none, or the query
+    failed -- logged). Asked before this process declares anything, so any reply is another process.
+
+    :param session: an open Zenoh session.
+    :param keys: the run's key expressions.
+    :param actor: the actor id.
+    :param timeout: seconds to wait for replies.
+    """
+    found = None
+    try:
+        for r in session.liveliness().get(keys.alive("actor", actor), timeout=timeout):
+            if r.ok and found is None:
+                found = str(r.ok.key_expr)
+    except Exception as exc:  # noqa: BLE001
+        log.warning("liveliness query for actor %s failed: %s", actor, exc)
+    return found
 
 
 class ActorLink:

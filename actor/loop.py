@@ -9,7 +9,8 @@ Per control step:
    actor more than ``max_lead`` transitions ahead of what the learner has trained on. With ``max_lead`` =
    ``batch`` = the train frequency (the defaults) each step is taken with exactly the weights single-process
    SB3 would use: the weights trained at the last multiple of ``train_freq`` (after ``learning_starts``).
-   If the learner is not alive, the actor keeps acting with its last weights (a robot does not stop);
+   If the learner is not alive, or in ``--mode robot``, the actor keeps acting with its last weights (a robot
+   does not stop for the learner);
 3. pace to ``rate`` (:class:`~actor.pacing.Pacer`), choose the action (uniform random, seeded, for the first
    ``learning_starts`` transitions of the run, as SB3 does; then ``policy.predict(obs, deterministic=False)``),
    apply the arbitrated correction (``env.set_correction``), step;
@@ -37,10 +38,10 @@ from actor.pacing import Pacer
 from actor.record import CorrectionRecord
 from actor.results import EpisodeLog
 from actor.stream import TransitionStream
-from actor.telemetry import RateLimitStats, TensorBoard, status_info, summary
+from actor.telemetry import RateLimitStats, TensorBoard, frame, status_info, summary
 from actor.weights import PolicyWeights
 from common.config import RunConfig
-from common.messages import Ack, Control, Correction, Dims, EpisodeReport, Frame, Status
+from common.messages import Ack, Control, Correction, Dims, EpisodeReport, Status
 from common.metrics import EpisodeAccumulator
 from common.process import StopFlag
 from common.protocol import Keys, decode
@@ -51,6 +52,7 @@ __all__ = ["ActorParts", "ActorLoop"]
 
 log = logging.getLogger("khgrl.actor")
 
+MAX_SERVICE = 64  # messages handled per control step at most (a 50 Hz step has 20 ms)
 STATUS_EVERY_S = 1.0
 _INBOX_KINDS = {"ack": Ack, "correction": Correction, "control": Control}
 
@@ -110,7 +112,7 @@ class ActorLoop:
         self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
         self._t_status = time.monotonic()
         self.dims = Dims(out=parts.env.mapping.model.out_dim)  # corrections carry O coordinates
-        self.wrong_task: str | None = None  # why this actor refused its learner (exit code 2)
+        self.wrong_task: str | None = None  # why this actor refused its learner or was refused (exit code 2)
 
     @property
     def learner_alive(self) -> bool:
@@ -183,7 +185,7 @@ class ActorLoop:
         return True
 
     def _action(self, obs: np.ndarray) -> np.ndarray:
-        run_index = self.earlier_transitions + self.p.stream.count
+        run_index = self.earlier_transitions + self.p.stream.count - self.p.stream.start_index
         if run_index < self.cfg.tqc.learning_starts:
             return self.p.env.action_space.sample()
         action, _ = self.p.policy.predict(obs, deterministic=False)
@@ -214,19 +216,10 @@ class ActorLoop:
             p.record.write(self.episode, t, p.arbiter.holder, p_h, info)
             p.arbiter.counts["projected_steps"] += int(bool(info.get("projected")))
         done = terminated or truncated
-        p.link.publish(self._frame(info, t, iv, ep.ret, done))
+        p.link.publish(frame(env, self.id, self.episode, info, t, iv, ep.ret, done))
         if done or p.stream.count % self.cfg.stream.batch == 0:
             p.stream.cut()
         return next_obs, done
-
-    def _frame(self, info: dict, t: int, intervening: bool, ret: float, last: bool) -> Frame:
-        env = self.p.env
-        return Frame(actor=self.id, episode=self.episode, t=t, phase=float(info["phase"]),
-                     robot=np.asarray(env.position, dtype=np.float64), desired=np.asarray(info["desired"], np.float64),
-                     mean=np.asarray(env.mapping.mean(t), np.float64), scale=np.asarray(info["scale"], np.float64),
-                     intervening=intervening, task=env.task.name, ret=float(ret),
-                     next_mean=np.asarray(env.mapping.mean(t + 1), np.float64) if t + 1 < env.horizon else None,
-                     last=True if last else None)
 
     def _end_episode(self, acc: EpisodeAccumulator, ep: _Episode) -> None:
         p = self.p
@@ -243,13 +236,17 @@ class ActorLoop:
 
     # ------------------------------------------------------------------ inbox
     def service(self, block: float = 0.0) -> None:
-        """Handle everything that arrived (waiting up to ``block`` s for the first item); swap weights; re-send
-        if stalled; publish the status about once a second.
+        """Handle what arrived -- at most :data:`MAX_SERVICE` messages, so a flood costs a step a bounded time (the
+        rest waits in the bounded inbox, whose overflow is dropped and counted) -- waiting up to ``block`` s for the
+        first; swap weights; re-send if stalled; publish the status about once a second.
 
         :param block: seconds to wait for something to arrive.
         """
         timeout = block
-        while (item := self.p.inbox.get(timeout)) is not None:
+        for _ in range(MAX_SERVICE):
+            item = self.p.inbox.get(timeout)
+            if item is None:
+                break
             timeout = 0.0
             self._handle(*item)
         self.p.weights.swap()
@@ -269,7 +266,9 @@ class ActorLoop:
             self.p.rejects.reject(kind, key, exc)
             return
         if kind == "ack":
-            self.p.stream.on_ack(msg, key)
+            if not self.p.stream.on_ack(msg, key) and self.p.stream.superseded:
+                self.wrong_task = self.p.stream.superseded  # another process runs this actor id: stop (exit 2)
+                self.flag.set("stream superseded")
         elif kind == "correction":
             if msg.client != Keys.chunk(key, 3):
                 self.p.rejects.reject("correction", key, ProtocolError(f"client {msg.client!r} published on {key}"))
@@ -321,10 +320,10 @@ class ActorLoop:
     def _must_wait(self) -> bool:
         if self.paused:
             return True
-        if not self.learner_alive:
+        if not self.learner_alive or self.cfg.stream.mode == "robot":  # a robot does not wait for the learner
             return False
         s = self.p.stream
-        trained = s.trained if s.ack_epoch is not None else 0
+        trained = s.trained if s.ack_epoch is not None else s.start_index  # (a continued stream: trained before)
         return s.sent - trained >= self.cfg.stream.max_lead or self.p.weights.behind(s.ack_epoch, s.ack_version)
 
     def rate_limit(self) -> None:

@@ -9,24 +9,28 @@ Wiring, top to bottom: settings -> logging and signals -> world and policy (seed
 SB3 seeds them) -> Zenoh session -> the loop's parts (:mod:`actor.loop`) -> run -> result files in
 RUN_DIR/actor-ID/ (episodes.csv/json, corrections.csv, summary.json, config.json, scale.npz, tb/).
 With ``--resume`` the actor continues the episode numbering of its earlier part and appends to its files.
+
+One process per actor id: a second one with the same run directory is refused by the lock in RUN_DIR/actor-ID,
+one elsewhere by the liveliness token of the live one (exit code 2, one line on stderr). A restarted actor
+continues its transition stream (:mod:`actor.restart`): after a kill, without ``--resume`` too, it re-sends
+what the learner has not confirmed and appends to its episode and correction files.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-import secrets
 import sys
 import time
 from pathlib import Path
 
 from actor.arbiter import CorrectionArbiter
 from actor.exploration import ExplorationScale
-from actor.link import ActorLink
+from actor.link import ActorLink, actor_alive
 from actor.loop import ActorLoop, ActorParts
-from actor.outbox import Outbox
 from actor.pacing import set_realtime
 from actor.record import CorrectionRecord
+from actor.restart import AlreadyRunning, StreamRecord, StreamStart, lock_actor_dir, open_stream
 from actor.results import EpisodeLog
 from actor.stream import TransitionStream
 from actor.telemetry import TensorBoard
@@ -47,7 +51,7 @@ log = logging.getLogger("khgrl.actor")
 ACTOR_SETTINGS = {"task", "scenario", "demos", "method", "episodes", "seed", "run_dir", "run", "connect", "rate",
                   "actor_rt_priority",
                   "tensorboard", "learning_starts", "train_freq", "net_arch", "batch", "max_lead", "outbox_memory",
-                  "resend_after_s", "flush_timeout", "correction_timeout", "learner_wait", "lease_ms"}
+                  "resend_after_s", "flush_timeout", "correction_timeout", "learner_wait", "lease_ms", "window", "mode"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -56,14 +60,15 @@ def build_parser() -> argparse.ArgumentParser:
                                             "corrections, streams transitions to the learner.")
     p.add_argument("--id", default="a0", help="actor id; actor a<i> is seeded with seed + i (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
-                   help="continue this actor's part of the run in RUN_DIR/actor-ID: episode numbering, episodes.csv, "
-                        "corrections.csv and TensorBoard carry on (default: start afresh)")
+                   help="continue this actor's part of the run in RUN_DIR/actor-ID: its transition stream, episode "
+                        "numbering, episodes.csv, corrections.csv and TensorBoard carry on (default: start afresh, "
+                        "unless the earlier process was killed or left transitions the learner has not confirmed)")
     add_process_flags(p, only=ACTOR_SETTINGS)
     return p
 
 
-def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, resume: bool,
-                 task=None) -> ActorParts:
+def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, start: StreamStart,
+                 resume: bool, task=None) -> ActorParts:
     """Declare everything on the session and wire the loop's parts (declaration order as the protocol expects:
     subscribers, publishers, the weights receiver, then the liveliness token)."""
     cfg, keys = pc.cfg, Keys(pc.run)
@@ -74,9 +79,12 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
     receiver.start()
     announcer = TaskAnnouncer(session, keys, "actor", actor, task) if task is not None else None
     link.announce()
-    stream = TransitionStream(actor, secrets.token_hex(6), Outbox(cfg.stream.outbox_memory, out_dir / "outbox"),
-                              link.publish_transitions, rejects, cfg.stream.resend_after_s,
-                              task=None if task is None else task.digest)
+    rec = start.record
+    stream = TransitionStream(actor, rec.stream, start.outbox, link.publish_transitions, rejects,
+                              cfg.stream.resend_after_s, task=None if task is None else task.digest,
+                              next_seq=rec.next_seq, next_index=rec.next_index, durable=rec.durable,
+                              journal=lambda pos: StreamRecord(stream=rec.stream, **pos).save(out_dir),
+                              window=cfg.stream.window)
     khgrl = cfg.method == "khgrl"
     scale = ExplorationScale(env, actor, khgrl, link.publish)
     episodes = EpisodeLog(out_dir, resume)
@@ -100,6 +108,13 @@ def _close(parts: ActorParts) -> None:
     parts.tensorboard.close()
 
 
+def _error(actor: str, message: object) -> int:
+    """Log and print one error line; the exit code of a refused start (2)."""
+    log.error("%s", message)
+    print(f"khgrl actor {actor}: error: {message}", file=sys.stderr, flush=True)
+    return 2
+
+
 def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     """Run one actor to the end; returns its exit code (0 done, 3 flush timed out, 1 failed).
 
@@ -116,6 +131,11 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     seed = cfg.actor_seed(actor)
     out_dir = Path(cfg.run_dir) / f"actor-{actor}"
     out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        lock = lock_actor_dir(out_dir)  # held until this process ends
+    except AlreadyRunning as exc:
+        print(f"khgrl actor {actor}: error: actor {actor} is already running: {exc}", file=sys.stderr, flush=True)
+        return 2
     setup_process_logging(out_dir / "actor.log")
     torch.set_num_threads(1)
     flag = StopFlag()
@@ -126,9 +146,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         env = KGRLEnv(load_task(cfg.task_spec, cfg.demos or None), seed=seed)
         task = env.descriptor(cfg.task_spec)
     except TaskError as exc:
-        log.error("%s", exc)
-        print(f"khgrl actor {actor}: error: {exc}", file=sys.stderr, flush=True)
-        return 2
+        return _error(actor, exc)
     env.action_space.seed(seed)  # SB3 seeds the action space it samples warm-up actions from
     torch.manual_seed(seed)
     policy = TQCPolicy(env.observation_space, env.action_space, lr_schedule=lambda _: cfg.tqc.learning_rate,
@@ -146,7 +164,12 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         print(f"khgrl actor {actor}: {exc}", file=sys.stderr, flush=True)
         return 0 if flag else 1
     with session:
-        parts = _build_parts(pc, actor, session, env, policy, out_dir, resume, task)
+        if other := actor_alive(session, Keys(pc.run), actor):
+            return _error(actor, f"actor {actor} is already alive on the router ({other}): a second process with "
+                                 f"this id is refused (give it another --id)")
+        start = open_stream(out_dir, cfg.stream.outbox_memory, actor, resume)
+        resume = resume or start.continued
+        parts = _build_parts(pc, actor, session, env, policy, out_dir, start, resume, task)
         loop = ActorLoop(cfg, actor, parts, flag)
         loop.join()
         loop.realtime = set_realtime(cfg.actor_rt_priority) if cfg.actor_rt_priority > 0 else False
@@ -155,14 +178,17 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         finally:
             summary = loop.summary(rc, time.perf_counter() - t_run)
             _close(parts)
+            StreamRecord(stream=parts.stream.stream, **parts.stream.position(), running=False).save(out_dir)
 
     runtime = {**pc.runtime, "run": pc.run, "endpoint": pc.endpoint, "actor_id": actor, "seed": seed,
-               "stream": parts.stream.stream, "resumed": resume, "first_episode": loop.first_episode}
+               "stream": parts.stream.stream, "resumed": resume, "first_episode": loop.first_episode,
+               "continued_stream": start.continued, "after_kill": start.killed}
     parts.scale.save(out_dir)
     parts.episodes.write_final({**cfg.to_dict(), "runtime": runtime}, summary)
     log.info("actor %s done (exit %d): %d episodes, %d transitions, loop period p50 %.2f ms p99 %.2f ms",
-             actor, rc, len(parts.episodes.new), parts.stream.count, summary["loop_period_ms"]["p50"] or 0,
+             actor, rc, len(parts.episodes.new), summary["transitions"], summary["loop_period_ms"]["p50"] or 0,
              summary["loop_period_ms"]["p99"] or 0)
+    lock.close()
     return rc
 
 

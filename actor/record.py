@@ -7,7 +7,25 @@ import csv
 import time
 from pathlib import Path
 
-__all__ = ["CorrectionRecord"]
+__all__ = ["CorrectionRecord", "trim_partial_line"]
+
+
+def trim_partial_line(path: Path) -> int:
+    """Cut a last line that a killed process left unfinished (no newline) off a CSV file that is appended to;
+    returns the bytes cut.
+
+    :param path: the file (nothing happens if it is missing or empty).
+    """
+    path = Path(path)
+    if not path.is_file() or path.stat().st_size == 0:
+        return 0
+    data = path.read_bytes()
+    if data.endswith(b"\n"):
+        return 0
+    keep = data.rfind(b"\n") + 1
+    with open(path, "r+b") as fh:
+        fh.truncate(keep)
+    return len(data) - keep
 
 
 class CorrectionRecord:
@@ -28,6 +46,8 @@ class CorrectionRecord:
         names = tuple(f"p_h_{'xyz'[k] if k < 3 else k}" for k in range(dim))
         self.FIELDS = ("run", "actor", "episode", "step", "time", "client", *names, "projected", "clipped")
         self.run, self.actor = run, actor
+        if append:
+            trim_partial_line(self.path)  # a killed actor's last row may be half written
         has_rows = append and self.path.is_file() and self.path.stat().st_size > 0
         self._fh = open(self.path, "a" if has_rows else "w", newline="")
         self._w = csv.writer(self._fh)

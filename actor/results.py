@@ -1,8 +1,9 @@
 """The actor's result files in RUN_DIR/actor-ID/: ``episodes.csv`` and ``episodes.json`` (a row per finished
 episode, written as it finishes, so a killed actor keeps its history), ``config.json`` and ``summary.json``.
 
-With ``--resume`` the actor continues an earlier part of the run: its episodes are read back, numbering
-continues after the last one, and new rows are appended. Without it, earlier files are replaced.
+With ``--resume`` (or when it continues the stream of a killed process, :mod:`actor.restart`) the actor
+continues an earlier part of the run: its episodes are read back, numbering continues after the last one, and
+new rows are appended. Otherwise earlier files are replaced.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import logging
 from dataclasses import asdict
 from pathlib import Path
 
+from actor.record import trim_partial_line
 from common.metrics import EpisodeStats, append_episode_row
 
 __all__ = ["EpisodeLog"]
@@ -52,6 +54,7 @@ class EpisodeLog:
         self.json = self.dir / "episodes.json"
         self.earlier: list[dict] = []
         if resume:
+            trim_partial_line(self.csv)  # (an actor killed while appending a row)
             self.earlier = self._read_earlier()
         else:
             for p in (self.csv, self.json):

@@ -2,11 +2,21 @@
 acks, re-send what the learner may have missed (docs/protocol.md, "Transitions and acks").
 
 Batches are numbered ``seq`` 0, 1, 2, ... and kept in an :class:`~actor.outbox.Outbox` until an ack says
-``durable >= seq``. Everything after ``ack.received`` is re-sent when the ack's epoch changes (learner
-restarted), shortly after the learner's liveliness token appears, or when un-acked data has waited more
-than ``resend_after_s`` without progress. Re-sent batches carry the current ``base_seq`` (the oldest batch
-still held) so a learner that never saw this actor starts there. An ack that claims more than this actor has
-sent is refused (counted and logged): it must not make the actor drop batches the learner does not hold.
+``durable >= seq``. Flow control is a window: at most ``window`` batches beyond what the learner acknowledged
+(``received``) are out at a time; later batches wait in the outbox and go as acks come in. Sending goes from a
+cursor, which is moved back to just after ``received`` (so only the window is re-sent) when the ack's epoch
+changes (learner restarted), to the oldest held batch shortly after the learner's liveliness token appears, and
+to after ``received`` when un-acked data has waited ``resend_after_s`` without ack progress -- then twice as
+long, up to :data:`MAX_RESEND_AFTER_S`, until acks move again. Re-sent or held-back batches carry the current
+``base_seq`` (the oldest batch still held) so a learner that never saw this actor starts there. An ack that
+claims more than this actor has published is refused (counted and logged): it must not make the actor drop
+batches the learner does not hold.
+
+A stream outlives its process: a restarted actor continues it (:mod:`actor.restart`) with the ``seq``, running
+index and durable point of the earlier process, and an outbox re-read from disk that it re-sends shortly after
+the start. Before batch files are deleted as durable, the stream's position goes to its ``journal`` (the
+record in ``stream.json``). An ack that says the stream was *superseded* (the learner admitted another stream
+of this actor id) makes :attr:`TransitionStream.superseded` say why; the loop then stops.
 
 No Zenoh here: batches go out through the ``publish`` callable (tests pass a list's ``append``).
 """
@@ -24,12 +34,13 @@ from common.messages import Ack, Transitions
 from common.protocol import encode, with_base_seq
 from common.wire import ProtocolError, RejectCounter
 
-__all__ = ["TransitionStream", "LEARNER_APPEARED_RESEND_S", "CHECKPOINT_REQUEST_EVERY_S"]
+__all__ = ["TransitionStream", "LEARNER_APPEARED_RESEND_S", "CHECKPOINT_REQUEST_EVERY_S", "MAX_RESEND_AFTER_S"]
 
 log = logging.getLogger("khgrl.actor")
 
 LEARNER_APPEARED_RESEND_S = 0.3  # a learner that appeared without acking gets the outbox re-sent after this
 CHECKPOINT_REQUEST_EVERY_S = 5.0  # at the end, ask the learner for a checkpoint at most this often
+MAX_RESEND_AFTER_S = 30.0  # the stall timer's backoff stops here
 
 
 class TransitionStream:
@@ -40,14 +51,21 @@ class TransitionStream:
     :param outbox: where batches wait until durable.
     :param publish: sends one encoded ``transitions`` payload.
     :param rejects: counts refused acks.
-    :param resend_after_s: re-send un-acked batches after this long without ack progress.
+    :param resend_after_s: re-send un-acked batches after this long without ack progress (then backing off).
     :param clock: monotonic clock (tests pass a fake one).
     :param task: the digest of the actor's task descriptor (the learner refuses batches of another task).
+    :param next_seq: the seq of the next batch (a continued stream: where the earlier process stopped).
+    :param next_index: the running index of the next transition (likewise).
+    :param durable: the highest seq the learner confirmed durable (likewise).
+    :param journal: called with :meth:`position` before batch files are deleted as durable.
+    :param window: batches out beyond the learner's ``received`` at most.
     """
 
     def __init__(self, actor: str, stream: str, outbox: Outbox, publish: Callable[[bytes], None],
                  rejects: RejectCounter, resend_after_s: float = 2.0,
-                 clock: Callable[[], float] = time.monotonic, task: str | None = None) -> None:
+                 clock: Callable[[], float] = time.monotonic, task: str | None = None, *, next_seq: int = 0,
+                 next_index: int = 0, durable: int = -1, journal: Callable[[dict], None] | None = None,
+                 window: int = 64) -> None:
         self.actor = actor
         self.task = task  # the digest of this actor's task descriptor, stamped on every batch
         self.stream = stream
@@ -56,15 +74,22 @@ class TransitionStream:
         self.rejects = rejects
         self.resend_after_s = float(resend_after_s)
         self.clock = clock
-        self.count = 0  # transitions collected (the next transition's per-actor index)
-        self.sent = 0  # transitions published (first time)
-        self.next_seq = 0
+        self.start_index = int(next_index)  # the running index this process started at (0 unless continued)
+        self.count = self.start_index  # the next transition's running index in the stream
+        self.sent = self.start_index  # the running index after the last transition published (first time)
+        self.next_seq = int(next_seq)
+        self.window = max(1, int(window))
+        self.cursor = self.next_seq  # the next seq to publish
+        self.max_published = self.next_seq - 1  # (a continued stream's earlier process published the rest)
+        self.stalls = 0  # stall re-sends since the last ack progress (the backoff's exponent)
         self._buf: list[tuple] = []
-        self._buf_first = 0
+        self._buf_first = self.start_index
+        self.journal = journal
+        self.superseded: str | None = None  # why the learner no longer takes this stream
         # what the learner told us
         self.ack_epoch: str | None = None
         self.received = -1
-        self.durable = -1
+        self.durable = int(durable)
         self.trained = 0
         self.ack_version = 0
         self.last_progress = clock()
@@ -73,11 +98,17 @@ class TransitionStream:
         self.resends = 0
         self.resent_batches = 0
         self.refused_acks = 0
+        if len(outbox):  # batches an earlier process left: re-send them all shortly (as to a new learner)
+            self.resend_at = clock() + LEARNER_APPEARED_RESEND_S
 
     @property
     def highest_sent(self) -> int:
         """The highest seq published so far (-1: none)."""
         return self.next_seq - 1
+
+    def position(self) -> dict:
+        """Where the stream stands (the fields of :class:`~actor.restart.StreamRecord` but ``stream``)."""
+        return {"next_seq": self.next_seq, "next_index": self._buf_first, "durable": self.durable}
 
     # ------------------------------------------------------------------ collecting
     def add(self, obs, next_obs, action, reward: float, terminated: bool, truncated: bool, intervened: bool,
@@ -115,11 +146,39 @@ class TransitionStream:
         if newest is None or newest <= self.received:
             self.last_progress = self.clock()  # nothing was waiting: the resend timer starts now
         self.outbox.add(seq, payload, len(self._buf))
-        self.publish(payload)
         self.next_seq += 1
-        self.sent += len(self._buf)
         self._buf = []
         self._buf_first = self.count
+        if self.cursor == seq and self._in_window(seq):
+            self._send(seq, payload)  # the usual case: straight out, as encoded
+        else:
+            self.pump()
+
+    def _in_window(self, seq: int) -> bool:
+        return seq <= max(self.received, self.durable) + self.window
+
+    def _send(self, seq: int, payload: bytes) -> None:
+        self.publish(payload)
+        self.cursor = seq + 1
+        if seq > self.max_published:
+            self.max_published = seq
+            self.sent += self.outbox.sizes.get(seq, 0)
+        else:
+            self.resent_batches += 1
+
+    def pump(self) -> int:
+        """Publish from the cursor up to the window's end (re-stamped with the current ``base_seq``); returns how
+        many batches went out."""
+        oldest = self.outbox.oldest()
+        if oldest is None:
+            self.cursor = self.next_seq
+            return 0
+        self.cursor = max(self.cursor, oldest)
+        n = 0
+        while self.cursor < self.next_seq and self._in_window(self.cursor):
+            self._send(self.cursor, with_base_seq(self.outbox.get(self.cursor), oldest))
+            n += 1
+        return n
 
     # ------------------------------------------------------------------ acks
     def on_ack(self, ack: Ack, key: str = "ack") -> bool:
@@ -131,7 +190,13 @@ class TransitionStream:
         # the learner echoes the stream id of the transitions it acks; an ack without it is not for us
         if ack.actor != self.actor or ack.stream != self.stream:
             return False
-        if ack.received > self.highest_sent or ack.durable > self.highest_sent:
+        if ack.superseded:
+            if self.superseded is None:
+                self.superseded = (f"the learner took another stream of actor {self.actor} after this one (stream "
+                                   f"{self.stream}): another process runs this actor id")
+                log.error("%s", self.superseded)
+            return False
+        if ack.received > self.max_published or ack.durable > self.max_published:
             self.refused_acks += 1
             # one fixed reason, so that a flood of forged acks costs a few log lines (RejectCounter: the first,
             # then every 100th)
@@ -145,16 +210,23 @@ class TransitionStream:
             self.checkpoint_requested_at = -1e9
         if ack.received > self.received or new_epoch:
             self.last_progress = self.clock()
+            self.stalls = 0
         self.ack_epoch = ack.epoch
         self.received = ack.received
         self.trained = ack.trained
         self.ack_version = ack.version
         if ack.durable > self.durable or new_epoch:
             self.durable = max(self.durable, ack.durable)
+            oldest = self.outbox.oldest()
+            if self.journal is not None and oldest is not None and oldest <= self.durable:
+                self.journal(self.position())  # first the record, then the files go
             self.outbox.drop_through(self.durable)
         if restarted:
             self.resend_at = None
             self.resend(self.received, "new learner epoch")
+        elif self.cursor < self.next_seq:
+            self.cursor = max(self.cursor, self.received + 1)
+            self.pump()  # the window moved: what waited goes
         return True
 
     def learner_appeared(self) -> None:
@@ -175,26 +247,25 @@ class TransitionStream:
             self.resend_at = None
             self.resend(-1, "learner appeared")
         newest = self.outbox.newest()
-        if learner_alive and newest is not None and newest > self.received \
-                and now - self.last_progress > self.resend_after_s:
+        wait = min(self.resend_after_s * 2 ** self.stalls, MAX_RESEND_AFTER_S)
+        if learner_alive and newest is not None and newest > self.received and now - self.last_progress > wait:
+            self.stalls += 1
             self.resend(self.received, "no ack progress for %.1f s" % (now - self.last_progress))
 
     def resend(self, after: int, why: str) -> None:
-        """Publish again every batch held above ``after``, stamped with the current ``base_seq``.
+        """Send again from the batch after ``after``: the window's worth now, the rest as acks come in.
 
         :param after: exclusive lower bound (the learner's ``received``; -1: everything held).
         :param why: for the log.
         """
-        seqs = self.outbox.seqs_after(after)
         self.last_progress = self.clock()
-        if not seqs:
+        self.cursor = after + 1
+        first = max(self.cursor, self.outbox.oldest() if self.outbox.oldest() is not None else self.next_seq)
+        n = self.pump()
+        if not n:
             return
-        base = self.outbox.oldest()
-        for s in seqs:
-            self.publish(with_base_seq(self.outbox.get(s), base))
         self.resends += 1
-        self.resent_batches += len(seqs)
-        log.info("re-sent batches %d..%d (%d) after %d: %s", seqs[0], seqs[-1], len(seqs), after, why)
+        log.info("re-sent batches %d..%d (%d) after %d: %s", first, self.cursor - 1, n, after, why)
 
     def checkpoint_due(self, learner_alive: bool) -> bool:
         """At the end: whether to ask the learner for a checkpoint now (it holds everything, none asked lately).
@@ -218,7 +289,9 @@ class TransitionStream:
 
     def summary(self) -> dict:
         """This stream's part of ``summary.json``."""
-        return {"transitions": self.count, "sent": self.sent, "batches": self.next_seq, "last_seq": self.highest_sent,
+        return {"transitions": self.count - self.start_index, "sent": self.sent - self.start_index,
+                "first_index": self.start_index, "next_index": self.count, "batches": self.next_seq,
+                "last_seq": self.highest_sent,
                 "received": self.received, "durable": self.durable, "unconfirmed_transitions": self.unconfirmed(),
                 "outbox_spilled": self.outbox.spilled_total, "resends": self.resends,
                 "resent_batches": self.resent_batches, "refused_acks": self.refused_acks}

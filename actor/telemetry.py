@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common.messages import ActorInfo
+from common.messages import ActorInfo, Frame
 
-__all__ = ["TensorBoard", "RateLimitStats", "status_info", "summary"]
+__all__ = ["TensorBoard", "RateLimitStats", "status_info", "summary", "frame"]
 
 log = logging.getLogger("khgrl.actor")
 
@@ -70,6 +70,26 @@ class RateLimitStats:
     def __init__(self) -> None:
         self.waits = 0
         self.wait_s = 0.0
+
+
+def frame(env, actor: str, episode: int, info: dict, t: int, intervening: bool, ret: float, last: bool) -> Frame:
+    """The frame the actor publishes after a step.
+
+    :param env: the actor's :class:`~common.kgrl_env.KGRLEnv`.
+    :param actor: actor id.
+    :param episode: the episode (whole run).
+    :param info: the step's info.
+    :param t: the step.
+    :param intervening: a correction drove the step.
+    :param ret: the episode's return so far.
+    :param last: the episode's final step.
+    """
+    return Frame(actor=actor, episode=episode, t=t, phase=float(info["phase"]),
+                 robot=np.asarray(env.position, dtype=np.float64), desired=np.asarray(info["desired"], np.float64),
+                 mean=np.asarray(env.mapping.mean(t), np.float64), scale=np.asarray(info["scale"], np.float64),
+                 intervening=intervening, task=env.task.name, ret=float(ret),
+                 next_mean=np.asarray(env.mapping.mean(t + 1), np.float64) if t + 1 < env.horizon else None,
+                 last=True if last else None)
 
 
 def _ms(periods: np.ndarray, q: float) -> float | None:

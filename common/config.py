@@ -32,6 +32,8 @@ __all__ = ["SCENARIOS", "METHODS", "HUMANS", "PAPER_EPISODES", "TQCSettings", "S
 
 SCENARIOS = tuple(_PASSAGE_SCENARIOS)  # the passage world's scenarios: "high_cov", "low_cov"
 METHODS = ("khgrl", "kgrl")
+DEVICES = ("auto", "cpu", "cuda")
+MODES = ("simulation", "robot")
 HUMANS = ("scripted", "gui", "keyboard", "gamepad", "none")
 PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)
 
@@ -59,13 +61,16 @@ class TQCSettings:
     learning_starts: int = _opt(100, "uniform random actions (and no training) for the first N transitions")
     batch_size: int = _opt(256, "minibatch size of a gradient step")
     buffer_size: int = _opt(200_000, "replay buffer capacity (transitions)")
+    device: str = _opt("auto", "where the learner trains: auto (cuda if torch sees a GPU, else cpu), cpu or cuda; "
+                               "weights always go to actors as CPU float32 arrays", DEVICES)
 
     def sb3_kwargs(self, seed: int) -> dict[str, Any]:
         """Keyword arguments of ``sb3_contrib.TQC("MlpPolicy", env, **kwargs)``."""
         return dict(learning_rate=self.learning_rate, tau=self.tau, gamma=self.gamma, train_freq=self.train_freq,
                     gradient_steps=self.gradient_steps, ent_coef=self.ent_coef,
                     policy_kwargs=dict(net_arch=list(self.net_arch)), learning_starts=self.learning_starts,
-                    batch_size=self.batch_size, buffer_size=self.buffer_size, seed=seed, device="cpu", verbose=0)
+                    batch_size=self.batch_size, buffer_size=self.buffer_size, seed=seed, device=self.device,
+                    verbose=0)
 
     def validate(self) -> None:
         for name in ("train_freq", "gradient_steps", "batch_size", "buffer_size"):
@@ -82,6 +87,9 @@ class StreamSettings:
     batch: int = _opt(8, "transitions per batch (cut at multiples of the actor's running index)")
     max_lead: int = _opt(8, "transitions an actor may run ahead of what the learner trained on "
                             "(8 = the train frequency: step-for-step single-process SB3)")
+    window: int = _opt(64, "batches an actor has out beyond what the learner acknowledged (the rest wait)")
+    mode: str = _opt("simulation", "simulation: actors wait for the learner (max_lead, the paper's update-to-data "
+                                   "ratio); robot: actors never wait, the learner trains as fast as it can", MODES)
     outbox_memory: int = _opt(1000, "batches an actor keeps in memory before spilling them to disk")
     resend_after_s: float = _opt(2.0, "re-send un-acknowledged batches after this long without ack progress (s)")
     flush_timeout: float = _opt(120.0, "at the end, an actor waits this long for the learner to confirm (s)")
@@ -92,8 +100,8 @@ class StreamSettings:
     lease_ms: int = _opt(3000, "Zenoh link lease: how fast a dead process is noticed (ms)")
 
     def validate(self, train_freq: int) -> None:
-        if self.batch < 1 or self.outbox_memory < 1:
-            raise ValueError("batch and outbox_memory must be >= 1")
+        if self.batch < 1 or self.outbox_memory < 1 or self.window < 1:
+            raise ValueError("batch, window and outbox_memory must be >= 1")
         if self.max_lead < train_freq:
             # the learner trains at multiples of train_freq: a smaller lead could wait forever after a short
             # end-of-episode batch
@@ -128,6 +136,7 @@ class RunConfig:
                                      "(1-99; needs --rate and root; 0: off)")
     learner_nice: int = _opt(5, "learner nice level, so training yields the CPU to the actors' control loops")
     learner_threads: int = _opt(1, "torch CPU threads of the learner")
+    checkpoint_dir: str = _opt("", "where the learner keeps its checkpoints, e.g. a data disk (none: RUN_DIR/learner)")
     tensorboard: bool = _opt(True, "write TensorBoard scalars (learner/tb, actor-ID/tb)")
     timeout: float = _opt(0.0, "fail the run after this many seconds (0: none)")
     stop_timeout: float = _opt(60.0, "seconds the processes get to stop cleanly")

@@ -84,6 +84,7 @@ class FetchPosition(gym.Env):
         self.observation_space = spaces.Box(-OBS_BOUND, OBS_BOUND, shape=(28,), dtype=np.float64)
         self.t = 0
         self._obs: dict | None = None
+        self._camera = None
 
     @property
     def gripper_pos(self) -> np.ndarray:
@@ -127,5 +128,22 @@ class FetchPosition(gym.Env):
         success = bool(info.get("is_success", 0.0) > 0.5)
         return self._flat(), float(reward), bool(terminated), bool(truncated), {"success": success}
 
+    def camera_frame(self, size: int = 360) -> np.ndarray:
+        """What MuJoCo's default camera sees now, (size, size, 3) uint8 (offscreen: needs ``MUJOCO_GL=egl`` or
+        ``osmesa`` without a display; ``khgrl eval --gif`` puts it beside the task's views).
+
+        :param size: width and height in pixels.
+        """
+        if self._camera is None or self._camera.width != size:
+            from gymnasium.envs.mujoco.mujoco_rendering import MujocoRenderer
+
+            base = self.env.unwrapped
+            self._camera = MujocoRenderer(base.model, base.data, default_cam_config={
+                "distance": 1.6, "azimuth": 150.0, "elevation": -30.0, "lookat": np.array([1.3, 0.75, 0.5])},
+                width=size, height=size)
+        return np.asarray(self._camera.render("rgb_array"), dtype=np.uint8)
+
     def close(self) -> None:
+        if self._camera is not None:
+            self._camera.close()
         self.env.close()

@@ -125,6 +125,7 @@ class Ack(Message):
     epoch: str  # random per learner incarnation
     stream: str | None = None  # the actor stream the ack is about
     task: str | None = None  # the digest of the learner's task descriptor
+    superseded: bool | None = None  # true: the learner took another stream of this actor id; it refuses this one
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Ack":
@@ -132,7 +133,8 @@ class Ack(Message):
                    durable=typ("durable", m.get("durable"), int, low=-1),
                    trained=typ("trained", m.get("trained"), int, low=0),
                    version=typ("version", m.get("version"), int, low=0), epoch=typ("epoch", m.get("epoch"), str),
-                   stream=opt(m, "stream", ident), task=opt(m, "task", ident))
+                   stream=opt(m, "stream", ident), task=opt(m, "task", ident),
+                   superseded=opt(m, "superseded", typ, bool))
 
 
 @dataclass(frozen=True, eq=False)

@@ -89,6 +89,11 @@ class LearnerInfo:
     durable: _COUNTS
     duplicates: _COUNTS
     weights_queries: int
+    checkpoint_error: str = ""  # why the last checkpoint save failed (a disk fault); "" when it succeeded
+    checkpoint_failures: int = 0  # failed checkpoint saves of this learner process
+    mode: str = "simulation"  # StreamSettings.mode: simulation (actors wait) or robot (they never do)
+    utd: float = 0.0  # update-to-data ratio achieved: gradient steps per transition ingested after learning_starts
+    rss_mb: float = 0.0  # the learner process's resident memory
 
 
 @dataclass(frozen=True)

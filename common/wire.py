@@ -123,7 +123,7 @@ class RejectCounter:
     :param clock: monotonic seconds
     """
 
-    def __init__(self, role: str, *, first: int = 5, every: float = 10.0, max_reasons: int = 32,
+    def __init__(self, role: str, *, first: int = 32, every: float = 10.0, max_reasons: int = 32,
                  clock=time.monotonic) -> None:
         self.role = role
         self.first, self.every, self.max_reasons, self.clock = first, every, max_reasons, clock

@@ -159,6 +159,30 @@ def _add_reference(sub) -> None:
     p.set_defaults(func=_cmd_reference)
 
 
+def _cmd_bench_learner(args: argparse.Namespace) -> int:
+    from benchmarks.learner_step import run_learner_benchmark
+
+    run_learner_benchmark(devices=tuple(args.devices), seconds=args.seconds, threads=args.threads, seed=args.seed,
+                          out=args.out)
+    return 0
+
+
+def _cmd_bench_scale(args: argparse.Namespace) -> int:
+    from benchmarks.scale import run_scale_benchmark
+
+    run_scale_benchmark(actors=tuple(args.actors), rates=tuple(args.rates), modes=tuple(args.modes),
+                        seconds=args.seconds, seed=args.seed, work=args.work, out=args.out)
+    return 0
+
+
+def _cmd_bench_ingest(args: argparse.Namespace) -> int:
+    from benchmarks.ingest_many import run_ingest_benchmark
+
+    run_ingest_benchmark(senders=args.senders, transitions=args.transitions, batch=args.batch, window=args.window,
+                         seed=args.seed, out=args.out)
+    return 0
+
+
 def _add_bench(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks that print numbers").add_subparsers(dest="action", required=True,
                                                                                          metavar="ACTION")
@@ -195,6 +219,35 @@ def _add_bench(sub) -> None:
     p.add_argument("--keep", action="store_true", help="keep the work directory (logs, run dirs; default: off)")
     p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
     p.set_defaults(func=_cmd_bench_runtime)
+    p = bench.add_parser("learner", help="gradient steps/s of the learner's TQC next to a raw-torch TQC step of the "
+                                         "same networks, per device (cpu, cuda)")
+    p.add_argument("--devices", nargs="+", default=["cpu"], choices=["cpu", "cuda"],
+                   help="devices to measure (default: cpu; cuda where torch sees a GPU)")
+    p.add_argument("--seconds", type=float, default=20.0, help="time per side and device (default: %(default)s)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s, the learner's)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
+    p.set_defaults(func=_cmd_bench_learner)
+    p = bench.add_parser("scale", help="N actors into one learner through khgrl up: ingest/s, learner memory, inbox "
+                                       "depth, weights latency, loop period, exactly once after Ctrl-C")
+    p.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4, 8], help="actor counts (default: 1 2 4 8)")
+    p.add_argument("--rates", type=float, nargs="+", default=[0.0, 50.0],
+                   help="actor rates in Hz, 0 = as fast as possible (default: 0 50)")
+    p.add_argument("--modes", nargs="+", default=["simulation", "robot"], choices=["simulation", "robot"],
+                   help="flow-control modes (default: simulation robot)")
+    p.add_argument("--seconds", type=float, default=60.0, help="length of each case (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    p.add_argument("--work", default="runs/bench-scale", help="run directories (default: %(default)s)")
+    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
+    p.set_defaults(func=_cmd_bench_scale)
+    p = bench.add_parser("ingest", help="S sender processes into one learner: transitions/s acknowledged")
+    p.add_argument("--senders", type=int, default=8, help="sender processes (default: %(default)s)")
+    p.add_argument("--transitions", type=int, default=400_000, help="transitions in all (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=256, help="transitions per batch (default: %(default)s)")
+    p.add_argument("--window", type=int, default=16, help="unacknowledged batches per sender (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    p.add_argument("--out", default=None, help="also write the result as JSON here (default: none)")
+    p.set_defaults(func=_cmd_bench_ingest)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -25,7 +26,6 @@ import numpy as np
 __all__ = ["EvalError", "EpisodeResult", "Evaluation", "evaluate", "add_parser", "free_path", "report"]
 
 GIF_MAX_FRAMES = 100  # the first episode is subsampled to about this many frames (~16 kB each)
-GIF_SIZE = (720, 360)
 
 
 class EvalError(RuntimeError):
@@ -241,43 +241,6 @@ def run_episode(env: Any, policy: Any, episode: int, seed: int,
                          success=success, terminated=bool(terminated))
 
 
-class GifRecorder:
-    """Frames of one episode drawn by :class:`common.task_render.TaskRenderer`, written as an animated GIF.
-
-    :param env: the evaluation environment (its descriptor sets up the drawing).
-    :param every: keep every ``every``-th step.
-    """
-
-    def __init__(self, env: Any, every: int = 1) -> None:
-        from common.task_render import TaskRenderer, frame_from_env
-
-        self.renderer = TaskRenderer(env.descriptor(env.task.name), size=GIF_SIZE)
-        self.frame_from_env = frame_from_env
-        self.every = max(1, int(every))
-        self.frames: list[np.ndarray] = []
-        self.calls = 0
-
-    def __call__(self, env: Any, done: bool) -> None:
-        if self.calls % self.every == 0 or done:  # the last frame always
-            self.frames.append(self.renderer.render_rgb(self.frame_from_env(env)))
-        self.calls += 1
-
-    def save(self, path: Path, fps: int = 20) -> int:
-        """Write the frames to ``path``; returns how many.
-
-        :param path: the GIF file.
-        :param fps: frames per second of the animation.
-        """
-        from PIL import Image
-
-        images = [Image.fromarray(np.ascontiguousarray(f, dtype=np.uint8)) for f in self.frames]
-        first = images[0].quantize(colors=255, method=Image.Quantize.MEDIANCUT)  # one palette: no colour flicker
-        rest = [im.quantize(palette=first, dither=Image.Dither.NONE) for im in images[1:]]
-        path.parent.mkdir(parents=True, exist_ok=True)
-        first.save(path, save_all=True, append_images=rest, duration=int(1000 / fps), loop=0)
-        return len(images)
-
-
 def _write_csv(path: Path, episodes: list[EpisodeResult]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as fh:
@@ -323,6 +286,8 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     policy = load_policy(model_zip, env, cfg.tqc.net_arch, cfg.tqc.learning_rate)
     result = Evaluation(task=task.name, spec=spec, checkpoint=model_zip.parent, trained=_trained(model_zip),
                         scale=scale_text, episodes=[])
+    from deploy.gif import GifRecorder
+
     recorder = GifRecorder(env, every=-(-env.horizon // GIF_MAX_FRAMES)) if gif else None
     with torch.no_grad():
         for i in range(episodes):
@@ -359,6 +324,8 @@ def report(ev: Evaluation) -> str:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
+    if args.gif and "DISPLAY" not in os.environ:
+        os.environ.setdefault("MUJOCO_GL", "egl")  # (before MuJoCo is imported) offscreen camera views
     try:
         ev = evaluate(args.run_dir, checkpoint=args.checkpoint, episodes=args.episodes, seed=args.seed,
                       gif=args.gif, csv_path=args.csv, actor=args.actor)

@@ -101,12 +101,12 @@ def _resolve_config(args: argparse.Namespace) -> RunConfig:
     return resolve(base, args, overrides={"run_dir": cfg.run_dir})
 
 
-def _check_run_dir(run_dir: Path, args: argparse.Namespace) -> None:
+def _check_run_dir(run_dir: Path, args: argparse.Namespace, checkpoint_dir: str = "") -> None:
     found = results_in(run_dir)
     if args.resume:
         if not (run_dir / "config.toml").is_file():
             raise RunDirError(f"--resume: nothing to resume in {run_dir}: it has no config.toml")
-        if not has_checkpoint(run_dir):
+        if not has_checkpoint(run_dir, checkpoint_dir):
             raise RunDirError(f"--resume: nothing to resume in {run_dir}: no learner checkpoint "
                               f"(learner/checkpoint/state.json); start it again with --overwrite")
     elif found and not args.overwrite:
@@ -126,7 +126,7 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     if cfg.demos:
         cfg = dataclasses.replace(cfg, demos=str(Path(cfg.demos).resolve()))
     run_dir = Path(cfg.run_dir)
-    _check_run_dir(run_dir, args)
+    _check_run_dir(run_dir, args, cfg.checkpoint_dir)
     task = check_task(cfg)
     previous = previous_runtime(run_dir) if args.resume else {}
     run_id = cfg.run or str(previous.get("run") or "") or make_run_id(run_dir)

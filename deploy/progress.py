@@ -1,7 +1,8 @@
 """What ``khgrl up`` shows while a run goes on: a live table (rich) of each actor's episodes, successes, last
-return and human interventions, with the learner's ingest, gradient steps and weights version as its caption;
-or, with ``--no-progress``, one plain line per finished episode (``[a0] episode 3: return ...``, the line
-``khgrl experiment`` follows).
+return and human interventions, with the learner's ingest, gradient steps and weights version as its caption
+(and, in red, a failing checkpoint: a full or unwritable disk); or, with ``--no-progress``, one plain line per
+finished episode (``[a0] episode 3: return ...``, the line ``khgrl experiment`` follows) and one when the
+learner's checkpoints start failing or recover.
 
 It gets typed, already validated messages (:class:`common.messages.EpisodeReport`,
 :class:`common.messages.Status` with :class:`common.messages.LearnerInfo`) and only formats them.
@@ -13,7 +14,7 @@ from dataclasses import dataclass
 
 from common.messages import EpisodeReport, LearnerInfo, Status
 
-__all__ = ["ProgressView", "ActorRow", "episode_line"]
+__all__ = ["ProgressView", "ActorRow", "episode_line", "checkpoint_line"]
 
 _COLUMNS = ("actor", "episodes", "successes", "last return", "interventions", "human steps", "clipped", "mean |xi_h|")
 
@@ -32,6 +33,24 @@ def episode_line(report: EpisodeReport) -> str:
     return (f"[{report.actor}] episode {st['episode']}: return {_stat(st, 'ret'):.1f} success={st.get('success')} "
             f"interventions={steps} (count {int(_stat(st, 'interventions'))}, clipped {frac}, "
             f"mean |xi_h| {_stat(st, 'mean_abs_xi_h'):.3g})")
+
+
+def checkpoint_line(info: LearnerInfo, markup: bool = False) -> str:
+    """What the learner's status says of its checkpoints when they fail (empty when they do not).
+
+    :param info: the learner's status
+    :param markup: rich markup (red, the reason escaped) for the live table
+    """
+    if not info.checkpoint_error:
+        return ""
+    reason = info.checkpoint_error[:200]
+    head = "CHECKPOINT FAILING"
+    if markup:
+        from rich.markup import escape
+
+        head, reason = f"[bold red]{head}[/]", escape(reason)
+    return (f"{head} ({info.checkpoint_failures} failed saves): {reason} -- training goes on, the actors keep "
+            "what is not saved, retried with backoff")
 
 
 @dataclass
@@ -109,7 +128,11 @@ class ProgressView:
         :param status: a decoded status message (info typed by role)
         """
         if isinstance(status.info, LearnerInfo):
+            before = self.learner.checkpoint_error if self.learner is not None else ""
             self.learner = status.info
+            if not self.enabled and status.info.checkpoint_error != before:
+                line = checkpoint_line(status.info) or f"checkpoint recovered ({status.info.checkpoints} saved)"
+                print(f"[{status.info.id}] {line}", flush=True)
             self.refresh()
 
     def refresh(self) -> None:
@@ -120,8 +143,10 @@ class ProgressView:
         li = self.learner
         if li is None:
             return "learner: waiting"
-        return (f"learner: {li.ingested} transitions, {li.gradient_steps} gradient steps "
+        text = (f"learner: {li.ingested} transitions, {li.gradient_steps} gradient steps "
                 f"({li.grad_steps_per_s:.0f}/s), weights v{li.version}")
+        failing = checkpoint_line(li, markup=self.enabled)
+        return f"{text}\n{failing}" if failing else text
 
     def _table(self):
         from rich.table import Table

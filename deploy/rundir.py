@@ -49,13 +49,15 @@ def results_in(run_dir: Path) -> list[str]:
     return found
 
 
-def has_checkpoint(run_dir: Path) -> bool:
+def has_checkpoint(run_dir: Path, checkpoint_dir: str | Path = "") -> bool:
     """Whether the learner left a complete checkpoint to resume from (``state.json`` in
     ``learner/checkpoint`` or in the previous one, ``learner/checkpoint.old``).
 
     :param run_dir: the run directory
+    :param checkpoint_dir: the learner's ``--checkpoint-dir`` (empty: ``RUN_DIR/learner``)
     """
-    return any((run_dir / "learner" / d / "state.json").is_file() for d in ("checkpoint", "checkpoint.old"))
+    base = Path(checkpoint_dir) if checkpoint_dir else run_dir / "learner"
+    return any((base / d / "state.json").is_file() for d in ("checkpoint", "checkpoint.old"))
 
 
 def clear_run(run_dir: Path) -> list[str]:

@@ -1,31 +1,49 @@
-"""Learner checkpoints on local disk: ``RUN_DIR/learner/checkpoint/``.
+"""Learner checkpoints on local disk: ``CHECKPOINT_DIR/checkpoint/`` (``CHECKPOINT_DIR``: ``RUN_DIR/learner``
+unless ``--checkpoint-dir`` puts it elsewhere, e.g. on a data disk).
 
 A checkpoint holds ``model.zip`` (policy, optimisers, entropy coefficient), ``replay_buffer.pkl`` (SB3's
 pickle of the :class:`~learner.replay.StreamReplayBuffer`: transitions with their intervention and clip flags
 and provenance) and ``state.json`` (stream positions, counters, pending training iterations, weights version).
-It is written to a temporary directory that is then renamed into place, ``state.json`` last, so a crash
-leaves either the previous checkpoint or the new one, never a mix. The pickle is our own file on local disk,
-never anything from the wire. (SB3 is imported when a checkpoint is read, so that finding one is cheap.)
+It is written to a temporary directory (``checkpoint.tmp-PID``, fsynced) that is then renamed into place,
+``state.json`` last, so a crash leaves either the previous checkpoint or the new one, never a mix. The pickle
+is our own file on local disk, never anything from the wire. (SB3 is imported when a checkpoint is read, so
+that finding one is cheap.)
+
+Disk faults (a full, read-only or unwritable directory): a failed save removes its temporary directory and
+leaves the previous checkpoint as it was; :class:`SaveFaults` keeps the reason, counts the failures, logs them
+(not every retry) and says when to retry (exponential backoff). A learner started anew removes the temporary
+directories that killed learners left behind (:func:`remove_stale_temps`).
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import logging
+import math
 import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["STATE_FILE", "FORMAT", "CheckpointError", "checkpoint_dir", "find_checkpoint", "save_checkpoint",
-           "load_checkpoint", "load_checkpoint_arrays"]
+__all__ = ["STATE_FILE", "FORMAT", "TMP_PREFIX", "CheckpointError", "SaveFaults", "checkpoint_dir", "find_checkpoint",
+           "save_checkpoint", "load_checkpoint", "load_checkpoint_arrays", "remove_stale_temps", "is_disk_fault",
+           "fault_reason"]
+
+log = logging.getLogger("khgrl.learner")
 
 STATE_FILE = "state.json"
 MODEL_FILE = "model.zip"
 BUFFER_FILE = "replay_buffer.pkl"
+TMP_PREFIX = "checkpoint.tmp-"  # + the PID of the learner writing it
 FORMAT = 2  # 1: side arrays in .npy files beside the buffer; 2: inside the replay buffer pickle
+RETRY_FIRST_S = 1.0  # a failed save is retried after 1 s, 2 s, 4 s, ... up to RETRY_MAX_S
+RETRY_MAX_S = 30.0
+WARN_EVERY_S = 60.0  # a failure with an unchanged reason is logged again at most this often
+MAX_REASON = 300  # characters of a failure's reason kept (status messages carry it)
 
 
 class CheckpointError(RuntimeError):
@@ -33,9 +51,9 @@ class CheckpointError(RuntimeError):
 
 
 def checkpoint_dir(learner_dir: str | Path) -> Path:
-    """Where the learner of ``learner_dir`` (``RUN_DIR/learner``) keeps its checkpoint.
+    """Where the learner of ``learner_dir`` (``RUN_DIR/learner``, or its ``--checkpoint-dir``) keeps its checkpoint.
 
-    :param learner_dir: the learner's directory
+    :param learner_dir: the learner's checkpoint directory
     """
     return Path(learner_dir) / "checkpoint"
 
@@ -48,7 +66,7 @@ def find_checkpoint(learner_dir: str | Path) -> Path | None:
     """The newest complete checkpoint under ``learner_dir`` (``checkpoint/``, else the ``checkpoint.old/`` a
     crash during the rename left behind), or None.
 
-    :param learner_dir: the learner's directory (``RUN_DIR/learner``)
+    :param learner_dir: the learner's checkpoint directory (``RUN_DIR/learner`` or its ``--checkpoint-dir``)
     """
     for d in (checkpoint_dir(learner_dir), _old_dir(learner_dir)):
         if (d / STATE_FILE).is_file():
@@ -56,41 +74,180 @@ def find_checkpoint(learner_dir: str | Path) -> Path | None:
     return None
 
 
-def save_checkpoint(learner_dir: str | Path, model: Any, state: dict[str, Any]) -> Path:
-    """Write model, replay buffer and ``state`` to a temporary directory, then rename it to ``checkpoint/``
-    (the previous checkpoint is kept until then).
+def _fsync(path: Path, directory: bool = False) -> None:
+    """Flush a file (or a directory's entries) to the disk; a filesystem that cannot fsync a directory is let be."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if not directory or exc.errno not in (errno.EINVAL, errno.ENOTSUP):
+            raise
+    finally:
+        os.close(fd)
 
-    :param learner_dir: the learner's directory (``RUN_DIR/learner``)
-    :param model: the TQC model (its replay buffer is saved with it)
-    :param state: JSON-able counters and stream positions (``format`` and ``time`` are added)
-    """
-    learner_dir = Path(learner_dir)
-    tmp = learner_dir / f"checkpoint.tmp-{os.getpid()}"
+
+def _write(tmp: Path, model: Any, state: dict[str, Any]) -> None:
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
     model.save(tmp / MODEL_FILE)
     model.save_replay_buffer(tmp / BUFFER_FILE)
+    for name in (MODEL_FILE, BUFFER_FILE):
+        _fsync(tmp / name)
     with open(tmp / STATE_FILE, "w") as fh:  # written last: a checkpoint without it is incomplete
         json.dump({"format": FORMAT, "time": time.time(), **state}, fh, indent=1)
         fh.flush()
         os.fsync(fh.fileno())
+
+
+def _swap_in(learner_dir: Path, tmp: Path) -> Path:
+    """Rename ``tmp`` to ``checkpoint/``; the previous one is ``checkpoint.old/`` until the new one is in place."""
     final, old = checkpoint_dir(learner_dir), _old_dir(learner_dir)
-    if old.exists():
-        shutil.rmtree(old)
     if final.exists():
+        if old.exists():
+            shutil.rmtree(old)
         os.rename(final, old)
-    os.rename(tmp, final)
-    if old.exists():
-        shutil.rmtree(old)
+    os.rename(tmp, final)  # (with no checkpoint/ but a checkpoint.old/, that one is kept until here)
+    _fsync(learner_dir, directory=True)
+    shutil.rmtree(old, ignore_errors=True)
     return final
 
 
-def load_checkpoint(ckpt: str | Path, env: Any) -> tuple[Any, dict[str, Any]]:
+def save_checkpoint(learner_dir: str | Path, model: Any, state: dict[str, Any]) -> Path:
+    """Write model, replay buffer and ``state`` to a temporary directory, then rename it to ``checkpoint/``
+    (the previous checkpoint is kept until then). On any error the temporary directory is removed, the previous
+    checkpoint is left as it was, and the error is raised (:func:`is_disk_fault` tells a disk fault).
+
+    :param learner_dir: the learner's checkpoint directory (``RUN_DIR/learner`` or its ``--checkpoint-dir``)
+    :param model: the TQC model (its replay buffer is saved with it)
+    :param state: JSON-able counters and stream positions (``format`` and ``time`` are added)
+    """
+    learner_dir = Path(learner_dir)
+    tmp = learner_dir / f"{TMP_PREFIX}{os.getpid()}"
+    try:
+        _write(tmp, model, state)
+        return _swap_in(learner_dir, tmp)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temps(learner_dir: str | Path) -> list[Path]:
+    """Remove the ``checkpoint.tmp-PID`` directories of learners that died while saving (they can hold as much
+    as a whole checkpoint); one of a PID still running other than this process is left alone. Never touches
+    ``checkpoint/`` or ``checkpoint.old/``. Returns what was removed; raises :class:`OSError` if one cannot be.
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    removed: list[Path] = []
+    directory = Path(learner_dir)
+    if not directory.is_dir():
+        return removed
+    for path in sorted(directory.glob(TMP_PREFIX + "*")):
+        pid = path.name[len(TMP_PREFIX):]
+        if pid.isdigit() and int(pid) != os.getpid() and _pid_alive(int(pid)):
+            log.warning("left %s alone: process %s is running", path, pid)
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+        removed.append(path)
+    return removed
+
+
+def is_disk_fault(exc: BaseException) -> bool:
+    """Whether a failed save is a fault of the disk (full, read-only, unwritable, I/O error), which a learner
+    survives and retries, rather than a bug.
+
+    :param exc: what :func:`save_checkpoint` raised
+    """
+    if isinstance(exc, OSError):
+        return True
+    return isinstance(exc, RuntimeError) and "write" in str(exc).lower()  # torch: "... failed writing file ..."
+
+
+def fault_reason(exc: BaseException) -> str:
+    """A short reason for a failed save: ``ENOSPC No space left on device: PATH``.
+
+    :param exc: the error
+    """
+    if isinstance(exc, OSError) and exc.errno is not None:
+        text = f"{errno.errorcode.get(exc.errno, f'errno {exc.errno}')} {exc.strerror or ''}".strip()
+        if exc.filename:
+            text += f": {exc.filename}"
+    else:
+        text = f"{type(exc).__name__}: {exc}"
+    return text[:MAX_REASON]
+
+
+class SaveFaults:
+    """The checkpoint saves of one learner process that failed: the last reason (empty once one succeeds), the
+    failures, when to retry (after RETRY_FIRST_S, doubling up to RETRY_MAX_S), and log lines that say so
+    (a failure once per reason or WARN_EVERY_S, the recovery once).
+
+    :param clock: monotonic seconds
+    """
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self.error = ""  # why the last save failed; "" when it succeeded
+        self.failures = 0  # failed saves in this process
+        self.streak = 0  # failed saves since the last success
+        self.retry_at = 0.0  # no save before this (clock)
+        self._since = 0.0
+        self._warned_at = -math.inf
+
+    def ready(self) -> bool:
+        """Whether a save may be tried now (always, unless a failed one waits out its backoff)."""
+        return self.clock() >= self.retry_at
+
+    def failed(self, exc: BaseException, unsaved: int) -> float:
+        """A save failed: note it, log it (rate-limited), and return the seconds until the retry.
+
+        :param exc: the disk fault
+        :param unsaved: transitions accepted since the last checkpoint (not durable)
+        """
+        now, reason = self.clock(), fault_reason(exc)
+        if self.streak == 0:
+            self._since = now
+        delay = min(RETRY_MAX_S, RETRY_FIRST_S * 2 ** min(self.streak, 16))
+        self.streak += 1
+        self.failures += 1
+        self.retry_at = now + delay
+        if reason != self.error or now - self._warned_at >= WARN_EVERY_S:
+            self._warned_at = now
+            log.warning("checkpoint failed (%s); %d failed attempts in %.0f s; training and ingest go on, %d "
+                        "transitions are not durable and the actors keep them until a checkpoint holds them; "
+                        "retrying in %.0f s (then at most every %.0f s)", reason, self.streak, now - self._since,
+                        unsaved, delay, RETRY_MAX_S)
+        self.error = reason
+        return delay
+
+    def succeeded(self) -> None:
+        """A save succeeded (logs the recovery after failures)."""
+        if self.streak:
+            log.warning("checkpoint recovered after %d failed attempts over %.0f s (last: %s)", self.streak,
+                        self.clock() - self._since, self.error)
+        self.error, self.streak, self.retry_at = "", 0, 0.0
+
+
+def load_checkpoint(ckpt: str | Path, env: Any, device: str = "cpu") -> tuple[Any, dict[str, Any]]:
     """The model (with its replay buffer) and the state of a checkpoint.
 
     :param ckpt: the checkpoint directory (:func:`find_checkpoint`)
     :param env: an environment with the model's spaces (``common.spaces.SpacesEnv``)
+    :param device: the torch device to train on (a checkpoint made on a GPU resumes on a CPU and back)
     """
     from sb3_contrib import TQC
 
@@ -101,7 +258,7 @@ def load_checkpoint(ckpt: str | Path, env: Any) -> tuple[Any, dict[str, Any]]:
     if state.get("format", 1) != FORMAT:
         raise CheckpointError(f"{ckpt}: checkpoint format {state.get('format', 1)} was written by an older learner "
                               f"and cannot be resumed by this one (format {FORMAT})")
-    model = TQC.load(ckpt / MODEL_FILE, env=env, device="cpu")
+    model = TQC.load(ckpt / MODEL_FILE, env=env, device=device)
     model.load_replay_buffer(ckpt / BUFFER_FILE)
     if not isinstance(model.replay_buffer, StreamReplayBuffer):
         raise CheckpointError(f"{ckpt}: the replay buffer is a {type(model.replay_buffer).__name__}, "

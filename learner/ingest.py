@@ -3,20 +3,28 @@ in ``seq`` order, whatever order (and however often) they arrive.
 
 A batch with ``seq == next`` is accepted, followed by any held batches that it unblocks; an older one is a
 duplicate (the actor re-sent it before our ack reached it: acked again, not stored); a newer one is held in a
-bounded table until the actor re-sends the gap. An actor that restarts announces a new ``stream`` id and starts
-a new stream (a new provenance code); ``base_seq`` (the oldest batch the actor still holds) lets a learner that
-lost its state skip batches nobody holds any more instead of waiting for them forever.
+bounded table until the actor re-sends the gap. A restarted actor continues its stream (same ``stream`` id,
+``seq`` carrying on); a new ``stream`` id for an actor starts a new stream (a new provenance code) and retires
+the one before for good: its batches are refused from then on ('superseded', see :class:`StreamTable`), so
+two processes with one actor id are never interleaved. ``base_seq`` (the oldest batch the actor still holds)
+lets a learner that lost its state skip batches nobody holds any more instead of waiting for them forever.
+
+:class:`FairInbox` takes the learner's messages in per actor (round robin), so that batches of actor ids the
+learner has not admitted yet (no stream in the table) cannot starve the admitted ones: they share one slot of
+the rotation, at most :data:`PENDING_IDS` of them wait, and new ones are admitted at a bounded rate.
 """
 
 from __future__ import annotations
 
 import logging
+import time
+from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
-from common.protocol import Transitions
+from common.protocol import Keys, Transitions
 
-__all__ = ["ActorStream", "StreamTable", "Offer", "MAX_PENDING"]
+__all__ = ["ActorStream", "StreamTable", "Offer", "MAX_PENDING", "FairInbox", "PENDING_IDS", "PENDING_PER_ID"]
 
 log = logging.getLogger("khgrl.learner")
 
@@ -39,6 +47,7 @@ class ActorStream:
     held: int = 0
     dropped_pending: int = 0
     skipped: int = 0  # batches the actor no longer holds (see base_seq): lost, logged
+    superseded: int = 0  # batches of earlier streams of this actor id refused since this stream began
     pending: dict[int, Transitions] = field(default_factory=dict)
 
     def stored(self, step: int) -> None:
@@ -68,8 +77,9 @@ class ActorStream:
 
 @dataclass(frozen=True)
 class Offer:
-    """What became of an offered batch: ``result`` ('accepted', 'duplicate' or 'held') and, in order, the
-    batches now ready for the replay buffer (the offered one and those it unblocked; empty unless accepted)."""
+    """What became of an offered batch: ``result`` ('accepted', 'duplicate', 'held' or 'superseded': a stream
+    of the actor that another one replaced) and, in order, the batches now ready for the replay buffer (the
+    offered one and those it unblocked; empty unless accepted)."""
 
     result: str
     stream: ActorStream
@@ -77,8 +87,9 @@ class Offer:
 
 
 class StreamTable:
-    """Every actor stream the learner has seen, and the provenance codes of all of them (a restarted actor
-    gets a new code, so its old and new transitions stay distinguishable)."""
+    """Every actor stream the learner has seen, and the provenance codes of all of them (an actor with a new
+    stream id gets a new code, so its old and new transitions stay distinguishable). An actor's current stream
+    is the newest one: the earlier streams of that actor id (those in :attr:`codes`) are refused."""
 
     def __init__(self) -> None:
         self.streams: dict[str, ActorStream] = {}
@@ -103,6 +114,8 @@ class StreamTable:
         :param msg: the batch (its ``envelope.seq`` is the batch number)
         """
         st = self._stream_for(msg)
+        if st is None:
+            return Offer("superseded", self.streams[msg.actor], [])
         seq = msg.envelope.seq
         self._skip_to(st, msg.base_seq or 0)
         if seq < st.next_seq:
@@ -118,19 +131,37 @@ class StreamTable:
             st.next_seq += 1
         return Offer("accepted", st, ready)
 
-    def _stream_for(self, msg: Transitions) -> ActorStream:
-        """The actor's stream; a new one for an actor not seen yet or one that announces a new stream id."""
+    def _stream_for(self, msg: Transitions) -> ActorStream | None:
+        """The actor's stream; a new one for an actor not seen yet or one that announces a new stream id; None for
+        a stream of the actor that was replaced by a newer one."""
         a, stream, base = msg.actor, msg.stream or "", msg.base_seq or 0
         st = self.streams.get(a)
         if st is None or (stream and st.stream and stream != st.stream):
+            if st is not None and self.retired(a, stream):
+                st.superseded += 1
+                if st.superseded == 1 or st.superseded % 1000 == 0:
+                    log.error("actor %s: batch of stream %s refused: the learner took stream %s of this actor id after "
+                              "it (two processes with one id?); %d refused", a, stream, st.stream, st.superseded)
+                return None
             if st is not None:
-                log.warning("actor %s restarted (stream %s -> %s): new stream from seq %d", a, st.stream, stream, base)
+                log.warning("actor %s: new stream %s replaces stream %s (from seq %d); the old one is refused from now "
+                            "on", a, stream, st.stream, base)
             st = ActorStream(actor=a, code=len(self.codes), stream=stream, next_seq=base)
             self.codes.append({"actor": a, "stream": stream})
             self.streams[a] = st
         elif stream and not st.stream:
             st.stream = stream
         return st
+
+    def retired(self, actor: str, stream: str) -> bool:
+        """Whether ``stream`` is an earlier stream of ``actor`` (one the learner took before the current one).
+
+        :param actor: the actor id
+        :param stream: a stream id
+        """
+        cur = self.streams.get(actor)
+        return bool(stream) and (cur is None or cur.stream != stream) and \
+            any(c["actor"] == actor and c["stream"] == stream for c in self.codes)
 
     @staticmethod
     def _skip_to(st: ActorStream, base: int) -> None:
@@ -175,3 +206,144 @@ class StreamTable:
         table.codes = [dict(c) for c in state["codes"]]
         table.streams = {a: ActorStream.from_state(dict(s, actor=a)) for a, s in state["actors"].items()}
         return table
+
+
+PENDING_IDS = 64  # actor ids not admitted yet whose batches wait; batches of further new ids are dropped
+PENDING_PER_ID = 64  # batches that wait per such id (the actor re-sends what was dropped)
+ADMIT_PER_S = 10.0  # new actor ids admitted per second (after a burst of ADMIT_BURST)
+ADMIT_BURST = 32
+PULL_MAX = 20_000  # messages moved from the inbox into the per-actor queues per call
+_PENDING = "\0pending"  # the one rotation slot that all not-yet-admitted ids share
+
+
+class FairInbox:
+    """The learner's inbox, served per actor: each admitted actor takes turns (one batch each), and all actor ids
+    not admitted yet share one turn. Taking messages out of the inbox is cheap (no decoding), so a backlog of
+    other ids' batches never stands in front of an admitted actor's. A not-yet-admitted id is admitted when the
+    loop takes its first batch (which makes its stream); at most ``admit_per_s`` new ids are, after a burst.
+    A control message keeps its place: it is served once the batches that arrived before it are (and nothing
+    after it is taken in before). Same interface as :class:`common.transport.Inbox` for :meth:`get` and
+    :meth:`qsize`.
+
+    :param inbox: where the Zenoh callbacks file ``(kind, key, payload, arrival)``
+    :param admitted: whether an actor id is admitted (the learner has its stream)
+    :param admit_per_s: new ids admitted per second
+    :param clock: monotonic seconds
+    """
+
+    def __init__(self, inbox, admitted: Callable[[str], bool], *, admit_per_s: float = ADMIT_PER_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.inbox, self.admitted, self.clock = inbox, admitted, clock
+        self.rate = float(admit_per_s)
+        self.tokens, self._t = float(ADMIT_BURST), clock()
+        self.queues: dict[str, deque] = {}  # admitted actor id -> its batches
+        self.pending: dict[str, deque] = {}  # not-yet-admitted actor id -> messages (oldest id first)
+        self.turns: deque[str] = deque()  # slots with messages, in the order they are served
+        self.barrier: tuple | None = None  # a control message, served when the batches before it are
+        self.buffered = 0
+        self.dropped = 0  # batches of not-yet-admitted ids dropped (over the caps)
+
+    def qsize(self) -> int:
+        """Messages waiting here and in the inbox."""
+        return self.buffered + self.inbox.qsize()
+
+    def get(self, timeout: float = 0.0) -> tuple | None:
+        """The next message by turn, waiting up to ``timeout`` s for one to arrive when none waits.
+
+        :param timeout: seconds to wait (0: don't)
+        """
+        self._pull()
+        item = self._next()
+        if item is None and timeout > 0:
+            if self.barrier is not None:  # waits for ids to be admitted: don't spin
+                time.sleep(min(timeout, 0.02))
+                return self._next()
+            first = self.inbox.get(timeout)
+            if first is not None:
+                self._file(first)
+                self._pull()
+                item = self._next()
+        return item
+
+    def _pull(self) -> None:
+        """Take in what has arrived, up to the next control message."""
+        for _ in range(PULL_MAX):
+            if self.barrier is not None:
+                return
+            item = self.inbox.get(0.0)
+            if item is None:
+                return
+            self._file(item)
+
+    def _file(self, item: tuple) -> None:
+        """Put one message in its queue (or drop it: a not-yet-admitted id over the caps)."""
+        if item[0] != "transitions":
+            self.barrier = item
+            self.buffered += 1
+            return
+        slot = Keys.chunk(item[1], 3)
+        q = self.pending.get(slot)
+        if q is not None or (slot not in self.queues and not self.admitted(slot)):
+            if (q is None and len(self.pending) >= PENDING_IDS) or (q is not None and len(q) >= PENDING_PER_ID):
+                self.dropped += 1
+                if self.dropped == 1 or self.dropped % 1000 == 0:
+                    log.warning("batches of actor ids not admitted yet: %d dropped (%d ids wait)", self.dropped,
+                                len(self.pending))
+                return
+            if not self.pending:
+                self.turns.append(_PENDING)
+            self.pending.setdefault(slot, deque()).append(item)
+        else:
+            q = self.queues.get(slot)
+            if q is None:
+                q = self.queues[slot] = deque()
+                self.turns.append(slot)
+            q.append(item)
+        self.buffered += 1
+
+    def _next(self) -> tuple | None:
+        if self.barrier is not None and self.buffered == 1:  # every batch that came before it is served
+            item, self.barrier = self.barrier, None
+            self.buffered -= 1
+            return item
+        for _ in range(len(self.turns) + 1):  # (+1: an id that the pending turn moved to its own turn)
+            if not self.turns:
+                return None
+            slot = self.turns.popleft()
+            item = self._from_pending() if slot == _PENDING else self._from_queue(slot)
+            if slot == _PENDING and self.pending:
+                self.turns.append(_PENDING)
+            if item is not None:
+                self.buffered -= 1
+                return item
+        return None
+
+    def _from_queue(self, slot: str) -> tuple:
+        q = self.queues[slot]
+        item = q.popleft()
+        if q:
+            self.turns.append(slot)
+        else:
+            del self.queues[slot]
+        return item
+
+    def _from_pending(self) -> tuple | None:
+        """The oldest waiting id's next batch, if a new id may be admitted now (ids admitted meanwhile first
+        move to their own turn)."""
+        for actor in [a for a in self.pending if self.admitted(a)]:
+            self.queues[actor] = self.pending.pop(actor)
+            self.turns.append(actor)
+        if not self.pending:
+            return None
+        now = self.clock()
+        self.tokens = min(float(ADMIT_BURST), self.tokens + (now - self._t) * self.rate)
+        self._t = now
+        if self.tokens < 1.0:
+            return None
+        self.tokens -= 1.0
+        actor = next(iter(self.pending))
+        q = self.pending[actor]
+        item = q.popleft()
+        if not q:
+            del self.pending[actor]
+        return item

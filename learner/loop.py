@@ -1,22 +1,28 @@
 """The learner's main loop, without Zenoh: messages in, acks / weights / status out through a publisher.
 
-Each turn of :meth:`LearnerLoop.run` takes what has arrived (a bounded number of messages, so training and
-acks interleave with the stream), acks the actors whose batches came in, runs at most one due training
-iteration and publishes the new weights (and acks for every actor), checkpoints when due or asked to, and
-publishes a status about once a second. Unit tests drive the same steps directly: :meth:`LearnerLoop.offer`
-/ :meth:`LearnerLoop.control` with decoded messages (or :meth:`LearnerLoop.receive` with payload bytes), then
-:meth:`LearnerLoop.step`, with a publisher that collects the typed messages.
+:meth:`LearnerLoop.run` keeps ingest apart from training. Its *ingest thread* takes messages as they arrive
+(served per actor, :class:`~learner.ingest.FairInbox`), decodes and checks them, stores accepted batches in the
+replay buffer and acks their actors; it never waits for a gradient step. The calling thread trains -- one due
+iteration at a time (``simulation`` mode: the schedule of SB3's ``learn()``; ``robot`` mode: whenever it is
+free, on everything stored) -- publishes the new weights and acks every actor, checkpoints when due or asked
+to (ingest pauses meanwhile), and publishes a status about once a second. Memory stays bounded: the inbox is
+bounded in messages and bytes, each actor has at most its window of batches out, and the replay buffer has
+its capacity.
+
+Unit tests drive the same steps in one thread: :meth:`LearnerLoop.offer` / :meth:`LearnerLoop.control` with
+decoded messages (or :meth:`LearnerLoop.receive` with payload bytes), then :meth:`LearnerLoop.step`, with a
+publisher that collects the typed messages.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
-from common.config import TQCSettings
 from common.descriptor import TaskDescriptor
 from common.messages import LearnerInfo
 from common.process import StopFlag
@@ -33,10 +39,10 @@ from common.protocol import (
     Weights,
     decode,
 )
-from common.spaces import SpacesEnv
-from learner.checkpoint import CheckpointError, find_checkpoint, load_checkpoint, save_checkpoint
-from learner.ingest import StreamTable
-from learner.trainer import Trainer, build_model
+from learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint
+from learner.ingest import FairInbox, StreamTable
+from learner.resume import open_learner, rss_mb
+from learner.trainer import Trainer
 
 __all__ = ["Publisher", "LearnerLoop", "open_learner", "MAX_DRAIN"]
 
@@ -65,41 +71,13 @@ class _Inbox(Protocol):
     def qsize(self) -> int: ...
 
 
-def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume: bool,
-                 logger_formats: tuple[str, ...] = ("csv", "tensorboard"), task=None) -> tuple[Trainer, StreamTable]:
-    """A fresh model and empty stream table, or (``resume``) both as the newest checkpoint left them.
-
-    :param tqc: the run's TQC settings (schedule: ``learning_starts``, ``train_freq``)
-    :param seed: the model's seed (a fresh model only)
-    :param learner_dir: ``RUN_DIR/learner`` (checkpoint, SB3 logs under ``tb/``)
-    :param resume: continue from the checkpoint (:class:`CheckpointError` if there is none)
-    :param logger_formats: SB3 logger output formats
-    :param task: the run's :class:`~common.descriptor.TaskDescriptor` (None: the passage world's spaces)
-    """
-    learner_dir = Path(learner_dir)
-    learner_dir.mkdir(parents=True, exist_ok=True)
-    kw = dict(learning_starts=tqc.learning_starts, train_freq=tqc.train_freq, log_dir=learner_dir / "tb",
-              logger_formats=logger_formats)
-    if not resume:
-        return Trainer(build_model(tqc, seed, task), **kw), StreamTable()
-    ckpt = find_checkpoint(learner_dir)
-    if ckpt is None:
-        raise CheckpointError(f"--resume: no checkpoint under {learner_dir}")
-    model, state = load_checkpoint(ckpt, SpacesEnv(task))
-    trainer, streams = Trainer(model, **kw), StreamTable.from_state(state)
-    trainer.restore(state)
-    log.info("resumed from %s: %d transitions (buffer pos %d), version %d, %d iterations, actors %s", ckpt,
-             trainer.total, trainer.buffer.pos, trainer.version, trainer.iterations,
-             {a: streams[a].next_seq for a in streams})
-    return trainer, streams
-
-
 class LearnerLoop:
     """Stream ordering, training, acks, weights, checkpoints and status of one learner incarnation."""
 
     def __init__(self, trainer: Trainer, streams: StreamTable, publisher: Publisher, *, learner_id: str,
                  learner_dir: str | Path, checkpoint_every: int, flag: StopFlag,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, checkpoint_dir: str | Path | None = None,
+                 mode: str = "simulation") -> None:
         """:param trainer: the model and its schedule
         :param streams: the actor streams (empty, or from a checkpoint)
         :param publisher: where acks, weights and status go
@@ -107,11 +85,15 @@ class LearnerLoop:
         :param learner_dir: ``RUN_DIR/learner`` (checkpoints)
         :param checkpoint_every: checkpoint every N ingested transitions (0: only when asked and at the end)
         :param flag: the process's stop flag (a ``stop`` command sets it)
-        :param clock: monotonic seconds (status period)
+        :param clock: monotonic seconds (status period, checkpoint retries)
+        :param checkpoint_dir: where checkpoints go (None: ``learner_dir``)
+        :param mode: ``simulation`` (iterations come due with the data) or ``robot`` (train whenever free)
         """
         self.trainer, self.streams, self.pub = trainer, streams, publisher
         self.id = learner_id
         self.dir = Path(learner_dir)
+        self.ckpt_dir = Path(checkpoint_dir or learner_dir)
+        self.saves = SaveFaults(clock)  # failed checkpoint saves (disk faults) and their retry backoff
         self.checkpoint_every = int(checkpoint_every)
         self.flag = flag
         self.clock = clock
@@ -122,10 +104,15 @@ class LearnerLoop:
         self.checkpoints = 0
         self.last_ckpt_total = trainer.total
         self.train_time = 0.0
+        self.scalar_faults = 0  # training scalars the SB3 logger could not write
         self.touched: set[str] = set()
         self.inbox: _Inbox | None = None
         self.task: TaskDescriptor | None = None  # the run's task: batches of other sizes or tasks are refused
         self.dims = ANY_DIMS
+        self.mode = mode
+        trainer.schedule = mode == "simulation"
+        self.lock = threading.RLock()  # streams, counters and acks between the ingest and training threads
+        self.wake = threading.Event()  # set by ingest when there may be something to train
         now = clock()
         self._status_t, self._status_steps = now, trainer.gradient_steps
 
@@ -167,15 +154,23 @@ class LearnerLoop:
 
     def offer(self, msg: Transitions) -> str:
         """A decoded batch: ordered into its actor's stream and, when accepted, stored (with any batches it
-        unblocked). Returns 'accepted', 'duplicate' or 'held'; the actor is acked at the next :meth:`step`.
+        unblocked). Returns 'accepted', 'duplicate', 'held' or 'superseded'; the actor is acked at the next
+        :meth:`step` (a superseded stream at once, with ``superseded`` set: its process stops).
 
         :param msg: the batch
         """
-        res = self.streams.offer(msg)
-        for batch in res.ready:
-            self.trainer.add(batch, res.stream, self.streams.positions)
-        self.results[res.result] += 1
-        self.touched.add(msg.actor)
+        with self.lock:
+            res = self.streams.offer(msg)
+            self.results[res.result] += 1
+            if res.result == "superseded":  # a later stream of this actor id was taken: this one is refused
+                self.pub.ack(self._ack(msg.actor).replace(received=-1, durable=-1, trained=0, stream=msg.stream,
+                                                          superseded=True))
+                return res.result
+            for batch in res.ready:
+                self.trainer.add(batch, res.stream, self.streams.positions)
+            self.touched.add(msg.actor)
+        if res.ready:
+            self.wake.set()
         return res.result
 
     def control(self, msg: Control) -> None:
@@ -183,6 +178,7 @@ class LearnerLoop:
 
         :param msg: the command
         """
+        self.wake.set()
         if msg.command == "stop":
             self.flag.set("stop command")
         elif msg.command == "checkpoint":
@@ -215,48 +211,77 @@ class LearnerLoop:
 
     def ack_all(self) -> None:
         """Ack every known actor stream."""
-        for actor in self.streams:
-            self.pub.ack(self._ack(actor))
+        with self.lock:
+            for actor in list(self.streams):
+                self.pub.ack(self._ack(actor))
 
     def ack_touched(self) -> None:
         """Ack the actors whose batches arrived since the last call."""
-        for actor in sorted(self.touched):
-            self.pub.ack(self._ack(actor))
-        self.touched.clear()
+        with self.lock:
+            for actor in sorted(self.touched):
+                self.pub.ack(self._ack(actor))
+            self.touched.clear()
 
     def step(self) -> None:
         """After messages were taken in: ack, then :meth:`work`."""
         self.ack_touched()
         self.work()
 
-    def work(self) -> None:
-        """Train one due iteration (unless paused), checkpoint when due, publish status when its time has come."""
-        if not self.paused and self.trainer.due:
-            self.train()
+    def work(self) -> bool:
+        """Train one iteration (unless paused; simulation mode: if one is due), checkpoint when due (after a failed
+        save: once its retry is due), publish status when its time has come. Returns whether it trained."""
+        trained = not self.paused and (self.mode == "robot" or bool(self.trainer.due)) and self.train()
         every = self.checkpoint_every
-        if self.checkpoint_requested or (every > 0 and self.trainer.total - self.last_ckpt_total >= every):
+        due = self.checkpoint_requested or (every > 0 and self.trainer.total - self.last_ckpt_total >= every)
+        if due and self.saves.ready():
             self.checkpoint_requested = False
             self.checkpoint()
         if self.clock() - self._status_t >= STATUS_EVERY_S:
             self.publish_status()
+        return trained
 
     def train(self) -> bool:
-        """One due training iteration, then the new weights and acks for every actor."""
+        """One training iteration (simulation mode: the next due one; robot mode: on everything stored), then the
+        new weights and acks for every actor."""
         t0 = time.perf_counter()
-        if not self.trainer.train_one():
+        if self.mode == "robot":
+            with self.lock:
+                positions = self.streams.positions()
+            if not self.trainer.train_now(positions):
+                return False
+        elif not self.trainer.train_one():
             return False
         dt = time.perf_counter() - t0
         self.train_time += dt
         self.pub.weights(self.trainer.weights())
         self.ack_all()
-        self.trainer.record_iteration(dt, self.queue_depth())
+        try:
+            self.trainer.record_iteration(dt, self.queue_depth())
+        except OSError as exc:  # SB3's scalar files on a full or read-only disk: those scalars are lost, nothing else
+            self.scalar_faults += 1
+            if self.scalar_faults in (1, 10) or self.scalar_faults % 1000 == 0:
+                log.warning("training scalars not written (%s; %d times); training goes on", fault_reason(exc),
+                            self.scalar_faults)
         return True
 
-    def checkpoint(self) -> Path:
-        """Save a checkpoint of everything accepted so far, then tell every actor (``durable`` in the acks)."""
+    def checkpoint(self) -> Path | None:
+        """Save a checkpoint of everything accepted so far, then tell every actor (``durable`` in the acks). A disk
+        fault (full, read-only, unwritable) leaves the previous checkpoint and marks nothing durable: it is logged,
+        shown in the status, retried with backoff (:class:`~learner.checkpoint.SaveFaults`), and None returned."""
+        with self.lock:  # ingest waits (the inbox holds what arrives): the buffer is saved as the acks will say
+            return self._checkpoint()
+
+    def _checkpoint(self) -> Path | None:
         t0 = time.perf_counter()
         tr = self.trainer
-        path = save_checkpoint(self.dir, tr.model, {**tr.state(), **self.streams.state()})
+        try:
+            path = save_checkpoint(self.ckpt_dir, tr.model, {**tr.state(), **self.streams.state()})
+        except Exception as exc:
+            if not is_disk_fault(exc):
+                raise
+            self.saves.failed(exc, tr.total - self.last_ckpt_total)
+            return None
+        self.saves.succeeded()
         self.streams.mark_durable()
         self.last_ckpt_total = tr.total
         self.checkpoints += 1
@@ -271,6 +296,10 @@ class LearnerLoop:
 
     def info(self) -> LearnerInfo:
         """This learner's status (the rate: gradient steps per second since the previous call)."""
+        with self.lock:
+            return self._info()
+
+    def _info(self) -> LearnerInfo:
         tr, now = self.trainer, self.clock()
         rate = (tr.gradient_steps - self._status_steps) / max(now - self._status_t, 1e-9)
         self._status_t, self._status_steps = now, tr.gradient_steps
@@ -282,7 +311,9 @@ class LearnerLoop:
                            next_seq={st.actor: st.next_seq for st in streams},
                            durable={st.actor: st.durable for st in streams},
                            duplicates={st.actor: st.duplicates for st in streams},
-                           weights_queries=int(self.pub.queries))
+                           weights_queries=int(self.pub.queries), checkpoint_error=self.saves.error,
+                           checkpoint_failures=self.saves.failures, mode=self.mode, utd=round(tr.utd, 4),
+                           rss_mb=rss_mb())
 
     def publish_status(self) -> None:
         """Publish :meth:`info` as this learner's status."""
@@ -292,19 +323,39 @@ class LearnerLoop:
     def run(self, inbox: _Inbox) -> None:
         """Turn until the stop flag is set (SIGINT/SIGTERM or a ``stop`` command). The caller checkpoints last.
 
-        :param inbox: where the Zenoh callbacks file transitions and control messages
+        :param inbox: where the Zenoh callbacks file transitions and control messages (served per actor, see
+            :class:`~learner.ingest.FairInbox`)
         """
-        self.inbox = inbox
-        while not self.flag:
-            self.drain(inbox)
-            self.ack_touched()
-            if self.flag:
-                break
-            self.work()
+        inbox = self.inbox = FairInbox(inbox, self.streams.__contains__)
+        ingest = threading.Thread(target=self._ingest, args=(inbox,), name="ingest", daemon=True)
+        ingest.start()
+        try:
+            while not self.flag:
+                if not self.work():
+                    self.wake.wait(IDLE_WAIT_S)
+                    self.wake.clear()
+        finally:
+            self.flag.set("stop")
+            ingest.join(10.0)
+
+    def _ingest(self, inbox: _Inbox) -> None:
+        """The ingest thread: take in, store and ack what arrives until the stop flag is set."""
+        try:
+            while not self.flag:
+                item = inbox.get(IDLE_WAIT_S)
+                n = 0
+                while item is not None:
+                    self.receive(*item[:3])
+                    n += 1
+                    item = inbox.get(0.0) if n < MAX_DRAIN else None
+                self.ack_touched()
+        except Exception:  # noqa: BLE001 - a bug here must stop the learner, not leave it training on nothing
+            log.exception("ingest thread failed")
+            self.flag.set("ingest thread failed")
 
     def summary(self) -> dict[str, Any]:
         """Totals for the log line at the end."""
         tr = self.trainer
         return {"transitions": tr.total, "iterations": tr.iterations, "gradient_steps": tr.gradient_steps,
                 "train_s": round(self.train_time, 1), "version": tr.version, "rejected": self.rejects.by_kind(),
-                "offers": dict(self.results)}
+                "offers": dict(self.results), "not_admitted_dropped": getattr(self.inbox, "dropped", 0)}

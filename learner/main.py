@@ -9,7 +9,9 @@ The parts, in the order a transition meets them: the Zenoh callback files the pa
 (:class:`common.transport.Inbox`), :mod:`learner.loop` decodes it, :mod:`learner.ingest` orders it into its
 actor's stream, :mod:`learner.trainer` stores it in the replay buffer (:mod:`learner.replay`) and trains when
 an iteration is due; acks and weights go out through :mod:`learner.publish`; :mod:`learner.checkpoint`
-saves and loads everything in ``RUN_DIR/learner/checkpoint``.
+saves and loads everything in ``RUN_DIR/learner/checkpoint`` (or ``CHECKPOINT_DIR/checkpoint`` with
+``--checkpoint-dir``). A checkpoint that fails on a full or unwritable disk is logged, shown in the status and
+retried while training goes on; if the final one fails the learner says so and exits with 1.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from common.config import ProcessConfig, add_process_flags, resolve_process
 from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
@@ -27,6 +30,9 @@ from common.task_link import TASK_FILE, TaskAnnouncer, fetch_task, load_task_fil
 from common.transport import Inbox, open_client, undeclare_all
 from learner.checkpoint import CheckpointError, find_checkpoint
 
+if TYPE_CHECKING:
+    from learner.loop import LearnerLoop
+
 __all__ = ["main", "build_parser"]
 
 log = logging.getLogger("khgrl.learner")
@@ -34,10 +40,12 @@ log = logging.getLogger("khgrl.learner")
 # The settings the learner uses (its --help lists these; --config may hold all of a run's settings).
 LEARNER_SETTINGS = {"run", "connect", "run_dir", "seed", "learning_rate", "tau", "gamma", "train_freq",
                     "gradient_steps", "ent_coef", "net_arch", "learning_starts", "batch_size", "buffer_size",
-                    "checkpoint_every", "lease_ms", "learner_threads", "learner_nice", "tensorboard"}
+                    "checkpoint_every", "lease_ms", "learner_threads", "learner_nice", "tensorboard", "checkpoint_dir",
+                    "device", "mode"}
 # Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
 # batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
 INBOX_SIZE = 100_000
+INBOX_BYTES = 256 * 2**20  # and at most this much payload (each actor has at most its window of batches out)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_process_flags(p, only=LEARNER_SETTINGS)
     p.add_argument("--id", default="learner", help="learner id (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
-                   help="continue from RUN_DIR/learner/checkpoint (an error if there is none; default: start afresh)")
+                   help="continue from the checkpoint in RUN_DIR/learner (or --checkpoint-dir; an error if there is "
+                        "none; default: start afresh)")
     return p
 
 
@@ -58,7 +67,8 @@ def _fail(message: object) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the learner until SIGINT/SIGTERM or a ``stop`` command; 0 on a clean stop, 2 on a usage error.
+    """Run the learner until SIGINT/SIGTERM or a ``stop`` command; 0 on a clean stop, 1 if the final checkpoint
+    failed (or the router was unreachable), 2 on a usage error.
 
     :param argv: command-line arguments (default: ``sys.argv[1:]``)
     """
@@ -70,8 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         return _fail(exc)
     learner_dir = Path(pc.cfg.run_dir) / "learner"
-    if args.resume and find_checkpoint(learner_dir) is None:
-        return _fail(f"--resume: no checkpoint under {learner_dir}")
+    ckpt_dir = Path(pc.cfg.checkpoint_dir) if pc.cfg.checkpoint_dir else learner_dir
+    if args.resume and find_checkpoint(ckpt_dir) is None:
+        return _fail(f"--resume: no checkpoint under {ckpt_dir}")
     try:
         return run(pc, keys, args.id, learner_dir, resume=args.resume)
     except CheckpointError as exc:
@@ -89,12 +100,19 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     """
     import torch  # (imported here: --help and flag errors answer at once)
 
-    from learner.loop import LearnerLoop, open_learner
+    from learner.loop import LearnerLoop
     from learner.publish import ZenohPublisher
+    from learner.resume import open_learner
+    from learner.trainer import torch_device
 
     cfg = pc.cfg
     setup_process_logging(learner_dir / "learner.log")
     torch.set_num_threads(max(1, cfg.learner_threads))
+    try:
+        device = torch_device(cfg.tqc.device)
+    except ValueError as exc:
+        print(f"khgrl learner: error: {exc}", file=sys.stderr)
+        return 2
     if cfg.learner_nice:
         os.nice(cfg.learner_nice)  # training yields the CPU to the actors' control loops on a shared machine
     flag = StopFlag()
@@ -114,18 +132,19 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         if task is None:
             return 0
         trainer, streams = open_learner(cfg.tqc, cfg.seed, learner_dir, resume=resume, logger_formats=formats,
-                                        task=task)
-        log.info("task %s (O = %d, %d observations, digest %s); epoch %s, learning_starts %d", task.name,
-                 task.out_dim, task.obs_dim, task.digest, trainer.epoch, trainer.learning_starts)
+                                        task=task, checkpoint_dir=cfg.checkpoint_dir or None)
+        log.info("task %s (O = %d, %d observations, digest %s); epoch %s, learning_starts %d, training on %s",
+                 task.name, task.out_dim, task.obs_dim, task.digest, trainer.epoch, trainer.learning_starts, device)
         announcer = TaskAnnouncer(session, keys, "learner", learner_id, task)
         pub = ZenohPublisher(session, keys, learner_id)
-        inbox = Inbox(maxsize=INBOX_SIZE, overflow="drop_newest")
+        inbox = Inbox(maxsize=INBOX_SIZE, overflow="drop_newest", max_bytes=INBOX_BYTES)
         subs = [session.declare_subscriber(keys.transitions("*"), inbox.callback("transitions")),
                 session.declare_subscriber(keys.control("learner"), inbox.callback("control")),
                 session.declare_subscriber(keys.control("all"), inbox.callback("control")),
                 session.declare_queryable(keys.weights, pub.answer)]
         loop = LearnerLoop(trainer, streams, pub, learner_id=learner_id, learner_dir=learner_dir,
-                           checkpoint_every=cfg.stream.checkpoint_every, flag=flag)
+                           checkpoint_every=cfg.stream.checkpoint_every, flag=flag,
+                           checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode)
         loop.set_task(task)
         loop.start()
         token = session.liveliness().declare_token(keys.alive("learner", learner_id))
@@ -134,13 +153,32 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         try:
             loop.run(inbox)
             log.info("stopping (%s): final checkpoint", flag.reason or "stop")
-            loop.checkpoint()
+            saved = loop.checkpoint() is not None
         finally:
             undeclare_all(*subs, token)
             announcer.undeclare()
             pub.close()
     log.info("learner %s done: %s; inbox dropped %s", learner_id, loop.summary(), inbox.dropped)
-    return 0
+    return 0 if saved else _final_checkpoint_failed(loop)
+
+
+def _final_checkpoint_failed(loop: LearnerLoop) -> int:
+    """Say (log and stderr, no traceback) that the last checkpoint failed and what that means; exit code 1.
+
+    :param loop: the learner loop whose final :meth:`~learner.loop.LearnerLoop.checkpoint` failed
+    """
+    unsaved = loop.trainer.total - loop.last_ckpt_total
+    message = f"the final checkpoint in {loop.ckpt_dir} failed ({loop.saves.error}): "
+    if unsaved:
+        message += (f"the {unsaved} transitions received since the last checkpoint are not in it. Running actors "
+                    f"keep every batch a checkpoint does not hold (acks never said durable) and re-send it to a "
+                    f"learner restarted with --resume once the disk is fixed")
+    else:
+        message += ("the last checkpoint holds every transition received, but not the training since it (a learner "
+                    "restarted with --resume trains from there)")
+    log.error("%s", message)
+    print(f"khgrl learner: error: {message}", file=sys.stderr, flush=True)
+    return 1
 
 
 def run_task(session, keys: Keys, learner_dir: Path, flag: StopFlag):

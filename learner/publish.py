@@ -38,12 +38,14 @@ class ZenohPublisher:
         self.queries = 0
         self._latest = b""
         self._lock = threading.Lock()
+        self._seq_lock = threading.Lock()  # the ingest and training threads both publish
 
     def _encode(self, msg: Any) -> bytes:
         """``msg`` as a payload from this learner, numbered per kind."""
-        blob = encode(msg, self.sender, self.seq[msg.KIND])
-        self.seq[msg.KIND] += 1
-        return blob
+        with self._seq_lock:
+            seq = self.seq[msg.KIND]
+            self.seq[msg.KIND] += 1
+        return encode(msg, self.sender, seq)
 
     def weights(self, msg: Weights) -> None:
         """Publish new weights (and keep them for queries).
@@ -60,12 +62,13 @@ class ZenohPublisher:
 
         :param msg: the ack
         """
-        pub = self.ack_pubs.get(msg.actor)
-        if pub is None:
-            zenoh = self._zenoh
-            pub = self.ack_pubs[msg.actor] = self.session.declare_publisher(
-                self.keys.ack(msg.actor), congestion_control=zenoh.CongestionControl.BLOCK,
-                priority=zenoh.Priority.INTERACTIVE_LOW)
+        with self._seq_lock:
+            pub = self.ack_pubs.get(msg.actor)
+            if pub is None:
+                zenoh = self._zenoh
+                pub = self.ack_pubs[msg.actor] = self.session.declare_publisher(
+                    self.keys.ack(msg.actor), congestion_control=zenoh.CongestionControl.BLOCK,
+                    priority=zenoh.Priority.INTERACTIVE_LOW)
         pub.put(self._encode(msg))
 
     def status(self, msg: Status) -> None:

@@ -10,6 +10,7 @@ fields, so they can never drift apart, and they travel inside the buffer: TQC bu
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import numpy as np
@@ -26,7 +27,13 @@ class StreamReplayBuffer(ReplayBuffer):
     and the provenance (actor code, the actor's transition index) of the transition stored there.
 
     Constructed by SB3 (``TQC(..., replay_buffer_class=StreamReplayBuffer)``) with the usual arguments; it
-    draws no random numbers, so a seeded model is the same as with SB3's own buffer.
+    draws no random numbers of its own, so a seeded model is the same as with SB3's own buffer.
+
+    The learner stores batches from its ingest thread while it trains in another: :meth:`add` and :meth:`sample`
+    hold ``lock`` (callers that add many transitions may hold it around the whole batch; it is re-entrant).
+    ``sample_limit`` (when set, and the buffer has not wrapped) restricts sampling to the first ``sample_limit``
+    slots: a training iteration due at the ``k``-th transition then samples what SB3's ``learn()`` would have
+    had at that step, however many transitions arrived meanwhile.
     """
 
     def __init__(self, buffer_size: int, observation_space: Any, action_space: Any, *args: Any, **kwargs: Any) -> None:
@@ -44,6 +51,30 @@ class StreamReplayBuffer(ReplayBuffer):
         self.provenance_step = np.full(n, -1, dtype=np.int64)
         self.intervened = np.zeros(n, dtype=np.uint8)
         self.clipped = np.zeros(n, dtype=np.uint8)
+        self.lock = threading.RLock()
+        self.sample_limit: int | None = None
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.pop("lock", None)  # not picklable; a loaded buffer gets a new one
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.lock = threading.RLock()
+        self.__dict__.setdefault("sample_limit", None)
+
+    def sample(self, batch_size: int, env: Any = None):
+        """SB3's ``sample`` (uniform over the stored slots), under ``lock`` and within ``sample_limit``.
+
+        :param batch_size: transitions in the minibatch
+        :param env: SB3's VecNormalize (unused by the learner)
+        """
+        with self.lock:
+            if self.full or self.sample_limit is None or self.optimize_memory_usage:
+                return super().sample(batch_size, env=env)
+            batch_inds = np.random.randint(0, max(1, min(self.pos, self.sample_limit)), size=batch_size)
+            return self._get_samples(batch_inds, env=env)
 
     def add(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: np.ndarray, done: np.ndarray,
             infos: list[dict[str, Any]], *, intervened: bool | int = 0, clipped: bool | int = 0, actor: int = -1,
@@ -61,12 +92,13 @@ class StreamReplayBuffer(ReplayBuffer):
         :param actor: provenance code of the actor stream (-1: unknown)
         :param step: the transition's running index in that actor's stream (-1: unknown)
         """
-        slot = self.pos
-        super().add(obs, next_obs, action, reward, done, infos)
-        self.provenance_actor[slot] = actor
-        self.provenance_step[slot] = step
-        self.intervened[slot] = intervened
-        self.clipped[slot] = clipped
+        with self.lock:
+            slot = self.pos
+            super().add(obs, next_obs, action, reward, done, infos)
+            self.provenance_actor[slot] = actor
+            self.provenance_step[slot] = step
+            self.intervened[slot] = intervened
+            self.clipped[slot] = clipped
 
     def side_arrays(self) -> dict[str, np.ndarray]:
         """The per-slot arrays by name (:data:`SIDE_ARRAYS`), whole buffer (empty slots: provenance -1)."""

@@ -5,7 +5,12 @@ Update-to-data ratio as SB3's ``learn()`` with ``train_freq`` F and ``gradient_s
 one training iteration (G gradient steps) is due for every multiple of F in ``(learning_starts, ingested]``.
 The learner never trains ahead of the data and never spins on stale data. After an iteration the weights
 carry, per actor, its running transition index reached when the global count hit the multiple of F that
-made the iteration due -- the data SB3's policy would have been trained on at that environment step.
+made the iteration due -- the data SB3's policy would have been trained on at that environment step. An
+iteration samples only the first transitions up to the one that made it due (``sample_limit``), so what it
+learns does not depend on how many more arrived meanwhile (the learner stores batches in another thread).
+
+In ``robot`` mode (actors never wait) there is no schedule: :meth:`Trainer.train_now` trains on everything
+stored so far whenever the learner is free, and the status reports the update-to-data ratio achieved.
 """
 
 from __future__ import annotations
@@ -24,9 +29,24 @@ from common.spaces import SpacesEnv
 from learner.ingest import ActorStream
 from learner.replay import StreamReplayBuffer
 
-__all__ = ["Trainer", "build_model"]
+__all__ = ["Trainer", "build_model", "torch_device"]
 
 log = logging.getLogger("khgrl.learner")
+
+
+def torch_device(name: str) -> str:
+    """The torch device ``name`` (``TQCSettings.device``) means on this machine: 'auto' is cuda where torch sees a
+    GPU, else cpu.
+
+    :param name: 'auto', 'cpu' or 'cuda'
+    :raises ValueError: 'cuda' where torch sees no GPU (SB3 would quietly fall back to the CPU)
+    """
+    import torch
+
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"--device cuda: torch {torch.__version__} sees no CUDA device on this machine (built for "
+                         f"CUDA {torch.version.cuda}); use --device cpu or auto")
+    return "cuda" if name == "cuda" or (name == "auto" and torch.cuda.is_available()) else "cpu"
 
 
 def build_model(tqc: TQCSettings, seed: int, task=None):
@@ -39,7 +59,8 @@ def build_model(tqc: TQCSettings, seed: int, task=None):
     """
     from sb3_contrib import TQC
 
-    return TQC("MlpPolicy", SpacesEnv(task), **tqc.sb3_kwargs(seed), replay_buffer_class=StreamReplayBuffer)
+    kwargs = {**tqc.sb3_kwargs(seed), "device": torch_device(tqc.device)}
+    return TQC("MlpPolicy", SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer)
 
 
 def _configure_logger(model: Any, folder: Path, formats: tuple[str, ...]) -> None:
@@ -73,6 +94,7 @@ class Trainer:
         self.gradient_steps = 0
         self.version = 0
         self.weights_trained: dict[str, int] = {}
+        self.schedule = True  # simulation mode: iterations come due with the data; robot mode: train_now
         _configure_logger(model, Path(log_dir), logger_formats)
 
     @property
@@ -101,6 +123,11 @@ class Trainer:
                         stream.index)
         term, trunc = msg.terminated.astype(bool), msg.truncated.astype(bool)
         rb = self.buffer
+        with rb.lock:  # one batch at a time between the training thread's minibatches
+            self._add(msg, stream, positions, term, trunc)
+
+    def _add(self, msg: Transitions, stream: ActorStream, positions, term: np.ndarray, trunc: np.ndarray) -> None:
+        rb, first = self.buffer, msg.first_step
         for i in range(msg.n):
             done = np.array([term[i] or trunc[i]], dtype=np.float32)
             rb.add(msg.obs[i][None], msg.next_obs[i][None], msg.action[i][None], msg.reward[i:i + 1], done,
@@ -108,24 +135,47 @@ class Trainer:
                    clipped=msg.clipped[i], actor=stream.code, step=first + i)
             stream.stored(first + i)
             self.total += 1
-            if self.total > self.learning_starts and self.total % self.train_freq == 0:
+            if self.schedule and self.total > self.learning_starts and self.total % self.train_freq == 0:
                 self.due.append((self.total, positions()))
 
     # ------------------------------------------------------------------------------------ training
     def train_one(self) -> bool:
         """Run one due training iteration (``gradient_steps`` steps on minibatches of ``batch_size``);
         False if none is due."""
-        if not self.due:
+        with self.buffer.lock:  # (the ingest thread appends under it)
+            if not self.due:
+                return False
+            at, snapshot = self.due.popleft()
+        self._train(at, snapshot, limit=at)
+        return True
+
+    def train_now(self, positions: dict[str, int]) -> bool:
+        """Robot mode: one iteration on everything stored so far (False inside ``learning_starts``).
+
+        :param positions: every actor's running index now (what these weights are trained on)
+        """
+        if not self.training_started:
             return False
-        at, snapshot = self.due.popleft()
+        self._train(self.total, positions, limit=None)
+        return True
+
+    @property
+    def utd(self) -> float:
+        """Gradient steps per transition ingested after ``learning_starts`` (the paper's: G/F = 1)."""
+        return self.gradient_steps / max(1, self.total - self.learning_starts)
+
+    def _train(self, at: int, snapshot: dict[str, int], limit: int | None) -> None:
         model = self.model
         model.num_timesteps = at
-        model.train(gradient_steps=model.gradient_steps, batch_size=model.batch_size)
+        self.buffer.sample_limit = limit
+        try:
+            model.train(gradient_steps=model.gradient_steps, batch_size=model.batch_size)
+        finally:
+            self.buffer.sample_limit = None
         self.iterations += 1
         self.gradient_steps += model.gradient_steps
         self.version += 1
         self.weights_trained = dict(snapshot)
-        return True
 
     def record_iteration(self, seconds: float, queue_depth: int) -> None:
         """Training scalars after an iteration (SB3 logger: csv and TensorBoard).

@@ -15,7 +15,8 @@ from common.config import TQCSettings
 from common.transport import free_port, wait_reachable
 from deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 
-__all__ = ["REPO", "TRAIN_FREQ", "BENCH_ACTOR", "BenchProcs", "wait_until", "run_id", "pct", "load"]
+__all__ = ["REPO", "TRAIN_FREQ", "BENCH_ACTOR", "BenchProcs", "wait_until", "run_id", "pct", "load",
+           "passage_task_file"]
 
 REPO = Path(__file__).resolve().parents[2]
 TRAIN_FREQ = TQCSettings().train_freq
@@ -49,7 +50,9 @@ class BenchProcs:
         return ep
 
     def learner(self, name: str, run: str, ep: str, run_dir: Path, *extra: str) -> Proc:
-        """A learner of run ``run`` (id ``learner``) writing to ``run_dir``; ``extra``: config flags."""
+        """A learner of run ``run`` (id ``learner``) writing to ``run_dir``, for the passage world's transitions
+        (its task descriptor is put where ``khgrl up`` puts it); ``extra``: config flags."""
+        passage_task_file(run_dir)
         return self.start(name, "learner", "--run", run, "--connect", ep, "--run-dir", str(run_dir),
                           "--id", "learner", *extra)
 
@@ -62,6 +65,19 @@ class BenchProcs:
         """Stop what still runs (SIGINT, then SIGKILL) and close the logs."""
         self.group.stop_all(grace=10.0, kill_after=5.0)
         self.group.close()
+
+
+def passage_task_file(run_dir: Path) -> None:
+    """``RUN_DIR/learner/task.msgpack`` of the passage world (high_cov), as ``khgrl up`` writes it: a learner
+    started by hand takes its spaces from there instead of waiting for an actor to announce the task."""
+    from common.config import RunConfig
+    from common.task_link import TASK_FILE, save_task
+    from deploy.launcher import check_task
+
+    path = Path(run_dir) / "learner" / TASK_FILE
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        save_task(path, check_task(RunConfig()))
 
 
 def wait_until(cond: Callable[[], Any], timeout: float, what: str, procs: tuple[Proc, ...] | list[Proc] = (),

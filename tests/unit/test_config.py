@@ -125,3 +125,20 @@ def test_settings_are_frozen_and_json_serialisable():
         cfg.seed = 3  # type: ignore[misc]
     assert json.loads(json.dumps(cfg.to_dict()))["stream"] == json.loads(json.dumps(
         StreamSettings().__dict__))
+
+
+def test_learner_device_auto_is_cpu_without_a_gpu_and_cuda_is_refused_clearly(monkeypatch):
+    import torch
+
+    from common.config import TQCSettings
+    from learner.trainer import build_model, torch_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert TQCSettings().device == "auto" and torch_device("auto") == "cpu" and torch_device("cpu") == "cpu"
+    assert build_model(TQCSettings(), 0).device.type == "cpu"
+    with pytest.raises(ValueError, match="no CUDA device"):
+        torch_device("cuda")
+    with pytest.raises(ValueError, match="no CUDA device"):
+        build_model(TQCSettings(device="cuda"), 0)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert torch_device("auto") == "cuda" and torch_device("cpu") == "cpu"

@@ -86,3 +86,20 @@ def test_fetch_behind_the_kgrl_mapping_is_a_clean_gym_env() -> None:
     assert env.observation_space.shape == (28 + 1 + 3,) and env.action_space.shape == (3,)
     e.close()
     env.close()
+
+
+def test_camera_frame_renders_the_arm_offscreen():
+    """MuJoCo's own view of the arm (khgrl eval --gif puts it beside the task's views), offscreen through EGL."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import numpy as np; from common.fetch_task import make_task; env = make_task('moved').make_env(0); "
+            "env.reset(seed=0); a = env.camera_frame(96); env.step(np.array([1.2, 0.75, 0.6])); "
+            "b = env.camera_frame(96); "
+            "print(a.shape, a.dtype, int(a.std() > 10), int(np.abs(a.astype(int) - b).sum() > 0))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "MUJOCO_GL": "egl"}, cwd=Path(__file__).resolve().parents[2])
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split("\n")[-2] == "(96, 96, 3) uint8 1 1"  # an image with content, and the arm moved in it

@@ -1,0 +1,154 @@
+"""Many actors into one learner (``khgrl bench scale``): the real ``khgrl up`` with N actors for a fixed time, then
+Ctrl-C (a clean stop: the learner's final checkpoint), per case:
+
+* **ingest**: transitions per second the learner stored (from its status, over the run, after a warm-up);
+* **learner memory**: RSS over time (sampled from its status about once a second), the peak and the last value;
+* **inbox depth**: messages waiting in the learner (peak);
+* **update-to-data ratio** achieved (gradient steps per transition; simulation mode keeps the paper's 1);
+* **weights latency** (publish -> applied in an actor's loop, p50/p99 over the actors) and the **actor loop
+  period** p99 (each actor's ``summary.json``);
+* **exactly once after Ctrl-C**: every transition an actor produced is in the learner's final checkpoint
+  exactly once (provenance: actor code and running index), or was overwritten in a full replay buffer (then
+  the buffer holds the newest ones once each) -- ``lost`` and ``duplicated`` must be 0.
+
+Cases: N actors x rate (0: as fast as flow control allows; 50 Hz) x mode (simulation: actors wait for the
+learner; robot: they never do). The machine's load average is recorded before and after each case.
+
+    khgrl bench scale --actors 1 2 4 8 --rates 0 50 --modes simulation robot --seconds 60
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from common.protocol import Keys, Status, decode
+from common.transport import free_port, open_client, wait_reachable
+
+__all__ = ["run_scale_benchmark", "provenance_check"]
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def provenance_check(run_dir: Path) -> dict:
+    """Compare what each actor produced (its ``summary.json``: running indices ``first_index..next_index``) with
+    the learner's final checkpoint: transitions lost (produced, not stored, not legitimately overwritten) and
+    duplicated (stored twice).
+
+    :param run_dir: the run directory of a finished ``khgrl up``
+    """
+    from learner.checkpoint import find_checkpoint, load_checkpoint_arrays
+
+    ckpt = find_checkpoint(run_dir / "learner")
+    arrays = load_checkpoint_arrays(ckpt)
+    state = json.loads((ckpt / "state.json").read_text())
+    codes = {a: int(s["code"]) for a, s in state.get("actors", {}).items()}
+    actor_codes, steps = arrays["provenance_actor"], arrays["provenance_step"]
+    full = bool(state.get("replay", {}).get("full"))
+    lost = dup = produced = stored = 0
+    for summary_file in sorted(run_dir.glob("actor-*/summary.json")):
+        s = json.loads(summary_file.read_text())
+        actor = summary_file.parent.name.removeprefix("actor-")
+        n = int(s.get("next_index", s.get("transitions", 0)))
+        produced += n
+        held = steps[actor_codes == codes.get(actor, -2)]
+        uniq = np.unique(held)
+        dup += held.size - uniq.size
+        stored += uniq.size
+        lowest = 0 if not full else (int(uniq.min()) if uniq.size else n)  # a full buffer dropped the oldest
+        lost += (n - lowest) - int(np.count_nonzero((uniq >= lowest) & (uniq < n)))
+    return {"produced": produced, "stored": stored, "lost": lost, "duplicated": dup, "buffer_full": full}
+
+
+def _case(work: Path, actors: int, rate: float, mode: str, seconds: float, seed: int) -> dict:
+    port = free_port()
+    run = f"scale{actors}r{int(rate)}{mode[0]}{os.getpid()}"
+    run_dir = work / run
+    argv = [sys.executable, "-m", "deploy.cli", "up", "--actors", str(actors), "--rate", str(rate), "--mode", mode,
+            "--episodes", "1000000", "--human", "none", "--run", run, "--run-dir", str(run_dir), "--port", str(port),
+            "--seed", str(seed), "--no-progress"]
+    load0 = os.getloadavg()
+    samples: list[tuple[float, dict]] = []
+    proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            start_new_session=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        wait_reachable(f"tcp/127.0.0.1:{port}", 60.0)
+        with open_client(f"tcp/127.0.0.1:{port}", timeout=30) as session:
+            sub = session.declare_subscriber(Keys(run).status("learner"), lambda s: samples.append(
+                (time.monotonic(), decode(Status, s.payload.to_bytes()).info)))
+            t_end = time.monotonic() + seconds
+            while time.monotonic() < t_end and proc.poll() is None:
+                time.sleep(0.5)
+            sub.undeclare()
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGINT)
+        rc = proc.wait(timeout=300)
+    return _summarize(run_dir, samples, actors, rate, mode, rc, load0)
+
+
+def _summarize(run_dir: Path, samples: list, actors: int, rate: float, mode: str, rc: int, load0) -> dict:
+    infos = [(t, i) for t, i in samples]
+    warm = [(t, i) for t, i in infos if i.ingested > 0]
+    if len(warm) >= 2:
+        (t0, a), (t1, b) = warm[len(warm) // 5], warm[-1]  # after a warm-up of a fifth of the run
+        ingest = (b.ingested - a.ingested) / max(t1 - t0, 1e-9)
+    else:
+        ingest = float("nan")
+    rss = [i.rss_mb for _, i in infos]
+    lat, loop = [], []
+    for f in sorted(run_dir.glob("actor-*/summary.json")):
+        s = json.loads(f.read_text())
+        lat.append(s.get("weights_latency_ms", {}))
+        loop.append(s.get("loop_period_ms", {}))
+    pick = lambda ds, k: max((d[k] for d in ds if d.get(k) is not None), default=float("nan"))  # noqa: E731
+    return {"actors": actors, "rate_hz": rate, "mode": mode, "exit_code": rc,
+            "ingest_per_s": round(ingest, 1), "rss_mb_peak": max(rss, default=float("nan")),
+            "rss_mb_last": rss[-1] if rss else float("nan"),
+            "rss_mb_series": [round(r, 1) for r in rss],
+            "inbox_depth_peak": max((i.queue_depth for _, i in infos), default=0),
+            "utd": infos[-1][1].utd if infos else float("nan"),
+            "weights_latency_ms_p50": pick(lat, "p50"), "weights_latency_ms_p99": pick(lat, "p99"),
+            "actor_loop_ms_p99": pick(loop, "p99"), **provenance_check(run_dir),
+            "load_before": [round(x, 2) for x in load0], "load_after": [round(x, 2) for x in os.getloadavg()]}
+
+
+def run_scale_benchmark(actors: tuple[int, ...] = (1, 2, 4, 8), rates: tuple[float, ...] = (0.0, 50.0),
+                        modes: tuple[str, ...] = ("simulation", "robot"), seconds: float = 60.0, seed: int = 0,
+                        work: str = "runs/bench-scale", out: str | None = None) -> list[dict]:
+    """Run every case and print a table (and write JSON to ``out``).
+
+    :param actors: actor counts
+    :param rates: actor rates in Hz (0: as fast as possible)
+    :param modes: simulation and/or robot
+    :param seconds: how long each case runs before Ctrl-C
+    :param seed: seed of the runs
+    :param work: where the run directories go
+    :param out: JSON file of the results
+    """
+    work_dir = Path(work).resolve()
+    work_dir.mkdir(parents=True, exist_ok=True)
+    results = []
+    for mode in modes:
+        for rate in rates:
+            for n in actors:
+                r = _case(work_dir, n, rate, mode, seconds, seed)
+                results.append(r)
+                print(f"{mode:>10} {rate:>4g} Hz {n} actors: ingest {r['ingest_per_s']:>9.1f}/s, RSS peak "
+                      f"{r['rss_mb_peak']:.0f} MB (last {r['rss_mb_last']:.0f}), inbox peak {r['inbox_depth_peak']}, "
+                      f"UTD {r['utd']:.3f}, weights p50/p99 {r['weights_latency_ms_p50']:.1f}/"
+                      f"{r['weights_latency_ms_p99']:.1f} ms, loop p99 {r['actor_loop_ms_p99']:.1f} ms, produced "
+                      f"{r['produced']}, lost {r['lost']}, duplicated {r['duplicated']}", flush=True)
+    if out:
+        doc = {"machine": {"host": platform.node(), "cpus": os.cpu_count()}, "seconds": seconds, "cases": results}
+        Path(out).write_text(json.dumps(doc, indent=2))
+        print(f"wrote {out}")
+    return results

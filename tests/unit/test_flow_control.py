@@ -1,0 +1,147 @@
+"""Flow control and the learner's ingest apart from training: the actor's window of batches out, re-sends of only
+the window with backoff, the replay buffer's sample limit, robot mode, and ingest that never waits for a
+gradient step."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from actor.outbox import Outbox
+from actor.stream import MAX_RESEND_AFTER_S, TransitionStream
+from common.process import StopFlag
+from common.protocol import Ack, Control, Transitions, decode, encode
+from common.transport import Inbox
+from common.wire import RejectCounter
+from learner.loop import LearnerLoop
+from learner.resume import open_learner
+from test_actor_parts import Clock, collect
+from test_learner_parts import RUN, SMALL, Collect, batch
+
+
+def _stream(tmp_path, window: int):
+    sent: list[bytes] = []
+    clock = Clock()
+    stream = TransitionStream("a0", "s1", Outbox(1000, tmp_path / "outbox"), sent.append, RejectCounter("a0"),
+                              resend_after_s=2.0, clock=clock, window=window)
+    return stream, sent, clock
+
+
+def _seqs(sent: list[bytes]) -> list[int]:
+    return [decode(Transitions, p).envelope.seq for p in sent]
+
+
+def _ack(received: int, durable: int = -1, epoch: str = "e1") -> Ack:
+    return Ack(actor="a0", received=received, durable=durable, trained=0, version=0, epoch=epoch, stream="s1")
+
+
+def test_at_most_the_window_is_out_and_the_rest_goes_as_acks_come(tmp_path):
+    stream, sent, _ = _stream(tmp_path, window=2)
+    collect(stream, 8 * 6)  # seqs 0..5
+    assert _seqs(sent) == [0, 1] and stream.sent == 16 and len(stream.outbox) == 6
+    assert stream.on_ack(_ack(0))
+    assert _seqs(sent) == [0, 1, 2]  # received 0: 1 and 2 are out
+    assert not stream.on_ack(_ack(3))  # beyond what was published: refused
+    assert stream.refused_acks == 1 and _seqs(sent) == [0, 1, 2]
+    assert stream.on_ack(_ack(2))
+    assert _seqs(sent) == [0, 1, 2, 3, 4] and stream.sent == 40
+    held_back = decode(Transitions, sent[-1])
+    assert held_back.base_seq == 0 and held_back.first_step == 32
+    assert stream.on_ack(_ack(4, durable=4))
+    assert _seqs(sent)[-1] == 5 and decode(Transitions, sent[-1]).base_seq == 5  # re-stamped: 0..4 are gone
+
+
+def test_a_stall_resends_only_the_window_and_backs_off(tmp_path):
+    stream, sent, clock = _stream(tmp_path, window=3)
+    collect(stream, 8 * 10)
+    assert _seqs(sent) == [0, 1, 2]
+    sent.clear()
+    waits = []
+    for _ in range(6):  # the learner is alive but never acks
+        t0 = clock.t
+        while not sent:
+            clock.t += 0.25
+            stream.check_resend(learner_alive=True)
+        waits.append(clock.t - t0)
+        assert _seqs(sent) == [0, 1, 2]  # only the window, every time
+        sent.clear()
+    assert waits[0] == pytest.approx(2.25) and waits[1] == pytest.approx(4.25) and waits[2] == pytest.approx(8.25)
+    assert max(waits) <= MAX_RESEND_AFTER_S + 0.25 and stream.resends == 6
+    stream.on_ack(_ack(1))  # progress: the backoff starts over
+    assert _seqs(sent) == [3, 4] and stream.stalls == 0
+
+
+def test_a_new_learner_epoch_gets_the_window_after_what_it_holds(tmp_path):
+    stream, sent, _ = _stream(tmp_path, window=2)
+    collect(stream, 8 * 6)
+    stream.on_ack(_ack(1))
+    stream.on_ack(_ack(3))
+    sent.clear()
+    stream.on_ack(_ack(0, durable=0, epoch="e2"))  # restarted from a checkpoint holding seq 0
+    assert _seqs(sent) == [1, 2] and stream.resent_batches == 2
+    stream.on_ack(_ack(2, durable=0, epoch="e2"))
+    assert _seqs(sent) == [1, 2, 3, 4]
+
+
+def test_sample_limit_keeps_an_iteration_on_the_data_it_was_due_at(tmp_path):
+    trainer, _ = open_learner(SMALL, 1, tmp_path / "learner", resume=False, logger_formats=("csv",))
+    rb = trainer.buffer
+    for i in range(100):
+        rb.add(np.full((1, 5), i, np.float32), np.zeros((1, 5)), np.zeros((1, 2)), np.zeros(1), np.zeros(1), [{}])
+    rb.sample_limit = 40
+    assert rb.sample(2000).observations.max().item() == 39
+    rb.sample_limit = None
+    assert rb.sample(2000).observations.max().item() == 99
+
+
+def test_robot_mode_trains_whenever_free_and_reports_its_update_to_data_ratio(tmp_path):
+    trainer, streams = open_learner(SMALL, 1, tmp_path / "learner", resume=False, logger_formats=("csv",))
+    pub = Collect()
+    loop = LearnerLoop(trainer, streams, pub, learner_id="L", learner_dir=tmp_path / "learner", checkpoint_every=0,
+                       flag=StopFlag(), mode="robot")
+    for seq in range(4):
+        loop.offer(batch(seq, 8 * seq, 8))
+    assert not trainer.due  # no schedule in robot mode
+    for _ in range(5):
+        assert loop.work()
+    assert trainer.iterations == 5 and trainer.utd == pytest.approx(5 * SMALL.gradient_steps / (32 - 16))
+    assert loop.info().mode == "robot" and loop.info().utd == pytest.approx(trainer.utd, abs=1e-3)
+    assert loop.info().rss_mb > 10
+
+
+def test_ingest_never_waits_for_a_gradient_step(tmp_path):
+    """While an iteration takes long (a slow GPU, a big network), batches keep going into the buffer and are acked."""
+    trainer, streams = open_learner(SMALL, 1, tmp_path / "learner", resume=False, logger_formats=("csv",))
+    pub = Collect()
+    loop = LearnerLoop(trainer, streams, pub, learner_id="L", learner_dir=tmp_path / "learner", checkpoint_every=0,
+                       flag=StopFlag())
+    training = threading.Event()
+    real_train = trainer.model.train
+
+    def slow_train(**kw):
+        training.set()
+        time.sleep(1.5)
+        real_train(**kw)
+
+    trainer.model.train = slow_train
+    inbox = Inbox(maxsize=1000)
+    runner = threading.Thread(target=loop.run, args=(inbox,))
+    runner.start()
+    try:
+        for seq in range(3):  # 24 > learning_starts: an iteration comes due and starts
+            inbox.put(("transitions", RUN.transitions("a0"), encode(batch(seq, 8 * seq, 8), "a0", seq), 0.0))
+        assert training.wait(10.0)
+        t0 = time.monotonic()
+        for seq in range(3, 40):
+            inbox.put(("transitions", RUN.transitions("a0"), encode(batch(seq, 8 * seq, 8), "a0", seq), 0.0))
+        while trainer.total < 320 and time.monotonic() - t0 < 1.0:
+            time.sleep(0.01)
+        assert trainer.total == 320 and trainer.iterations == 0  # all stored while the first iteration ran
+        assert max(a.received for a in pub.of(Ack)) == 39
+    finally:
+        inbox.put(("control", RUN.control("learner"), encode(Control(command="stop"), "launcher", 0), 0.0))
+        runner.join(30.0)
+    assert not runner.is_alive() and trainer.iterations >= 1
