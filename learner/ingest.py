@@ -50,12 +50,14 @@ class ActorStream:
     superseded: int = 0  # batches of earlier streams of this actor id refused since this stream began
     pending: dict[int, Transitions] = field(default_factory=dict)
 
-    def stored(self, step: int) -> None:
-        """One transition of this stream, the actor's transition ``step``, went into the replay buffer.
+    def stored(self, step: int, n: int = 1) -> None:
+        """``n`` transitions of this stream, the last being the actor's transition ``step``, went into the replay
+        buffer.
 
-        :param step: the transition's running index in the actor's stream
+        :param step: the last one's running index in the actor's stream
+        :param n: how many
         """
-        self.ingested += 1
+        self.ingested += n
         self.index = step + 1
 
     def state(self) -> dict[str, Any]:

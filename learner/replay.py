@@ -100,6 +100,46 @@ class StreamReplayBuffer(ReplayBuffer):
             self.intervened[slot] = intervened
             self.clipped[slot] = clipped
 
+    def add_batch(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: np.ndarray,
+                  done: np.ndarray, timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int,
+                  first_step: int) -> None:
+        """``len(obs)`` transitions at once, into the same slots and with the same values as that many calls of
+        :meth:`add` (wrapping around a full buffer the same way), without a Python call per transition.
+
+        :param obs: observations, shape (n, obs_dim)
+        :param next_obs: next observations, shape (n, obs_dim)
+        :param action: stored actions, shape (n, act_dim)
+        :param reward: rewards, shape (n,)
+        :param done: terminated or truncated, shape (n,)
+        :param timeout: truncated by the time limit and not terminated (SB3's ``TimeLimit.truncated``), shape (n,)
+        :param intervened: per transition: the human corrected it
+        :param clipped: per transition: the safety layer clipped the action
+        :param actor: provenance code of the actor stream
+        :param first_step: the running index of the first transition in that actor's stream
+        """
+        if self.optimize_memory_usage:
+            raise ValueError("StreamReplayBuffer.add_batch does not support optimize_memory_usage")
+        n, i = len(obs), 0
+        with self.lock:
+            while i < n:
+                k = min(n - i, self.buffer_size - self.pos)
+                dst, src = slice(self.pos, self.pos + k), slice(i, i + k)
+                self.observations[dst, 0] = obs[src]
+                self.next_observations[dst, 0] = next_obs[src]
+                self.actions[dst, 0] = action[src]
+                self.rewards[dst, 0] = reward[src]
+                self.dones[dst, 0] = done[src]
+                if self.handle_timeout_termination:
+                    self.timeouts[dst, 0] = timeout[src]
+                self.provenance_actor[dst] = actor
+                self.provenance_step[dst] = first_step + np.arange(i, i + k)
+                self.intervened[dst] = intervened[src]
+                self.clipped[dst] = clipped[src]
+                self.pos += k
+                i += k
+                if self.pos == self.buffer_size:
+                    self.full, self.pos = True, 0
+
     def side_arrays(self) -> dict[str, np.ndarray]:
         """The per-slot arrays by name (:data:`SIDE_ARRAYS`), whole buffer (empty slots: provenance -1)."""
         return {"provenance_actor": self.provenance_actor, "provenance_step": self.provenance_step,

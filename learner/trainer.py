@@ -109,9 +109,9 @@ class Trainer:
 
     # ------------------------------------------------------------------------------------ data
     def add(self, msg: Transitions, stream: ActorStream, positions: Callable[[], dict[str, int]]) -> None:
-        """Store one accepted batch, transition by transition, as SB3's ``_store_transition`` does for one
-        environment (done = terminated or truncated, ``TimeLimit.truncated`` for the time limit), and note
-        each iteration that becomes due.
+        """Store one accepted batch as SB3's ``_store_transition`` would, transition by transition, for one
+        environment (done = terminated or truncated, ``TimeLimit.truncated`` for the time limit; in one
+        :meth:`~learner.replay.StreamReplayBuffer.add_batch`), and note each iteration that becomes due.
 
         :param msg: the batch
         :param stream: its actor's stream (provenance code, running index)
@@ -127,16 +127,18 @@ class Trainer:
             self._add(msg, stream, positions, term, trunc)
 
     def _add(self, msg: Transitions, stream: ActorStream, positions, term: np.ndarray, trunc: np.ndarray) -> None:
-        rb, first = self.buffer, msg.first_step
-        for i in range(msg.n):
-            done = np.array([term[i] or trunc[i]], dtype=np.float32)
-            rb.add(msg.obs[i][None], msg.next_obs[i][None], msg.action[i][None], msg.reward[i:i + 1], done,
-                   [{"TimeLimit.truncated": bool(trunc[i] and not term[i])}], intervened=msg.intervened[i],
-                   clipped=msg.clipped[i], actor=stream.code, step=first + i)
-            stream.stored(first + i)
-            self.total += 1
-            if self.schedule and self.total > self.learning_starts and self.total % self.train_freq == 0:
-                self.due.append((self.total, positions()))
+        n, first, base = msg.n, msg.first_step, self.total
+        self.buffer.add_batch(msg.obs, msg.next_obs, msg.action, msg.reward, (term | trunc).astype(np.float32),
+                              (trunc & ~term).astype(np.float32), intervened=msg.intervened, clipped=msg.clipped,
+                              actor=stream.code, first_step=first)
+        if self.schedule:  # an iteration comes due at every multiple of train_freq past learning_starts
+            lo = max(base, self.learning_starts) + 1
+            for at in range(-(-lo // self.train_freq) * self.train_freq, base + n + 1, self.train_freq):
+                snapshot = positions()
+                snapshot[stream.actor] = first + (at - base)  # this stream's index when the count reached ``at``
+                self.due.append((at, snapshot))
+        stream.stored(first + n - 1, n)
+        self.total += n
 
     # ------------------------------------------------------------------------------------ training
     def train_one(self) -> bool:

@@ -17,6 +17,7 @@ from common.protocol import Ack, Control, Transitions, decode, encode
 from common.transport import Inbox
 from common.wire import RejectCounter
 from learner.loop import LearnerLoop
+from learner.replay import SIDE_ARRAYS
 from learner.resume import open_learner
 from test_actor_parts import Clock, collect
 from test_learner_parts import RUN, SMALL, Collect, batch
@@ -145,3 +146,46 @@ def test_ingest_never_waits_for_a_gradient_step(tmp_path):
         inbox.put(("control", RUN.control("learner"), encode(Control(command="stop"), "launcher", 0), 0.0))
         runner.join(30.0)
     assert not runner.is_alive() and trainer.iterations >= 1
+
+
+def test_add_batch_fills_the_buffer_exactly_as_transition_by_transition_adds(tmp_path):
+    """The vectorised store (ingest speed) gives the same slots, values, flags and provenance as SB3's add, also
+    when it wraps around a full buffer; and the same due iterations."""
+    from common.config import TQCSettings
+
+    tqc = TQCSettings(learning_starts=5, buffer_size=50, net_arch=(8,), batch_size=4)
+    a, _ = open_learner(tqc, 1, tmp_path / "a", resume=False, logger_formats=("csv",))
+    b, _ = open_learner(tqc, 1, tmp_path / "b", resume=False, logger_formats=("csv",))
+    rng = np.random.default_rng(3)
+    first = 0
+    for n in (7, 13, 1, 29, 8, 17):  # 75 transitions: the 50-slot buffer wraps
+        obs = rng.normal(size=(n, 5)).astype(np.float32)
+        nxt, act = rng.normal(size=(n, 5)).astype(np.float32), rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+        rew = rng.normal(size=n).astype(np.float32)
+        term, trunc = rng.random(n) < 0.1, rng.random(n) < 0.1
+        iv, cl = (rng.random(n) < 0.5).astype(np.uint8), (rng.random(n) < 0.5).astype(np.uint8)
+        for i in range(n):
+            info = [{"TimeLimit.truncated": bool(trunc[i] and not term[i])}]
+            a.buffer.add(obs[i][None], nxt[i][None], act[i][None], rew[i:i + 1],
+                         np.array([term[i] or trunc[i]], np.float32), info, intervened=iv[i], clipped=cl[i], actor=2,
+                         step=first + i)
+        b.buffer.add_batch(obs, nxt, act, rew, (term | trunc).astype(np.float32), (trunc & ~term).astype(np.float32),
+                           intervened=iv, clipped=cl, actor=2, first_step=first)
+        first += n
+    assert (a.buffer.pos, a.buffer.full) == (b.buffer.pos, b.buffer.full) == (25, True)
+    for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts", *SIDE_ARRAYS):
+        np.testing.assert_array_equal(getattr(a.buffer, name), getattr(b.buffer, name), err_msg=name)
+
+
+def test_due_iterations_of_a_batch_match_the_per_transition_schedule(tmp_path):
+    trainer, streams = open_learner(SMALL, 1, tmp_path / "learner", resume=False, logger_formats=("csv",))
+    loop = LearnerLoop(trainer, streams, Collect(), learner_id="L", learner_dir=tmp_path / "learner",
+                       checkpoint_every=0, flag=StopFlag())
+    loop.offer(batch(0, 0, 13, actor="a0"))
+    loop.offer(batch(0, 0, 20, actor="a1", stream="s1"))
+    loop.offer(batch(1, 13, 30, actor="a0"))
+    # learning_starts 16, train_freq 8: due at 24, 32, ..., 56 of 63 transitions; a1 stored 20 at 33
+    assert [at for at, _ in trainer.due] == [24, 32, 40, 48, 56]
+    assert [snap for _, snap in trainer.due] == [{"a0": 13, "a1": 11}, {"a0": 13, "a1": 19}, {"a0": 20, "a1": 20},
+                                                 {"a0": 28, "a1": 20}, {"a0": 36, "a1": 20}]
+    assert streams["a0"].index == 43 and streams["a0"].ingested == 43 and trainer.total == 63
