@@ -20,6 +20,7 @@ from common.protocol import Keys, decode, encode
 from common.transport import Inbox
 from common.wire import RejectCounter
 from learner.ingest import PENDING_IDS, FairInbox, StreamTable
+from test_actor_parts import collect
 
 RUN = Keys("unit")
 
@@ -40,15 +41,6 @@ def make_stream(out_dir, start=None, memory: int = 2):
                               next_seq=rec.next_seq, next_index=rec.next_index, durable=rec.durable,
                               journal=lambda pos: StreamRecord(stream=rec.stream, **pos).save(out_dir))
     return stream, sent, clock
-
-
-def collect(stream: TransitionStream, n: int, batch: int = 8) -> None:
-    for _ in range(n):
-        i = stream.count
-        obs = np.full(5, i, dtype=np.float32)
-        stream.add(obs, obs + 1, np.array([0.5, -0.5], np.float32), float(i), False, False, False, False)
-        if stream.count % batch == 0:
-            stream.cut()
 
 
 def ack(stream: TransitionStream, received: int, durable: int, **kw) -> Ack:
