@@ -1,7 +1,7 @@
 """The actor's Zenoh declarations: what it subscribes to (acks, corrections, control, learner liveliness,
-weights), what it publishes (transitions, frames, episodes, scale, status), its liveliness token, and the
-queries it makes (who is alive, the current weights). Callbacks only file samples in an
-:class:`~common.transport.Inbox`; the control loop takes them out."""
+weights), what it publishes (transitions, frames, episodes, scale, status, its checkpoint requests on its own
+``actor/<id>/request``), its liveliness token, and the queries it makes (who is alive, the current weights).
+Callbacks only file samples in an :class:`~common.transport.Inbox`; the control loop takes them out."""
 
 from __future__ import annotations
 
@@ -57,7 +57,8 @@ class ActorLink:
             session.declare_subscriber(keys.control("actor"), cb("control")),
             session.declare_subscriber(keys.control(actor), cb("control")),
             session.declare_subscriber(keys.control("all"), cb("control")),
-            session.liveliness().declare_subscriber(keys.alive("learner", "*"), inbox.liveliness_callback("alive"),
+            session.declare_subscriber(keys.human_request("*"), cb("human_request")),
+            session.liveliness().declare_subscriber(keys.learners_alive, inbox.liveliness_callback("alive"),
                                                     history=True),
         ]
         block, drop = zenoh.CongestionControl.BLOCK, zenoh.CongestionControl.DROP
@@ -71,7 +72,7 @@ class ActorLink:
             "status": session.declare_publisher(keys.status("actor", actor), congestion_control=drop,
                                                 priority=zenoh.Priority.DATA_LOW),
         }
-        self.seq = {"frame": 0, "episode": 0, "scale": 0, "status": 0, "control": 0}
+        self.seq = {"frame": 0, "episode": 0, "scale": 0, "status": 0, "request": 0}
         self.token = None
 
     def weights_subscriber(self):
@@ -85,13 +86,13 @@ class ActorLink:
         self.token = self.session.liveliness().declare_token(self.keys.alive("actor", self.actor))
 
     def learners_alive(self, timeout: float = 1.0) -> set[str]:
-        """Keys of the learners alive right now (a liveliness query).
+        """Liveliness keys of the learners alive right now (``alive/learner/<id>/<epoch>``; a liveliness query).
 
         :param timeout: seconds to wait for replies.
         """
         out: set[str] = set()
         try:
-            for r in self.session.liveliness().get(self.keys.alive("learner", "*"), timeout=timeout):
+            for r in self.session.liveliness().get(self.keys.learners_alive, timeout=timeout):
                 if r.ok:
                     out.add(str(r.ok.key_expr))
         except Exception as exc:  # noqa: BLE001
@@ -142,14 +143,12 @@ class ActorLink:
         """
         self.pubs["transitions"].put(payload)
 
-    def send_control(self, target: str, command: str) -> None:
-        """Send a control command (e.g. ``checkpoint`` to the learner).
-
-        :param target: ``learner``, an id, ``actor`` or ``all``.
-        :param command: one of the protocol's commands.
-        """
-        self.session.put(self.keys.control(target), encode(Control(command=command), self.actor, self.seq["control"]))
-        self.seq["control"] += 1
+    def request_checkpoint(self) -> None:
+        """Ask the learner for a checkpoint: a ``control`` ``checkpoint`` on this actor's own ``actor/<id>/request``
+        (``control/**`` is the launcher's)."""
+        self.session.put(self.keys.request(self.actor),
+                         encode(Control(command="checkpoint"), self.actor, self.seq["request"]))
+        self.seq["request"] += 1
 
     def close(self) -> None:
         """Undeclare everything (best effort)."""

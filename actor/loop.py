@@ -2,8 +2,9 @@
 
 Per control step:
 
-1. service the inbox (acks, corrections, learner liveliness, control) and swap in new policy weights if the
-   background receiver has a validated state dict ready (no stall: the swap is a ``load_state_dict``);
+1. service the inbox (acks, corrections, learner liveliness, control: :mod:`actor.inbound`) and swap in new policy
+   weights if the background receiver has a validated, admitted state dict ready (no stall: the swap is a
+   ``load_state_dict``; :mod:`actor.trust` says which weights are admitted);
 2. rate limit: while the learner is alive, wait while ``sent - ack.trained >= max_lead`` or the loaded
    weights are older than ``ack.version``. The transition about to be collected would otherwise make the
    actor more than ``max_lead`` transitions ahead of what the learner has trained on. With ``max_lead`` =
@@ -33,6 +34,7 @@ import numpy as np
 
 from actor.arbiter import CorrectionArbiter
 from actor.exploration import ExplorationScale
+from actor.inbound import Inbound
 from actor.link import ActorLink
 from actor.pacing import Pacer
 from actor.record import CorrectionRecord
@@ -41,12 +43,11 @@ from actor.stream import TransitionStream
 from actor.telemetry import RateLimitStats, TensorBoard, frame, status_info, summary
 from actor.weights import PolicyWeights
 from common.config import RunConfig
-from common.messages import Ack, Control, Correction, Dims, EpisodeReport, Status
+from common.messages import Dims, EpisodeReport, Status
 from common.metrics import EpisodeAccumulator
 from common.process import StopFlag
-from common.protocol import Keys, decode
 from common.transport import Inbox
-from common.wire import ProtocolError, RejectCounter
+from common.wire import RejectCounter
 
 __all__ = ["ActorParts", "ActorLoop"]
 
@@ -54,7 +55,7 @@ log = logging.getLogger("khgrl.actor")
 
 MAX_SERVICE = 64  # messages handled per control step at most (a 50 Hz step has 20 ms)
 STATUS_EVERY_S = 1.0
-_INBOX_KINDS = {"ack": Ack, "correction": Correction, "control": Control}
+FINISH_WAIT_S = 5.0  # stopped mid-run: how long the actor waits for the learner to checkpoint its last batches
 
 
 @dataclass
@@ -100,8 +101,6 @@ class ActorLoop:
         self.id = actor
         self.p = parts
         self.flag = flag
-        self.learners: set[str] = set()
-        self.paused = False
         self.realtime = False
         self.episode = parts.episodes.last_episode
         self.first_episode = self.episode + 1
@@ -112,25 +111,32 @@ class ActorLoop:
         self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
         self._t_status = time.monotonic()
         self.dims = Dims(out=parts.env.mapping.model.out_dim)  # corrections carry O coordinates
-        self.wrong_task: str | None = None  # why this actor refused its learner or was refused (exit code 2)
+        self.inbound = Inbound(parts, flag, self.dims)  # acks, corrections, control, learner liveliness
 
     @property
     def learner_alive(self) -> bool:
-        return bool(self.learners)
+        return bool(self.inbound.learners)
+
+    @property
+    def paused(self) -> bool:
+        return self.inbound.paused
+
+    @property
+    def wrong_task(self) -> str | None:
+        """Why this actor refused its learner or was refused (exit code 2)."""
+        return self.inbound.wrong_task
 
     def join(self) -> None:
         """Before the first step: who is alive (waiting ``learner_wait`` s for one starting up), the current weights."""
-        self.learners = self.p.link.learners_alive(timeout=1.0)
-        if self.learners:
-            self._check_learner_task()
+        self.inbound.join(self.p.link.learners_alive(timeout=1.0))
         deadline = time.monotonic() + self.cfg.stream.learner_wait
-        while not self.learners and not self.flag and time.monotonic() < deadline:
-            self.service(block=0.1)  # a learner that appears is reported (and its task checked) by _on_alive
+        while not self.learner_alive and not self.flag and time.monotonic() < deadline:
+            self.service(block=0.1)  # a learner that appears is reported (and its task checked) by Inbound
         self._query_weights(timeout=2.0)
         w = self.p.weights
         w.initial_version = w.version if w.version >= 0 else None
         log.info("actor %s: learner %s, initial weights version %s", self.id,
-                 "alive" if self.learners else "not seen", w.initial_version)
+                 "alive" if self.learner_alive else "not seen", w.initial_version)
 
     # ------------------------------------------------------------------ episodes
     def run(self) -> int:
@@ -248,61 +254,13 @@ class ActorLoop:
             if item is None:
                 break
             timeout = 0.0
-            self._handle(*item)
+            self.inbound.handle(*item, episode=self.episode)
         self.p.weights.swap()
         self.p.stream.check_resend(self.learner_alive)
         now = time.monotonic()
         if now - self._t_status >= STATUS_EVERY_S:
             self._t_status = now
             self._publish_status()
-
-    def _handle(self, kind: str, key: str, payload, arrival: float) -> None:
-        if kind == "alive":
-            self._on_alive(key, payload)
-            return
-        try:
-            msg = decode(_INBOX_KINDS[kind], payload, self.dims)
-        except ProtocolError as exc:
-            self.p.rejects.reject(kind, key, exc)
-            return
-        if kind == "ack":
-            if not self.p.stream.on_ack(msg, key) and self.p.stream.superseded:
-                self.wrong_task = self.p.stream.superseded  # another process runs this actor id: stop (exit 2)
-                self.flag.set("stream superseded")
-        elif kind == "correction":
-            if msg.client != Keys.chunk(key, 3):
-                self.p.rejects.reject("correction", key, ProtocolError(f"client {msg.client!r} published on {key}"))
-                return
-            self.p.arbiter.offer(msg, arrival, self.episode, self.p.env.t)
-        else:
-            self._on_control(msg.command)
-
-    def _on_alive(self, key: str, put: bool) -> None:
-        if put:
-            if key not in self.learners:
-                self.learners.add(key)
-                log.info("learner %s appeared (outbox: %d batches)", key, len(self.p.stream.outbox))
-                self._check_learner_task()
-                self.p.stream.learner_appeared()
-        else:
-            self.learners.discard(key)
-            log.warning("learner %s gone: acting on with weights version %d", key, self.p.weights.version)
-
-    def _check_learner_task(self) -> None:
-        """Refuse a learner built for another task: stop with a clear error (exit code 2)."""
-        if self.p.task is not None and (why := self.p.link.other_task(self.p.task)):
-            self.wrong_task = why
-            log.error("%s", why)
-            self.flag.set("learner of another task")
-
-    def _on_control(self, command: str) -> None:
-        log.info("control: %s", command)
-        if command == "stop":
-            self.flag.set("stop command")
-        elif command == "pause":
-            self.paused = True
-        elif command == "resume":
-            self.paused = False
 
     def _publish_status(self) -> None:
         p = self.p
@@ -366,7 +324,7 @@ class ActorLoop:
                 and not self.flag:
             self.service(block=0.05)
             if s.checkpoint_due(self.learner_alive):
-                self.p.link.send_control("learner", "checkpoint")
+                self.p.link.request_checkpoint()
         self._publish_status()
         if s.durable < last:
             n = s.unconfirmed()
@@ -378,11 +336,18 @@ class ActorLoop:
         return 0
 
     def _finish_on_signal(self) -> int:
+        """Stopped mid-episode (a signal or a stop command): publish what was collected since the last batch, then
+        give the learner up to :data:`FINISH_WAIT_S` to hold every batch in a checkpoint (``khgrl up`` stops the
+        actors before the learner, so its final checkpoint has them); what it does not hold stays in the outbox on
+        disk, for this actor id restarted with ``--resume`` to re-send."""
         s = self.p.stream
+        s.cut()
         last = s.highest_sent
         t0 = time.monotonic()
-        while last >= 0 and s.received < last and self.learner_alive and time.monotonic() - t0 < 2.0:
+        while last >= 0 and s.durable < last and self.learner_alive and time.monotonic() - t0 < FINISH_WAIT_S:
             self.service(block=0.05)
+            if s.checkpoint_due(self.learner_alive):
+                self.p.link.request_checkpoint()
         log.info("stopped (%s): %d transitions not yet durable", self.flag.reason, s.unconfirmed())
         return 0
 

@@ -35,8 +35,8 @@ from actor.results import EpisodeLog
 from actor.stream import TransitionStream
 from actor.telemetry import TensorBoard
 from actor.weights import PolicyWeights, WeightsReceiver
-from common.config import ProcessConfig, add_process_flags, resolve_process
 from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
+from common.process_config import ProcessConfig, add_process_flags, resolve_process
 from common.protocol import Keys
 from common.task import TaskError, load_task
 from common.task_link import TaskAnnouncer
@@ -158,7 +158,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     rc = 1
     t_run = time.perf_counter()
     try:
-        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag))
+        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag), zenoh_config=pc.zenoh_config)
     except ConnectionError as exc:
         log.error("%s", exc)
         print(f"khgrl actor {actor}: {exc}", file=sys.stderr, flush=True)

@@ -10,7 +10,8 @@ to after ``received`` when un-acked data has waited ``resend_after_s`` without a
 long, up to :data:`MAX_RESEND_AFTER_S`, until acks move again. Re-sent or held-back batches carry the current
 ``base_seq`` (the oldest batch still held) so a learner that never saw this actor starts there. An ack that
 claims more than this actor has published is refused (counted and logged): it must not make the actor drop
-batches the learner does not hold.
+batches the learner does not hold; so is one the caller's ``check`` finds implausible (a weights version far above
+any seen).
 
 A stream outlives its process: a restarted actor continues it (:mod:`actor.restart`) with the ``seq``, running
 index and durable point of the earlier process, and an outbox re-read from disk that it re-sends shortly after
@@ -181,11 +182,13 @@ class TransitionStream:
         return n
 
     # ------------------------------------------------------------------ acks
-    def on_ack(self, ack: Ack, key: str = "ack") -> bool:
+    def on_ack(self, ack: Ack, key: str = "ack", check: Callable[[Ack], str | None] | None = None) -> bool:
         """Take in an ack; returns whether it was for this stream and believable.
 
         :param ack: a decoded ack.
         :param key: the key it came on (for the reject log).
+        :param check: says why an ack for this stream cannot be true (None: it can), beyond the seq check here
+            (the actor's :meth:`~actor.trust.WeightsGate.implausible` weights version).
         """
         # the learner echoes the stream id of the transitions it acks; an ack without it is not for us
         if ack.actor != self.actor or ack.stream != self.stream:
@@ -201,6 +204,11 @@ class TransitionStream:
             # one fixed reason, so that a flood of forged acks costs a few log lines (RejectCounter: the first,
             # then every 100th)
             self.rejects.reject("ack", key, ProtocolError("ack claims batches beyond the highest seq sent"))
+            return False
+        why = check(ack) if check is not None else None
+        if why:
+            self.refused_acks += 1
+            self.rejects.reject("ack", key, ProtocolError(f"ack: {why}"))
             return False
         new_epoch = ack.epoch != self.ack_epoch
         restarted = new_epoch and self.ack_epoch is not None

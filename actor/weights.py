@@ -1,6 +1,8 @@
 """The actor's copy of the policy weights: receive the learner's ``weights`` messages in a background
-thread, validate them against the local actor network, and swap them into the policy between steps (a
-``load_state_dict``, no stall). Also counts how far the loaded weights lag behind the transitions taken."""
+thread, validate them against the local actor network, admit them by learner epoch and version (a
+:class:`~actor.trust.WeightsGate`, when one is installed: the control loop installs it), and swap them into the
+policy between steps (a ``load_state_dict``, no stall). Also counts how far the loaded weights lag behind the
+transitions taken."""
 
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from actor.trust import WeightsGate
 from common.messages import Weights
 from common.protocol import decode
 from common.wire import ProtocolError, RejectCounter
@@ -46,16 +49,20 @@ class WeightsReceiver:
     :param template: the actor network's state dict (names and shapes to expect).
     :param rejects: counts refused weights messages.
     :param key: the weights key (for the reject log).
+    :param gate: admits weights by learner epoch and version (None: every well-formed message; see
+        :meth:`use_gate`).
     """
 
-    def __init__(self, subscriber, template: dict, rejects: RejectCounter, key: str) -> None:
+    def __init__(self, subscriber, template: dict, rejects: RejectCounter, key: str,
+                 gate: WeightsGate | None = None) -> None:
         self.sub = subscriber
         self.template = {k: tuple(v.shape) for k, v in template.items()}
         self.rejects = rejects
         self.key = key
         self.lock = threading.Lock()
         self.ready: WeightsUpdate | None = None
-        self.received = 0
+        self.received = 0  # messages admitted
+        self.gate = gate
         self.thread = threading.Thread(target=self._run, name="weights-rx", daemon=True)
 
     def start(self) -> None:
@@ -88,7 +95,8 @@ class WeightsReceiver:
         return WeightsUpdate(msg.epoch, msg.version, dict(msg.trained), sd, float(msg.envelope.ts))
 
     def offer(self, payload: bytes) -> None:
-        """Parse ``payload`` and keep it as the newest ready update (or count it as rejected).
+        """Parse ``payload`` and, if the gate admits it, keep it as the newest ready update (a refused one is
+        counted as rejected; one the gate holds may come out of :meth:`learner_appeared`).
 
         :param payload: the encoded message.
         """
@@ -98,12 +106,74 @@ class WeightsReceiver:
             self.rejects.reject("weights", self.key, exc)
             return
         with self.lock:
-            self.received += 1
-            self.ready = item
+            if self._admit(item):
+                self.ready = item
+
+    def admit(self, item: WeightsUpdate) -> bool:
+        """Whether the gate lets ``item`` be loaded now (refused ones are counted; held ones kept by the gate).
+
+        :param item: a parsed update.
+        """
+        with self.lock:
+            return self._admit(item)
+
+    def _admit(self, item: WeightsUpdate) -> bool:
+        ok = True
+        if self.gate is not None:
+            try:
+                ok = self.gate.admit(item)
+            except ProtocolError as exc:
+                self.rejects.reject("weights", self.key, exc)
+                ok = False
+            self._count_dropped()
+        self.received += ok
+        return ok
+
+    def _count_dropped(self) -> None:
+        for why in self.gate.take_dropped():
+            self.rejects.reject("weights", self.key, ProtocolError(why))
+
+    def use_gate(self, gate: WeightsGate) -> None:
+        """Admit by ``gate`` from now on (an update already waiting is checked again).
+
+        :param gate: the actor's weights gate.
+        """
+        with self.lock:
+            self.gate = gate
+            item, self.ready = self.ready, None
+            if item is not None:
+                self.received -= 1
+                if self._admit(item):
+                    self.ready = item
+
+    def learner_appeared(self, key: str) -> None:
+        """A learner's liveliness token appeared: follow its epoch; held weights of it become ready.
+
+        :param key: the liveliness key.
+        """
+        if self.gate is None:
+            return
+        with self.lock:
+            item = self.gate.learner_appeared(key)
+            self._count_dropped()
+            if item is not None and self.ready is None:  # (weights that came since, of a learner followed, go first)
+                self.received += 1
+                self.ready = item
+
+    def learner_gone(self, key: str) -> None:
+        """A learner's liveliness token disappeared: its weights are held from now on.
+
+        :param key: the liveliness key.
+        """
+        if self.gate is not None:
+            self.gate.learner_gone(key)
 
     def take(self) -> WeightsUpdate | None:
-        """The newest update not yet taken (None: nothing new)."""
+        """The newest update not yet taken (None: nothing new); drops held weights whose learner never came."""
         with self.lock:
+            if self.gate is not None:
+                self.gate.expire()
+                self._count_dropped()
             item, self.ready = self.ready, None
         return item
 
@@ -140,12 +210,17 @@ class PolicyWeights:
         self.last_query = -1e9  # when the loop last asked the learner's queryable (time.monotonic())
 
     def load(self, item: WeightsUpdate) -> bool:
-        """Load ``item`` unless it is not newer than what runs; returns whether it was loaded.
+        """Load ``item`` unless it is not newer than what runs (and what runs is plausible); returns whether it was
+        loaded.
 
-        :param item: a parsed update.
+        :param item: a parsed update (admitted by the receiver's gate).
         """
         if item.epoch == self.epoch and item.version <= self.version:
-            return False
+            gate = self.receiver.gate
+            why = None if gate is None else gate.implausible(self.epoch, self.version)
+            if why is None:
+                return False
+            log.warning("replacing the loaded weights with version %d: %s", item.version, why)
         self.policy.actor.load_state_dict(item.state_dict)
         self.epoch, self.version = item.epoch, item.version
         self.trained = int(item.trained.get(self.actor, 0))
@@ -165,9 +240,12 @@ class PolicyWeights:
         """
         for p in payloads:
             try:
-                self.load(self.receiver.parse(p))
+                item = self.receiver.parse(p)
             except ProtocolError as exc:
                 self.receiver.rejects.reject("weights", self.receiver.key, exc)
+                continue
+            if self.receiver.admit(item):
+                self.load(item)
 
     def behind(self, ack_epoch: str | None, ack_version: int) -> bool:
         """Whether the learner has newer weights than the loaded ones (per its last ack).

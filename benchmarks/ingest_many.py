@@ -39,7 +39,7 @@ def sender_main(argv: list[str]) -> int:
 
         sub = session.declare_subscriber(keys.ack(actor), acks.callback("ack"))
         pub = session.declare_publisher(keys.transitions(actor), congestion_control=zenoh.CongestionControl.BLOCK)
-        while not any(r.ok for r in session.liveliness().get(keys.alive("learner", "*"), timeout=1.0)):
+        while not any(r.ok for r in session.liveliness().get(keys.learners_alive, timeout=1.0)):
             time.sleep(0.2)
         time.sleep(0.5)
         print(json.dumps({"ready": actor}), flush=True)
@@ -76,8 +76,21 @@ def _as_actor(payload: bytes, actor: str, decode, encode) -> bytes:
     return encode(msg.replace(actor=actor), actor, msg.envelope.seq)
 
 
+def _secure_files(work_dir: Path, ep: str, senders: int) -> dict[str, Path]:
+    """A CA, certificates for the router, the learner and each sender, and their Zenoh configurations."""
+    from deploy import certs
+    from deploy.secure import write_configs
+
+    d = work_dir / f"certs-{os.getpid()}"
+    certs.init_ca(d)
+    for role, ident in [("router", None), ("learner", None), *(("actor", f"s{i}") for i in range(senders))]:
+        certs.issue(d, role, ident)
+    return write_configs(d, ep, ep)
+
+
 def run_ingest_benchmark(senders: int = 8, transitions: int = 400_000, batch: int = 256, window: int = 16,
-                         seed: int = 0, work: str = "runs/bench-ingest", out: str | None = None) -> dict:
+                         seed: int = 0, work: str = "runs/bench-ingest", out: str | None = None,
+                         secure: bool = False) -> dict:
     """Start a router, a learner and ``senders`` sender processes; return (and print) the ingest rate.
 
     :param senders: sender processes (actor ids s0, s1, ...)
@@ -87,22 +100,26 @@ def run_ingest_benchmark(senders: int = 8, transitions: int = 400_000, batch: in
     :param seed: seed of the contents
     :param work: run directory of the learner
     :param out: also write the result as JSON here
+    :param secure: mutual TLS and access control (as ``khgrl up --secure``) instead of plain TCP
     """
     from benchmarks.runtime.procs import BenchProcs, run_id
     from common.transport import free_port, wait_reachable
 
     work_dir = Path(work).resolve()
     work_dir.mkdir(parents=True, exist_ok=True)
-    procs, run, ep = BenchProcs(work_dir), run_id("ingest"), f"tcp/127.0.0.1:{free_port()}"
-    procs.start("router", "router", "--listen", ep)
+    procs, run, ep = BenchProcs(work_dir), run_id("ingest"), f"{'tls' if secure else 'tcp'}/127.0.0.1:{free_port()}"
+    files = _secure_files(work_dir, ep, senders) if secure else {}
+    zargs = lambda cn: ["--zenoh-config", str(files[cn])] if secure else []  # noqa: E731
+    procs.start("router", "router", "--listen", ep, *zargs("router"))
     wait_reachable(ep, 30.0)
     learner = procs.learner("learner", run, ep, work_dir / run, "--learning-starts", str(10 * transitions),
-                            "--checkpoint-every", "0")
+                            "--checkpoint-every", "0", *zargs("learner"))
     each = transitions // senders
     code = "import sys; from benchmarks.ingest_many import sender_main; sys.exit(sender_main(sys.argv[1:]))"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
+    envs = [{**env, "ZENOH_CONFIG": str(files[f"actor-s{i}"])} if secure else env for i in range(senders)]
     ps = [subprocess.Popen([sys.executable, "-c", code, ep, run, f"s{i}", str(each), str(batch), str(window),
-                            str(seed + i)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env,
+                            str(seed + i)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=envs[i],
                            cwd=REPO) for i in range(senders)]
     try:
         for p in ps:
@@ -121,11 +138,12 @@ def run_ingest_benchmark(senders: int = 8, transitions: int = 400_000, batch: in
         learner.stop(60.0)
         procs.close()
     elapsed = max(d["end"] for d in done) - min(d["start"] for d in done)
-    res = {"senders": senders, "transitions": each * senders, "batch": batch, "window": window,
+    res = {"transport": "mtls" if secure else "tcp", "senders": senders, "transitions": each * senders,
+           "batch": batch, "window": window,
            "elapsed_s": round(elapsed, 3), "transitions_per_s": round(each * senders / elapsed, 1),
            "load_before": [round(x, 2) for x in load0], "load_after": [round(x, 2) for x in os.getloadavg()],
            "cpus": os.cpu_count()}
-    print(f"{senders} senders -> 1 learner: {res['transitions']} transitions in {elapsed:.2f} s = "
+    print(f"{res['transport']}: {senders} senders -> 1 learner: {res['transitions']} transitions in {elapsed:.2f} s = "
           f"{res['transitions_per_s']:.0f} transitions/s (batch {batch}, window {window}; load {res['load_before']})")
     if out:
         Path(out).write_text(json.dumps(res, indent=2))

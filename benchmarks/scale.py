@@ -33,7 +33,7 @@ import numpy as np
 from common.protocol import Keys, Status, decode
 from common.transport import free_port, open_client, wait_reachable
 
-__all__ = ["run_scale_benchmark", "provenance_check"]
+__all__ = ["run_scale_benchmark", "provenance_check", "scale_case"]
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -68,20 +68,27 @@ def provenance_check(run_dir: Path) -> dict:
     return {"produced": produced, "stored": stored, "lost": lost, "duplicated": dup, "buffer_full": full}
 
 
-def _case(work: Path, actors: int, rate: float, mode: str, seconds: float, seed: int) -> dict:
+def scale_case(work: Path, actors: int, rate: float, mode: str, seconds: float, seed: int,
+               secure: bool = False) -> dict:
+    """One ``khgrl up`` for ``seconds``, then Ctrl-C; its numbers (module docstring).
+
+    :param secure: ``khgrl up --secure`` (mutual TLS and access control) instead of plain TCP
+    """
     port = free_port()
-    run = f"scale{actors}r{int(rate)}{mode[0]}{os.getpid()}"
+    run = f"scale{actors}r{int(rate)}{mode[0]}{'m' if secure else ''}{os.getpid()}"
     run_dir = work / run
     argv = [sys.executable, "-m", "deploy.cli", "up", "--actors", str(actors), "--rate", str(rate), "--mode", mode,
             "--episodes", "1000000", "--human", "none", "--run", run, "--run-dir", str(run_dir), "--port", str(port),
-            "--seed", str(seed), "--no-progress"]
+            "--seed", str(seed), "--no-progress", *(["--secure"] if secure else [])]
+    ep = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
     load0 = os.getloadavg()
     samples: list[tuple[float, dict]] = []
     proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True, env={**os.environ, "PYTHONPATH": str(REPO)})
     try:
-        wait_reachable(f"tcp/127.0.0.1:{port}", 60.0)
-        with open_client(f"tcp/127.0.0.1:{port}", timeout=30) as session:
+        wait_reachable(ep, 60.0)
+        monitor = str(run_dir / "certs" / "zenoh" / "monitor.json5") if secure else None
+        with open_client(ep, timeout=30, zenoh_config=monitor) as session:
             sub = session.declare_subscriber(Keys(run).status("learner"), lambda s: samples.append(
                 (time.monotonic(), decode(Status, s.payload.to_bytes()).info)))
             t_end = time.monotonic() + seconds
@@ -92,7 +99,7 @@ def _case(work: Path, actors: int, rate: float, mode: str, seconds: float, seed:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGINT)
         rc = proc.wait(timeout=300)
-    return _summarize(run_dir, samples, actors, rate, mode, rc, load0)
+    return {"transport": "mtls" if secure else "tcp", **_summarize(run_dir, samples, actors, rate, mode, rc, load0)}
 
 
 def _summarize(run_dir: Path, samples: list, actors: int, rate: float, mode: str, rc: int, load0) -> dict:
@@ -140,7 +147,7 @@ def run_scale_benchmark(actors: tuple[int, ...] = (1, 2, 4, 8), rates: tuple[flo
     for mode in modes:
         for rate in rates:
             for n in actors:
-                r = _case(work_dir, n, rate, mode, seconds, seed)
+                r = scale_case(work_dir, n, rate, mode, seconds, seed)
                 results.append(r)
                 print(f"{mode:>10} {rate:>4g} Hz {n} actors: ingest {r['ingest_per_s']:>9.1f}/s, RSS peak "
                       f"{r['rss_mb_peak']:.0f} MB (last {r['rss_mb_last']:.0f}), inbox peak {r['inbox_depth_peak']}, "

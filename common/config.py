@@ -27,8 +27,7 @@ from typing import Any, get_type_hints
 from common.scenarios import SCENARIOS as _PASSAGE_SCENARIOS
 
 __all__ = ["SCENARIOS", "METHODS", "HUMANS", "PAPER_EPISODES", "TQCSettings", "StreamSettings", "RunConfig",
-           "add_config_flags", "resolve", "load_file", "write_run_config", "read_run_file", "to_toml",
-           "ProcessConfig", "add_process_flags", "resolve_process"]
+           "add_config_flags", "resolve", "load_file", "write_run_config", "read_run_file", "to_toml"]
 
 SCENARIOS = tuple(_PASSAGE_SCENARIOS)  # the passage world's scenarios: "high_cov", "low_cov"
 METHODS = ("khgrl", "kgrl")
@@ -364,37 +363,3 @@ def read_run_file(path: str | Path) -> tuple[RunConfig, dict]:
     data = json.loads(path.read_text())
     runtime = data.pop("runtime", {}) if isinstance(data, dict) else {}
     return _build(RunConfig, data, str(path)).validate(), runtime
-
-
-# ------------------------------------------------------------------------------------ processes
-@dataclass(frozen=True)
-class ProcessConfig:
-    """What a process (learner, actor, human-input client) runs with: the run's settings, its id (key prefix)
-    and the router endpoint."""
-
-    cfg: RunConfig
-    run: str
-    endpoint: str
-    runtime: dict
-
-
-def add_process_flags(parser: argparse.ArgumentParser, only: set[str] | None = None) -> None:
-    """``--config`` (a run's ``config.json`` written by ``khgrl up``, or a TOML file), ``--run``, ``--connect``
-    and the run-setting flags: how every process is started (by ``khgrl up``: ``--config RUN_DIR/config.json``
-    and its own id; by hand on another machine: flags)."""
-    parser.add_argument("--config", default=None, metavar="FILE",
-                        help="run configuration: RUN_DIR/config.json of khgrl up, or a TOML file (default: none)")
-    add_config_flags(parser, only)
-
-
-def resolve_process(args: argparse.Namespace) -> ProcessConfig:
-    """Settings < ``--config`` < flags. Run id: ``--run``, else the run file's, else ``run`` of the config;
-    endpoint: ``--connect``, else the run file's router, else the default loopback router."""
-    base = getattr(args, "config", None)
-    runtime = read_run_file(base)[1] if base and str(base).endswith(".json") else {}
-    cfg = resolve(base, args)
-    run = getattr(args, "cfg__run", None) or runtime.get("run") or cfg.run
-    if not run:
-        raise ValueError("no run id: give --run RUN (printed by khgrl up) or --config RUN_DIR/config.json")
-    endpoint = getattr(args, "cfg__connect", None) or runtime.get("endpoint") or cfg.connect or "tcp/127.0.0.1:7447"
-    return ProcessConfig(cfg=cfg, run=run, endpoint=endpoint, runtime=runtime)

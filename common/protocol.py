@@ -89,7 +89,25 @@ class Keys:
         return f"{self.root}/task/{role}/{ident}"
 
     def alive(self, role: str = "*", ident: str = "*") -> str:
+        """A liveliness token ``alive/<role>/<id>`` (the learner's carries its epoch: :meth:`learner_alive`)."""
         return f"{self.root}/alive/{role}/{ident}"
+
+    def learner_alive(self, ident: str = "*", epoch: str = "*") -> str:
+        """The learner's liveliness token ``alive/learner/<id>/<epoch>``: which incarnation is alive."""
+        return f"{self.root}/alive/learner/{ident}/{epoch}"
+
+    @property
+    def learners_alive(self) -> str:
+        """Every learner's liveliness token, with or without the epoch chunk (subscribe or query this)."""
+        return f"{self.root}/alive/learner/**"
+
+    def request(self, actor: str = "*") -> str:
+        """An actor's requests to the learner (a ``control`` message; only ``checkpoint`` is accepted)."""
+        return f"{self.root}/actor/{actor}/request"
+
+    def human_request(self, client: str = "*") -> str:
+        """A human-input client's requests to the actors (a ``control`` message; only ``pause`` and ``resume``)."""
+        return f"{self.root}/human/{client}/request"
 
     @staticmethod
     def chunk(key: str, index: int) -> str:

@@ -12,7 +12,6 @@ after ``zenoh.open()``; every ``get`` has a timeout; callbacks only hand bytes t
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import socket
@@ -20,45 +19,25 @@ import threading
 import time
 from typing import Any, Callable
 
+from common.zenoh_config import MAX_MESSAGE_BYTES, ZenohConfigError, build_config, config_file, identity
+
 __all__ = ["DEFAULT_ENDPOINT", "MAX_MESSAGE_BYTES", "client_config", "router_config", "free_port", "open_client",
            "open_router", "wait_reachable", "Inbox", "undeclare_all", "endpoint_host_port"]
 
 log = logging.getLogger("khgrl.transport")
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
-# the largest message any process accepts (the weights' 64 MiB limit, plus slack for the envelope): Zenoh drops a
-# larger (fragmented) message at the link before it is reassembled, and an Inbox drops one before copying it
-MAX_MESSAGE_BYTES = 68 * 1024 * 1024
 
 
-def _base_config(mode: str, listen: list[str], connect: list[str], lease_ms: int):
-    import zenoh
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("scouting/gossip/enabled", "false" if mode == "client" else "true")
-    conf.insert_json5("listen/endpoints", json.dumps(listen))
-    conf.insert_json5("connect/endpoints", json.dumps(connect))
-    conf.insert_json5("transport/link/tx/lease", str(int(lease_ms)))
-    # a learner pausing to checkpoint must not get its link killed by BLOCK publishers (default 5 s)
-    conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", "60000000")
-    # keep queries/replies off shared memory (zenoh#2628: SHM can drop queries when an RX thread stalls)
-    conf.insert_json5("transport/shared_memory/enabled", "false")
-    conf.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
-    return conf
+def client_config(connect: str = DEFAULT_ENDPOINT, lease_ms: int = 3000, file: str | None = None):
+    """A client that waits for (and re-joins) the router at ``connect``; ``file``: a Zenoh configuration merged
+    under KhGRL's settings (:mod:`common.zenoh_config`)."""
+    return build_config("client", [], [connect], lease_ms, file)
 
 
-def client_config(connect: str = DEFAULT_ENDPOINT, lease_ms: int = 3000):
-    """A client that waits for (and re-joins) the router at ``connect``."""
-    conf = _base_config("client", [], [connect], lease_ms)
-    conf.insert_json5("connect/timeout_ms", "-1")
-    conf.insert_json5("connect/retry", "{period_init_ms: 100, period_max_ms: 1000, period_increase_factor: 2}")
-    return conf
-
-
-def router_config(listen: str = DEFAULT_ENDPOINT, lease_ms: int = 3000):
-    return _base_config("router", [listen], [], lease_ms)
+def router_config(listen: str = DEFAULT_ENDPOINT, lease_ms: int = 3000, file: str | None = None):
+    """A router listening on ``listen``; ``file`` as in :func:`client_config`."""
+    return build_config("router", [listen], [], lease_ms, file)
 
 
 def free_port() -> int:
@@ -127,16 +106,34 @@ def _open(conf, stop: Callable[[], bool], timeout: float | None, what: str):
     return box["session"]
 
 
+def _configured(make: Callable, endpoint: str, lease_ms: int, zenoh_config: str | None):
+    """``make(endpoint, lease_ms, file)`` with the file chosen by :func:`~common.zenoh_config.config_file`; the
+    identity it gives the process is logged; an unusable file is a :class:`ConnectionError` naming it."""
+    file = config_file(zenoh_config)
+    try:
+        conf = make(endpoint, lease_ms, file)
+    except ZenohConfigError as exc:
+        raise ConnectionError(str(exc)) from None
+    log.info("Zenoh: %s%s; identity: %s", endpoint, f" (configuration {file})" if file else "", identity(conf))
+    return conf
+
+
 def open_client(connect: str, lease_ms: int = 3000, *, stop: Callable[[], bool] = lambda: False,
-                timeout: float | None = None):
+                timeout: float | None = None, zenoh_config: str | None = None):
     """A client session to the router at ``connect`` (use it as a context manager). Waits for the router
     (it may start later) unless ``timeout`` is given; returns early with :class:`ConnectionError` when ``stop()``
-    turns true (e.g. a process's stop flag set by SIGTERM)."""
-    return _open(client_config(connect, lease_ms), stop, timeout, f"router {connect}")
+    turns true (e.g. a process's stop flag set by SIGTERM).
+
+    :param zenoh_config: a Zenoh configuration file (``--zenoh-config``); None: ``$ZENOH_CONFIG`` if set
+    """
+    conf = _configured(client_config, connect, lease_ms, zenoh_config)
+    return _open(conf, stop, timeout, f"router {connect}")
 
 
-def open_router(listen: str, lease_ms: int = 3000):
-    return _open(router_config(listen, lease_ms), lambda: False, 30.0, f"router listening on {listen}")
+def open_router(listen: str, lease_ms: int = 3000, zenoh_config: str | None = None):
+    """A router session listening on ``listen``; ``zenoh_config`` as in :func:`open_client`."""
+    conf = _configured(router_config, listen, lease_ms, zenoh_config)
+    return _open(conf, lambda: False, 30.0, f"router listening on {listen}")
 
 
 class Inbox:

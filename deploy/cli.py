@@ -183,6 +183,22 @@ def _cmd_bench_ingest(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_flood(args: argparse.Namespace) -> int:
+    from benchmarks.flood import run_flood_benchmark
+
+    run_flood_benchmark(messages=args.messages, rate=args.rate, quiet_s=args.quiet_s, seed=args.seed,
+                        rt_priority=args.rt_priority, out=args.out)
+    return 0
+
+
+def _cmd_bench_secure(args: argparse.Namespace) -> int:
+    from benchmarks.secure import run_secure_benchmark
+
+    run_secure_benchmark(senders=args.senders, transitions=args.transitions, actors=args.actors, rate=args.rate,
+                         seconds=args.seconds, repeats=args.repeats, seed=args.seed, out=args.out)
+    return 0
+
+
 def _add_bench(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks that print numbers").add_subparsers(dest="action", required=True,
                                                                                          metavar="ACTION")
@@ -248,6 +264,25 @@ def _add_bench(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
     p.add_argument("--out", default=None, help="also write the result as JSON here (default: none)")
     p.set_defaults(func=_cmd_bench_ingest)
+    p = bench.add_parser("secure", help="mutual TLS + access control vs plain TCP: ingest/s and weights latency")
+    p.add_argument("--senders", type=int, default=8, help="senders of the ingest measurement (default: %(default)s)")
+    p.add_argument("--transitions", type=int, default=200_000, help="transitions per ingest (default: %(default)s)")
+    p.add_argument("--actors", type=int, default=2, help="actors of the khgrl up measurement (default: %(default)s)")
+    p.add_argument("--rate", type=float, default=50.0, help="their rate in Hz (default: %(default)s)")
+    p.add_argument("--seconds", type=float, default=60.0, help="length of each khgrl up (default: %(default)s)")
+    p.add_argument("--repeats", type=int, default=2, help="pairs of each measurement (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
+    p.set_defaults(func=_cmd_bench_secure)
+    p = bench.add_parser("flood", help="the actor's control-loop period before, during and after a message flood")
+    p.add_argument("--messages", type=int, default=100_000, help="garbage messages (default: %(default)s)")
+    p.add_argument("--rate", type=float, default=50.0, help="the actor's rate in Hz (default: %(default)s)")
+    p.add_argument("--quiet-s", type=float, default=15.0, help="seconds before and after (default: %(default)s)")
+    p.add_argument("--rt-priority", type=int, default=0,
+                   help="actor loop under SCHED_FIFO at this priority, 0: normal scheduling (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
+    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
+    p.set_defaults(func=_cmd_bench_flood)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -263,6 +298,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     _add_eval(sub)
     _add_bench(sub)
+    from deploy.certs import add_parser as _add_certs
+    from deploy.secure import add_configs_parser
+
+    add_configs_parser(_add_certs(sub))
     return parser
 
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import shutil
 import sys
@@ -31,6 +30,8 @@ from common.process import StopFlag, install_stop_handlers
 from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
 from common.task_link import TASK_FILE, save_task
 from common.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
+from common.zenoh_config import config_file
+from deploy.outcome import Outcome, exit_code, report_failures, write_summary
 from deploy.progress import ProgressView
 from deploy.rundir import (
     RunDirError,
@@ -42,11 +43,13 @@ from deploy.rundir import (
     results_in,
     write_pids,
 )
+from deploy.secure import SecureRun, prepare_secure_run, run_identities
 from deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 
 __all__ = ["main", "build_parser", "RunPlan", "plan_run"]
 
 FAILURE_GRACE_S = 5.0  # after a failure or an interrupt: how long children get for the stop command
+ACTOR_STOP_GRACE_S = 8.0  # actors stop first: their last batches go into the learner's final checkpoint
 SIGNAL_GRACE_S = 10.0  # then SIGINT, and SIGKILL after this many seconds more
 
 
@@ -65,6 +68,14 @@ def build_parser() -> argparse.ArgumentParser:
                        help="delete an earlier run in RUN_DIR first (default: off: such a directory is refused)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
                    help="live progress table; --no-progress: one line per episode (default: on)")
+    net = p.add_mutually_exclusive_group()
+    net.add_argument("--secure", action="store_true",
+                     help="mutual TLS and access control per process: a CA and a certificate for each process are "
+                          "made in RUN_DIR/certs, the router listens on tls/ and lets each identity publish only "
+                          "its own keys (default: off: plain TCP on loopback)")
+    net.add_argument("--zenoh-config", default=None, metavar="FILE",
+                     help="a Zenoh configuration (JSON5) for the router and every process, merged under KhGRL's "
+                          "required settings; examples in deploy/zenoh/ (default: $ZENOH_CONFIG if set, else none)")
     add_config_flags(p)
     return p
 
@@ -84,6 +95,15 @@ class RunPlan:
     argv: list[str] = field(default_factory=list)
     previous: dict = field(default_factory=dict)  # runtime of the part before (resume)
     task: Any = None  # the run's TaskDescriptor (the learner gets it from RUN_DIR/learner/task.msgpack)
+    secure: bool = False  # --secure: mTLS + access control (certificates in RUN_DIR/certs)
+    zenoh_config: str | None = None  # --zenoh-config for every process (not with --secure)
+    secure_run: SecureRun | None = None  # made by prepare_run_dir with --secure
+
+    def zenoh_args(self, role: str, ident: str | None = None) -> list[str]:
+        """``--zenoh-config FILE`` for a process (its own identity's with --secure), or nothing."""
+        if self.secure_run is not None:
+            return ["--zenoh-config", self.secure_run.config_for(role, ident)]
+        return ["--zenoh-config", self.zenoh_config] if self.zenoh_config else []
 
     @property
     def config_json(self) -> Path:
@@ -131,9 +151,14 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     previous = previous_runtime(run_dir) if args.resume else {}
     run_id = cfg.run or str(previous.get("run") or "") or make_run_id(run_dir)
     Keys(run_id)  # a valid key chunk (ValueError otherwise)
-    endpoint = cfg.connect or f"tcp/127.0.0.1:{cfg.port or free_port()}"
+    if args.secure and cfg.connect:
+        raise ValueError("--secure starts its own router with certificates made for the run; to join a router "
+                         "elsewhere give --connect with --zenoh-config (README: Running across machines)")
+    scheme = "tls" if args.secure else "tcp"
+    endpoint = cfg.connect or f"{scheme}/127.0.0.1:{cfg.port or free_port()}"
     return RunPlan(cfg=cfg, run_dir=run_dir, run_id=run_id, endpoint=endpoint, resume=args.resume,
-                   overwrite=args.overwrite, progress=args.progress, argv=argv, previous=previous, task=task)
+                   overwrite=args.overwrite, progress=args.progress, argv=argv, previous=previous, task=task,
+                   secure=args.secure, zenoh_config=config_file(args.zenoh_config))
 
 
 def check_task(cfg: RunConfig):
@@ -174,9 +199,12 @@ def prepare_run_dir(plan: RunPlan) -> None:
         kept.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(plan.cfg.demos, kept)
         plan.cfg = dataclasses.replace(plan.cfg, demos=str(kept.resolve()))
+    if plan.secure:
+        plan.secure_run = prepare_secure_run(plan.run_dir, plan.endpoint, run_identities(plan.cfg))
     runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "cwd": os.getcwd(), "actor_ids": plan.cfg.actor_ids(),
                "argv": plan.argv, "started": started, "resumed": plan.resume, "part": part,
-               "first_started": plan.previous.get("first_started", plan.previous.get("started", started))}
+               "first_started": plan.previous.get("first_started", plan.previous.get("started", started)),
+               "secure": plan.secure}
     write_run_config(plan.run_dir, plan.cfg, runtime)
     # the learner builds its spaces from the task at once (instead of waiting for an actor to announce it), so it
     # is up before the actors step, as a learner of any task must be for a seeded run to repeat
@@ -186,16 +214,6 @@ def prepare_run_dir(plan: RunPlan) -> None:
 
 
 # ------------------------------------------------------------------------------------ the run
-@dataclass
-class Outcome:
-    """How a run ended."""
-
-    failed: list[str] = field(default_factory=list)  # process names, or "timeout"
-    stopped_by: str = ""  # a stop command from elsewhere
-    error: str = ""  # e.g. the router unreachable
-    rejects: dict = field(default_factory=dict)
-
-
 class Run:
     """Starts the processes, shows progress, and stops them: one start of ``khgrl up``.
 
@@ -219,8 +237,9 @@ class Run:
             self._start_children()
             print(f"khgrl up: run {self.plan.run_id} on {self.plan.endpoint}; logs in {self.group.log_dir}",
                   flush=True)
+            zenoh_config = (self.plan.zenoh_args("launcher") or [None, None])[1]
             with open_client(self.plan.endpoint, self.cfg.stream.lease_ms, stop=lambda: bool(self.flag),
-                             timeout=self.cfg.connect_timeout) as session:
+                             timeout=self.cfg.connect_timeout, zenoh_config=zenoh_config) as session:
                 self._supervise(session)
         except ConnectionError as exc:
             if not self.flag:
@@ -234,7 +253,8 @@ class Run:
         if self.cfg.connect:
             return
         router = self.group.start("router", khgrl_argv("router", "--listen", self.plan.endpoint,
-                                                       "--lease-ms", str(self.cfg.stream.lease_ms)))
+                                                       "--lease-ms", str(self.cfg.stream.lease_ms),
+                                                       *self.plan.zenoh_args("router")))
         try:
             wait_reachable(self.plan.endpoint, self.cfg.connect_timeout,
                            stop=lambda: bool(self.flag) or router.poll() is not None)
@@ -248,17 +268,24 @@ class Run:
             raise ConnectionError("stopped before the processes started")
         config = str(self.plan.config_json)
         resume = ["--resume"] if self.plan.resume else []
-        self.group.start("learner", khgrl_argv("learner", "--config", config, *resume))
+        zargs = self.plan.zenoh_args
+        self.group.start("learner", khgrl_argv("learner", "--config", config, *resume, *zargs("learner")))
         for aid in self.cfg.actor_ids():
-            self.actors.append(self.group.start(aid, khgrl_argv("actor", "--config", config, "--id", aid, *resume)))
+            self.actors.append(self.group.start(aid, khgrl_argv("actor", "--config", config, "--id", aid, *resume,
+                                                                *zargs("actor", aid))))
         if self.cfg.method == "khgrl" and self.cfg.human != "none":
-            self.group.start(f"human-{self.cfg.human}", khgrl_argv("human", self.cfg.human, "--config", config))
+            h = self.cfg.human
+            self.group.start(f"human-{h}", khgrl_argv("human", h, "--config", config, "--id", h, *zargs("human", h)))
         write_pids(self.plan.run_dir, os.getpid(), {p.name: p.pid for p in self.group.procs})
 
     def _supervise(self, session) -> None:
+        import zenoh
+
         subs = [session.declare_subscriber(self.keys.episode("*"), self.inbox.callback("episode")),
                 session.declare_subscriber(self.keys.status("learner", "*"), self.inbox.callback("status")),
-                session.declare_subscriber(self.keys.control("all"), self.inbox.callback("control"))]
+                # only other sessions' commands: this launcher's own stop never counts as one from elsewhere
+                session.declare_subscriber(self.keys.control("**"), self.inbox.callback("control"),
+                                           allowed_origin=zenoh.Locality.REMOTE)]
         try:
             with ProgressView(self.cfg.actor_ids(), self.cfg.episodes, self.plan.progress) as view:
                 self._watch(view)
@@ -292,7 +319,11 @@ class Run:
             self.rejects.reject(kind, key, exc)
 
     def _control(self, msg: Control, key: str) -> None:
-        if msg.command == "stop" and msg.envelope.sender != "launcher":
+        """A control command from another session (whatever its ``sender`` says): a stop ends the run as stopped
+        from elsewhere (exit 1); any command is reported."""
+        print(f"khgrl up: control {msg.command!r} on {key} from another session (sender {msg.envelope.sender!r})",
+              file=sys.stderr, flush=True)
+        if msg.command == "stop" and not self.out.stopped_by:
             self.out.stopped_by = f"a stop command from {msg.envelope.sender!r} on {key}"
             print(f"khgrl up: stopped by {self.out.stopped_by}", file=sys.stderr, flush=True)
 
@@ -304,59 +335,24 @@ class Run:
         return bool(self.out.failed) or all(p.poll() == 0 for p in self.actors)
 
     def _stop_children(self, session) -> None:
-        """``control/all stop``, repeated each second (a process still starting subscribes late), until every
-        process but the router exited or the grace is over (then :meth:`execute` signals them)."""
+        """Actors first, then everything else: ``control/actor stop`` until the actors exited (each publishes its
+        last batch and waits a moment for the learner to checkpoint it) or :data:`ACTOR_STOP_GRACE_S`, then
+        ``control/all stop`` until every process but the router exited or the grace is over (then :meth:`execute`
+        signals them). Each command is repeated each second (a process still starting subscribes late)."""
         abrupt = bool(self.out.failed) or bool(self.flag)
-        grace = min(self.cfg.stop_timeout, FAILURE_GRACE_S) if abrupt else self.cfg.stop_timeout
-        procs = [p for p in self.group.procs if p.name != "router"]
+        grace = min(self.cfg.stop_timeout, FAILURE_GRACE_S + ACTOR_STOP_GRACE_S) if abrupt else self.cfg.stop_timeout
         deadline = time.monotonic() + grace
+        others = [p for p in self.group.procs if p.name != "router"]
+        first = min(deadline, time.monotonic() + ACTOR_STOP_GRACE_S)
+        phases = ((self.actors, "actor", first), (others, "all", deadline))
         seq = 0
-        while True:
-            session.put(self.keys.control("all"), encode(Control(command="stop"), "launcher", seq))
-            seq += 1
-            left = deadline - time.monotonic()
-            if self.group.wait_all(max(0.0, min(1.0, left)), procs) or left <= 0:
-                return
-
-
-# ------------------------------------------------------------------------------------ the end
-def write_summary(plan: RunPlan, group: ProcessGroup, out: Outcome, wall: float, interrupted: bool) -> dict:
-    """``RUN_DIR/summary.json``: exit codes, failures, wall time and each actor's own summary.
-
-    :param plan: the run's plan
-    :param group: the run's processes (exited)
-    :param out: how the run ended
-    :param wall: wall time in seconds
-    :param interrupted: stopped by SIGINT/SIGTERM
-    """
-    summary = {"run": plan.run_id, "wall_time_s": wall, "exit_codes": {p.name: p.returncode for p in group.procs},
-               "failed": out.failed, "interrupted": interrupted, "stopped_by": out.stopped_by or None,
-               "error": out.error or None, "resumed": plan.resume, "launcher_rejects": out.rejects}
-    for aid in plan.cfg.actor_ids():
-        path = plan.run_dir / f"actor-{aid}" / "summary.json"
-        try:
-            summary[aid] = json.loads(path.read_text())
-        except (OSError, ValueError):
-            pass
-    (plan.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
-    return summary
-
-
-def report_failures(group: ProcessGroup, out: Outcome) -> None:
-    """Each failed process's exit code and the tail of its log, on stderr."""
-    for p in group.procs:
-        if p.name in out.failed:
-            print(f"khgrl up: process {p.name} exited with code {p.returncode}; last lines of {p.log_path}:\n"
-                  f"{p.tail(20)}", file=sys.stderr)
-    if out.error:
-        print(f"khgrl up: error: {out.error}", file=sys.stderr)
-
-
-def exit_code(out: Outcome, flag: StopFlag) -> int:
-    """0 done, 1 failed or stopped from elsewhere, 128 + signal on SIGINT/SIGTERM."""
-    if flag:
-        return 143 if flag.reason == "SIGTERM" else 130
-    return 1 if out.failed or out.stopped_by or out.error else 0
+        for procs, target, until in phases:
+            while True:
+                session.put(self.keys.control(target), encode(Control(command="stop"), "launcher", seq))
+                seq += 1
+                left = until - time.monotonic()
+                if self.group.wait_all(max(0.0, min(1.0, left)), procs) or left <= 0:
+                    break
 
 
 def _wait_for_router(plan: RunPlan, flag: StopFlag) -> None:

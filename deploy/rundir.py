@@ -28,7 +28,7 @@ __all__ = ["RunDirError", "results_in", "has_checkpoint", "clear_run", "archive_
 
 # entries that mark a directory as holding (part of) a run; --overwrite deletes exactly these
 _RESULT_FILES = ("config.json", "config.toml", "summary.json", "pids.json")
-_RESULT_DIRS = ("learner", "logs")
+_RESULT_DIRS = ("learner", "logs", "certs")
 _RESULT_GLOBS = ("actor-*", "config-part*", "summary-part*", "human-*")
 
 

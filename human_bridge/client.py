@@ -19,9 +19,9 @@ from typing import Iterator
 
 import numpy as np
 
-from common.config import ProcessConfig
 from common.messages import Control, Correction, EpisodeReport, Frame, HumanInfo, Message, Scale, Status
 from common.process import StopFlag
+from common.process_config import ProcessConfig
 from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
 from common.task_link import fetch_task
 from common.transport import Inbox, open_client, undeclare_all
@@ -146,6 +146,8 @@ class HumanClient:
         while (item := self.controls.get()) is not None:
             msg = read("control", item[1], item[2], self.rejects)
             if msg is not None and msg.command == "stop":
+                if msg.envelope.sender != "launcher":
+                    log.warning("control stop from %r on %s: not from the launcher", msg.envelope.sender, item[1])
                 self.flag.set("stop command")
 
     def publish_status(self, force: bool = False) -> None:
@@ -159,10 +161,13 @@ class HumanClient:
         self._status_seq += 1
 
     def control_actors(self, command: str) -> None:
-        """Publish ``pause`` or ``resume`` on ``control/actor``."""
+        """Ask the actors to ``pause`` or ``resume``, on this client's own ``human/<id>/request``."""
         import zenoh
 
-        self.session.put(self.keys.control("actor"), encode(Control(command=command), self.client, self._control_seq),
+        if command not in ("pause", "resume"):
+            raise ValueError(f"a human-input client may only pause or resume the actors, not {command!r}")
+        self.session.put(self.keys.human_request(self.client),
+                         encode(Control(command=command), self.client, self._control_seq),
                          congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
                          express=True)
         self._control_seq += 1
@@ -188,7 +193,8 @@ def connected(proc: ProcessConfig, client: str, flag: StopFlag, actor: str = "*"
     :param actor: the actor to follow (``*``: all).
     :param kinds: what to subscribe to (see :class:`HumanClient`).
     """
-    with open_client(proc.endpoint, proc.cfg.stream.lease_ms, stop=lambda: bool(flag)) as session:
+    with open_client(proc.endpoint, proc.cfg.stream.lease_ms, stop=lambda: bool(flag),
+                     zenoh_config=proc.zenoh_config) as session:
         link = HumanClient(session, Keys(proc.run), client, flag, actor, kinds)
         try:
             yield link

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import argparse
 
-from common.config import ProcessConfig
+from common.process_config import ProcessConfig
 from human_bridge import keyboard
 from human_bridge.velocity import DEAD_ZONE, Push, dead_zone
 

@@ -28,10 +28,10 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from common.config import ProcessConfig
 from common.descriptor import TaskDescriptor
 from common.messages import Frame
 from common.process import StopFlag, install_stop_handlers
+from common.process_config import ProcessConfig
 from human_bridge.client import connected, fetch_task
 from human_bridge.gui.main import NO_DISPLAY_EXIT, open_window
 from human_bridge.velocity import Push, VelocityHold

@@ -21,8 +21,8 @@ import argparse
 import logging
 import sys
 
-from common.config import ProcessConfig, add_process_flags, resolve_process
 from common.process import die_with_parent
+from common.process_config import ProcessConfig, add_process_flags, resolve_process
 from human_bridge import gamepad, keyboard, replay, scripted
 from human_bridge.gui import main as gui
 

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from common.config import ProcessConfig
 from common.process import StopFlag, install_stop_handlers
+from common.process_config import ProcessConfig
 from common.protocol import Frame
 from human_bridge.client import CorrectionPublisher, connected
 

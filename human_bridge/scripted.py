@@ -22,9 +22,10 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 
-from common.config import PAPER_EPISODES, ProcessConfig
+from common.config import PAPER_EPISODES
 from common.passage_task import PassageGuide
 from common.process import StopFlag, install_stop_handlers
+from common.process_config import ProcessConfig
 from common.protocol import Frame
 from common.scenarios import Scenario, get_scenario
 from common.task import TaskError, load_task

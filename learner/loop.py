@@ -120,12 +120,15 @@ class LearnerLoop:
     def receive(self, kind: str, key: str, payload: bytes) -> None:
         """One message as it arrived (``kind`` as filed by the inbox); a bad one is counted and logged.
 
-        :param kind: 'transitions' or 'control'
+        :param kind: 'transitions', 'control' (``control/learner``, ``control/all``) or 'request' (a ``control``
+            message on ``actor/<id>/request``: only ``checkpoint`` from that actor is taken there)
         :param key: the key expression it arrived on
         :param payload: its bytes
         """
         try:
-            if kind == "transitions":
+            if kind == "request":
+                self.request(decode(Control, payload), key)
+            elif kind == "transitions":
                 msg = decode(Transitions, payload, self.dims)
                 if msg.actor != Keys.chunk(key, 3):
                     raise ProtocolError(f"actor {msg.actor!r} published on {key}")
@@ -135,10 +138,27 @@ class LearnerLoop:
                 self.offer(msg)
             else:
                 cmd = decode(Control, payload)
-                log.info("control: %s (%s)", cmd.command, key)
+                sender = cmd.envelope.sender
+                if cmd.command in ("stop", "pause") and sender != "launcher":
+                    log.warning("control %s from %r on %s: not from the launcher", cmd.command, sender, key)
+                else:
+                    log.info("control: %s from %r on %s", cmd.command, sender, key)
                 self.control(cmd)
         except ProtocolError as exc:
-            self.rejects.reject(kind, key, exc)
+            self.rejects.reject("control" if kind == "request" else kind, key, exc)
+
+    def request(self, msg: Control, key: str) -> None:
+        """An actor's request on its ``actor/<id>/request``: a ``checkpoint`` from that actor, nothing else (raises
+        :class:`ProtocolError`).
+
+        :param msg: the decoded message
+        :param key: the key it came on
+        """
+        if msg.command != "checkpoint":
+            raise ProtocolError(f"command {msg.command!r} on {key}: an actor may only request a checkpoint")
+        if msg.envelope is not None and msg.envelope.sender != Keys.chunk(key, 3):
+            raise ProtocolError(f"sender {msg.envelope.sender!r} published on {key}")
+        self.control(msg)
 
     def set_task(self, task) -> None:
         """The run's task descriptor: transitions are checked against its sizes and digest, acks carry its digest.

@@ -23,8 +23,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from common.config import ProcessConfig, add_process_flags, resolve_process
 from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
+from common.process_config import ProcessConfig, add_process_flags, resolve_process
 from common.protocol import Keys
 from common.task_link import TASK_FILE, TaskAnnouncer, fetch_task, load_task_file, save_task
 from common.transport import Inbox, open_client, undeclare_all
@@ -120,7 +120,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     formats = ("csv", "tensorboard") if cfg.tensorboard else ("csv",)
     log.info("khgrl learner %s: run %s, connecting to %s", learner_id, pc.run, pc.endpoint)
     try:
-        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag))
+        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag), zenoh_config=pc.zenoh_config)
     except ConnectionError as exc:  # stopped while waiting for the router, or an endpoint Zenoh refuses
         log.info("%s", exc)
         if flag:
@@ -141,13 +141,15 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         subs = [session.declare_subscriber(keys.transitions("*"), inbox.callback("transitions")),
                 session.declare_subscriber(keys.control("learner"), inbox.callback("control")),
                 session.declare_subscriber(keys.control("all"), inbox.callback("control")),
+                session.declare_subscriber(keys.request("*"), inbox.callback("request")),  # actors' checkpoint asks
                 session.declare_queryable(keys.weights, pub.answer)]
         loop = LearnerLoop(trainer, streams, pub, learner_id=learner_id, learner_dir=learner_dir,
                            checkpoint_every=cfg.stream.checkpoint_every, flag=flag,
                            checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode)
         loop.set_task(task)
         loop.start()
-        token = session.liveliness().declare_token(keys.alive("learner", learner_id))
+        # the token names this incarnation (its epoch): actors take weights only of an epoch whose token is alive
+        token = session.liveliness().declare_token(keys.learner_alive(learner_id, trainer.epoch))
         print(f"khgrl learner {learner_id} ready (epoch {trainer.epoch}, version {trainer.version}, "
               f"{trainer.total} transitions)", flush=True)
         try:

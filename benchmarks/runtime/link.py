@@ -73,7 +73,7 @@ class Link:
         while time.monotonic() < deadline:
             if learner.poll() is not None:
                 raise RuntimeError(f"{learner.name} exited with {learner.poll()}:\n{learner.tail()}")
-            replies = list(self.session.liveliness().get(self.keys.alive("learner", "*"), timeout=1.0))
+            replies = list(self.session.liveliness().get(self.keys.learners_alive, timeout=1.0))
             if any(r.ok for r in replies):
                 time.sleep(0.3)  # let the subscription reach this client through the router
                 return

@@ -24,8 +24,8 @@ import time
 
 import numpy as np
 
-from common.config import ProcessConfig
 from common.process import StopFlag, install_stop_handlers
+from common.process_config import ProcessConfig
 from common.protocol import Frame
 from common.task_link import fetch_tasks
 from human_bridge.client import HumanClient, connected

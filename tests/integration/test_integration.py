@@ -518,9 +518,12 @@ def _hostile_controls() -> list[tuple[str, bytes, str]]:
 
 
 # who receives a control message on each target: (process, kind)
+# (the launcher watches every control key: a command from another session on any of them is reported)
 CONTROL_TARGETS = {"all": [("learner", "control"), ("actor", "control"), ("human", "control"), ("launcher", "control")],
-                   "learner": [("learner", "control")], "actor": [("actor", "control")],
-                   "a0": [("actor", "control")], "human": [("human", "control")]}
+                   "learner": [("learner", "control"), ("launcher", "control")],
+                   "actor": [("actor", "control"), ("launcher", "control")],
+                   "a0": [("actor", "control"), ("launcher", "control")],
+                   "human": [("human", "control"), ("launcher", "control")]}
 
 
 def _hostile_weights(real) -> list[tuple[str, bytes, str]]:

@@ -15,13 +15,12 @@ from common.config import (
     StreamSettings,
     TQCSettings,
     add_config_flags,
-    add_process_flags,
     read_run_file,
     resolve,
-    resolve_process,
     to_toml,
     write_run_config,
 )
+from common.process_config import add_process_flags, resolve_process
 
 
 def _parser(process: bool = False) -> argparse.ArgumentParser:

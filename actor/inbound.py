@@ -1,0 +1,152 @@
+"""What the actor does with what arrives between steps: acks, corrections, control commands and learner
+liveliness. The control loop (:mod:`actor.loop`) takes them out of its inbox and hands them to :class:`Inbound`.
+
+Here too are the actor's checks that hold without access control (docs/protocol.md): the
+:class:`~actor.trust.WeightsGate` is installed in the weights receiver and told which learner epochs are alive
+(weights only from those, with plausible versions); an ack whose weights version is implausible is refused like
+one that claims batches never sent; a ``stop`` or ``pause`` that does not come from the launcher is obeyed but
+logged as such (a warning with its sender and key).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from actor.trust import WeightsGate
+from common.messages import Ack, Control, Correction, Dims
+from common.process import StopFlag
+from common.protocol import Keys, decode
+from common.wire import ProtocolError
+
+__all__ = ["Inbound", "LAUNCHER", "attribute_control"]
+
+log = logging.getLogger("khgrl.actor")
+
+LAUNCHER = "launcher"  # the sender id of the launcher's control messages
+_KINDS = {"ack": Ack, "correction": Correction, "control": Control, "human_request": Control}
+HUMAN_COMMANDS = ("pause", "resume")  # what a human-input client may ask the actors (human/<id>/request)
+
+
+def attribute_control(msg: Control, key: str, logger: logging.Logger) -> None:
+    """Log a control command with who sent it: a warning for a ``stop`` or ``pause`` not from the launcher.
+
+    :param msg: the decoded command.
+    :param key: the key it came on.
+    :param logger: the process's logger.
+    """
+    sender = msg.envelope.sender if msg.envelope is not None else "?"
+    if msg.command in ("stop", "pause") and sender != LAUNCHER:
+        logger.warning("control %s from %r on %s: not from the launcher", msg.command, sender, key)
+    else:
+        logger.info("control: %s from %r on %s", msg.command, sender, key)
+
+
+class Inbound:
+    """Handles the actor's incoming messages and keeps what they tell: the learners alive, paused, and why the
+    actor must stop with exit code 2 (a learner of another task, or its stream superseded).
+
+    :param parts: the loop's :class:`~actor.loop.ActorParts`.
+    :param flag: the process's stop flag.
+    :param dims: the sizes corrections must have.
+    :param gate: the weights gate (default: a new one), installed in ``parts.weights.receiver``.
+    """
+
+    def __init__(self, parts: Any, flag: StopFlag, dims: Dims, gate: WeightsGate | None = None) -> None:
+        self.p, self.flag, self.dims = parts, flag, dims
+        self.learners: set[str] = set()
+        self.paused = False
+        self.wrong_task: str | None = None
+        self.gate = gate or WeightsGate()
+        parts.weights.receiver.use_gate(self.gate)
+
+    def join(self, learners: set[str]) -> None:
+        """The learners found alive before the first step (a liveliness query).
+
+        :param learners: their liveliness keys.
+        """
+        for key in learners:
+            self.learners.add(key)
+            self.p.weights.receiver.learner_appeared(key)
+        if learners:
+            self.check_learner_task()
+
+    def handle(self, kind: str, key: str, payload, arrival: float, episode: int) -> None:
+        """One inbox item.
+
+        :param kind: ``ack``, ``correction``, ``control``, ``human_request`` or ``alive``.
+        :param key: the key it came on.
+        :param payload: its bytes (``alive``: whether the token appeared).
+        :param arrival: when it arrived (monotonic s).
+        :param episode: the actor's current episode.
+        """
+        if kind == "alive":
+            self.on_alive(key, payload)
+            return
+        try:
+            msg = decode(_KINDS[kind], payload, self.dims)
+        except ProtocolError as exc:
+            self.p.rejects.reject(kind, key, exc)
+            return
+        if kind == "ack":
+            self._on_ack(msg, key)
+        elif kind == "correction":
+            if msg.client != Keys.chunk(key, 3):
+                self.p.rejects.reject("correction", key, ProtocolError(f"client {msg.client!r} published on {key}"))
+                return
+            self.p.arbiter.offer(msg, arrival, episode, self.p.env.t)
+        elif kind == "human_request":
+            self._on_human_request(msg, key)
+        else:
+            self._on_control(msg, key)
+
+    def _on_human_request(self, msg: Control, key: str) -> None:
+        """A person's pause or resume (e.g. the GUI's space bar), on the client's own key."""
+        if msg.command not in HUMAN_COMMANDS or msg.envelope.sender != Keys.chunk(key, 3):
+            why = f"{msg.command!r} from {msg.envelope.sender!r} on {key}: a human client may only pause or resume"
+            self.p.rejects.reject("control", key, ProtocolError(why))
+            return
+        log.info("%s from human-input client %r", msg.command, msg.envelope.sender)
+        self.paused = msg.command == "pause"
+
+    def _on_ack(self, msg: Ack, key: str) -> None:
+        stream = self.p.stream
+        if stream.on_ack(msg, key, check=lambda a: self.gate.implausible(a.epoch, a.version)):
+            self.gate.note(msg.epoch, msg.version)
+        elif stream.superseded:
+            self.wrong_task = stream.superseded  # another process runs this actor id: stop (exit 2)
+            self.flag.set("stream superseded")
+
+    def on_alive(self, key: str, put: bool) -> None:
+        """A learner's liveliness token appeared (``put``) or disappeared.
+
+        :param key: its liveliness key.
+        :param put: appeared.
+        """
+        if put:
+            self.p.weights.receiver.learner_appeared(key)
+            if key not in self.learners:
+                self.learners.add(key)
+                log.info("learner %s appeared (outbox: %d batches)", key, len(self.p.stream.outbox))
+                self.check_learner_task()
+                self.p.stream.learner_appeared()
+        else:
+            self.learners.discard(key)
+            self.p.weights.receiver.learner_gone(key)
+            log.warning("learner %s gone: acting on with weights version %d", key, self.p.weights.version)
+
+    def check_learner_task(self) -> None:
+        """Refuse a learner built for another task: stop with a clear error (exit code 2)."""
+        if self.p.task is not None and (why := self.p.link.other_task(self.p.task)):
+            self.wrong_task = why
+            log.error("%s", why)
+            self.flag.set("learner of another task")
+
+    def _on_control(self, msg: Control, key: str) -> None:
+        attribute_control(msg, key, log)
+        if msg.command == "stop":
+            self.flag.set("stop command")
+        elif msg.command == "pause":
+            self.paused = True
+        elif msg.command == "resume":
+            self.paused = False

@@ -1,0 +1,61 @@
+"""How a ``khgrl up`` ended: the :class:`Outcome`, ``RUN_DIR/summary.json``, the failure report and the exit code."""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import dataclass, field
+
+from common.process import StopFlag
+from deploy.supervisor import ProcessGroup
+
+__all__ = ["Outcome", "write_summary", "report_failures", "exit_code"]
+
+
+@dataclass
+class Outcome:
+    """How a run ended."""
+
+    failed: list[str] = field(default_factory=list)  # process names, or "timeout"
+    stopped_by: str = ""  # a stop command from elsewhere
+    error: str = ""  # e.g. the router unreachable
+    rejects: dict = field(default_factory=dict)
+
+
+def write_summary(plan, group: ProcessGroup, out: Outcome, wall: float, interrupted: bool) -> dict:
+    """``RUN_DIR/summary.json``: exit codes, failures, wall time and each actor's own summary.
+
+    :param plan: the run's plan
+    :param group: the run's processes (exited)
+    :param out: how the run ended
+    :param wall: wall time in seconds
+    :param interrupted: stopped by SIGINT/SIGTERM
+    """
+    summary = {"run": plan.run_id, "wall_time_s": wall, "exit_codes": {p.name: p.returncode for p in group.procs},
+               "failed": out.failed, "interrupted": interrupted, "stopped_by": out.stopped_by or None,
+               "error": out.error or None, "resumed": plan.resume, "launcher_rejects": out.rejects}
+    for aid in plan.cfg.actor_ids():
+        path = plan.run_dir / f"actor-{aid}" / "summary.json"
+        try:
+            summary[aid] = json.loads(path.read_text())
+        except (OSError, ValueError):
+            pass
+    (plan.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
+
+
+def report_failures(group: ProcessGroup, out: Outcome) -> None:
+    """Each failed process's exit code and the tail of its log, on stderr."""
+    for p in group.procs:
+        if p.name in out.failed:
+            print(f"khgrl up: process {p.name} exited with code {p.returncode}; last lines of {p.log_path}:\n"
+                  f"{p.tail(20)}", file=sys.stderr)
+    if out.error:
+        print(f"khgrl up: error: {out.error}", file=sys.stderr)
+
+
+def exit_code(out: Outcome, flag: StopFlag) -> int:
+    """0 done, 1 failed or stopped from elsewhere, 128 + signal on SIGINT/SIGTERM."""
+    if flag:
+        return 143 if flag.reason == "SIGTERM" else 130
+    return 1 if out.failed or out.stopped_by or out.error else 0

@@ -1,0 +1,128 @@
+"""``khgrl up --secure``: every attack of issue 14 is rejected while the run completes exactly as without
+``--secure``.
+
+The same seeded run twice, plain and secure. During the secure one, this test process attacks it from sessions
+with no certificate (refused at the TLS handshake: nothing can be sent) and with the certificates of other roles
+made for the run (``monitor``, ``human-user``; ``actor-a0`` for the keys that are not an actor's): forged weights
+with version 10**9, transitions from a made-up actor id and under the real actor's key, a forged ack that would
+make the actor drop batches no checkpoint holds, a spoofed release and a forged correction of the scripted
+human's intervention, and ``control/all stop``. An observer session (the run's ``monitor`` certificate) records
+every message the router delivers: none of the forged ones may arrive. Then the run must end on its own (exit 0,
+not stopped), hold no transition of the made-up actor, lose and duplicate nothing, and give the same episodes.csv
+as the plain run (every column but wall time).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from helpers import read_json
+from launch import FAST, Launcher, _rows, _run
+
+pytestmark = pytest.mark.integration
+
+ARGS = [*FAST, "--episodes", "3", "--human-episodes", "2", "--seed", "11"]
+
+
+def _session(run_dir, cn: str, endpoint: str):
+    from common.transport import _open
+    from common.zenoh_config import build_config
+
+    conf = build_config("client", [], [endpoint], 3000, run_dir / "certs" / "zenoh" / f"{cn}.json5")
+    return _open(conf, lambda: False, 20, cn)
+
+
+def _forgeries(keys, weights_payload: bytes) -> list[tuple[str, bytes]]:
+    """(key, payload) of every forged message: each well-formed, so that only the router can stop it."""
+    from benchmarks.ingest_many import _as_actor
+    from benchmarks.runtime.link import batches
+    from common.messages import Ack, Control, Correction, Weights
+    from common.protocol import decode, encode
+
+    real = decode(Weights, weights_payload)
+    forged_w = encode(real.replace(version=10**9, tensors={k: np.zeros_like(v) for k, v in real.tensors.items()}),
+                      "learner", 10**6)
+    out = [(keys.weights, forged_w)]
+    for actor in ("evil", "a0"):
+        out += [(keys.transitions(actor), _as_actor(p, actor, decode, encode)) for p in batches(64, 32, seed=1)]
+    out.append((keys.ack("a0"), encode(Ack(actor="a0", received=10**6, durable=10**6, trained=0, version=0,
+                                           epoch=real.epoch or "e"), "learner", 10**6)))
+    out.append((keys.correction("scripted"), encode(Correction(client="scripted", actor="a0", active=False),
+                                                    "scripted", 10**6)))
+    out.append((keys.correction("scripted"), encode(Correction(client="scripted", actor="a0", active=True,
+                                                               p_h=np.array([0.99, 0.99])), "scripted", 10**6 + 1)))
+    out.append((keys.control("all"), encode(Control(command="stop"), "launcher", 10**6)))
+    return out
+
+
+def _attack(up: Launcher, runtime: dict) -> tuple[list[bytes], list[bytes]]:
+    """Every forgery from every attacking identity; returns (what was sent, what the observer received)."""
+    import zenoh
+
+    from common.protocol import Keys
+    from common.transport import _open
+    from common.zenoh_config import build_config
+
+    keys, ep = Keys(runtime["run"]), runtime["endpoint"]
+    plain = build_config("client", [], [ep.replace("tls/", "tcp/")], 3000)
+    plain.insert_json5("connect/timeout_ms", "0")
+    plain.insert_json5("connect/exit_on_failure", "true")
+    with pytest.raises(ConnectionError):  # no certificate: refused before anything can be sent
+        _open(plain, lambda: False, 10, "attacker without a certificate").close()
+    seen: list[bytes] = []
+    observer = _session(up.run_dir, "monitor", ep)
+    sub = observer.declare_subscriber(f"khgrl/{runtime['run']}/**", lambda s: seen.append(s.payload.to_bytes()),
+                                      allowed_origin=zenoh.Locality.REMOTE)
+    attackers = [_session(up.run_dir, cn, ep) for cn in ("monitor", "human-user", "actor-a0")]
+    sent: list[bytes] = []
+    try:
+        weights = [r.ok.payload.to_bytes() for r in observer.get(keys.weights, timeout=5.0) if r.ok]
+        assert weights, "a monitor may query the weights"
+        for s in attackers:
+            for key, payload in _forgeries(keys, weights[0]):
+                if s is attackers[2] and key == keys.transitions("a0"):
+                    continue  # the actor's own certificate may publish its own stream: that is its key
+                s.put(key, payload)
+                sent.append(payload)
+        time.sleep(3.0)
+    finally:
+        sub.undeclare()
+        for s in (*attackers, observer):
+            s.close()
+    return sent, seen
+
+
+@pytest.mark.timeout(900)
+def test_secure_run_rejects_every_attack_and_repeats_the_plain_run(tmp_path):
+    plain = _run(tmp_path / "plain", *ARGS, timeout=400)
+    assert plain.returncode == 0, f"plain run exited {plain.returncode}\n{plain.stdout}\n{plain.stderr}"
+    up = Launcher(tmp_path, tmp_path / "secure", *ARGS, "--secure")
+    try:
+        up.wait_line("[a0] episode 1:", 300)
+        runtime = read_json(up.run_dir / "config.json")["runtime"]
+        assert runtime["endpoint"].startswith("tls/127.0.0.1:") and runtime["secure"] is True
+        sent, seen = _attack(up, runtime)
+        assert not set(sent) & set(seen), "a forged message got through the router"
+        assert seen, "the observer received the run's own messages"
+        rc = up.proc.wait(timeout=400)
+        assert rc == 0, f"secure run exited {rc}\n{up.stdout}\n{up.stderr}"
+    finally:
+        up.cleanup()
+    summary = read_json(up.run_dir / "summary.json")
+    assert summary["stopped_by"] is None and not summary["failed"]
+    assert summary["a0"].get("refused_acks", 0) == 0, "the forged ack reached the actor"
+    state = read_json(up.run_dir / "learner" / "checkpoint" / "state.json")
+    assert set(state["actors"]) == {"a0"}, f"the learner admitted {sorted(state['actors'])}"
+    from benchmarks.scale import provenance_check
+
+    acct = provenance_check(up.run_dir)
+    assert acct["lost"] == 0 and acct["duplicated"] == 0 and acct["produced"] > 0, acct
+    strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]  # noqa: E731
+    assert strip(_rows(up.run_dir)) == strip(_rows(tmp_path / "plain")), "the secure run gave other episodes"
+    for name, cn in (("learner", "learner"), ("a0", "actor-a0"), ("human-scripted", "human-scripted")):
+        log = (up.run_dir / "logs" / f"{name}.log").read_text()
+        assert f"identity: {cn} (mutual TLS)" in log, f"{name}'s log does not say who it runs as"
+    assert "(access control on)" in (up.run_dir / "logs" / "router.log").read_text()
