@@ -1,15 +1,17 @@
 """The actor's Zenoh declarations: what it subscribes to (acks, corrections, control, learner liveliness,
 weights), what it publishes (transitions, frames, episodes, scale, status, its checkpoint requests on its own
 ``actor/<id>/request``), its liveliness token, and the queries it makes (who is alive, the current weights).
-Callbacks only file samples in an :class:`~common.transport.Inbox`; the control loop takes them out."""
+Acks, corrections and commands wait in Zenoh's ring buffers (:class:`~common.transport.Rings`), learner liveliness
+in an :class:`~common.transport.Inbox`; the control loop takes them out, a bounded number per step."""
 
 from __future__ import annotations
 
 import logging
 
-from common.messages import Control, Message
-from common.protocol import Keys, encode
-from common.transport import Inbox, undeclare_all
+from common.messages import Ack, Control, Correction, Message
+from common.protocol import Keys, RejectCounter, encode
+from common.transport import Inbox, Rings, undeclare_all
+from common.wire import ProtocolError
 
 __all__ = ["ActorLink", "actor_alive"]
 
@@ -35,32 +37,45 @@ def actor_alive(session, keys: Keys, actor: str, timeout: float = 2.0) -> str | 
     return found
 
 
+def _count_oversize(rejects: RejectCounter):
+    """Count (and log, rate-limited) a payload the rings skipped for its size, as the decoder would have."""
+
+    def on_oversize(kind: str, key: str, size: int, limit: int) -> None:
+        kind = "control" if kind == "human_request" else kind
+        rejects.reject(kind, key, ProtocolError(f"{size} bytes exceeds the {kind} limit of {limit}"))
+
+    return on_oversize
+
+
 class ActorLink:
     """Everything the actor declares on its Zenoh session.
 
     :param session: an open Zenoh session.
     :param keys: the run's key expressions.
     :param actor: this actor's id.
-    :param inbox: where subscriber callbacks put ``(kind, key, payload, arrival)``.
+    :param inbox: where the liveliness callback puts ``(kind, key, appeared, arrival)``.
+    :param rejects: where payloads over their kind's limit are counted (None: only in ``rings.oversize``).
     """
 
-    def __init__(self, session, keys: Keys, actor: str, inbox: Inbox) -> None:
+    def __init__(self, session, keys: Keys, actor: str, inbox: Inbox, rejects: RejectCounter | None = None) -> None:
         import zenoh
 
         self.session = session
         self.keys = keys
         self.actor = actor
-        cb = inbox.callback
-        self.subs = [
-            session.declare_subscriber(keys.ack(actor), cb("ack")),
-            session.declare_subscriber(keys.correction("*"), cb("correction")),
-            session.declare_subscriber(keys.control("actor"), cb("control")),
-            session.declare_subscriber(keys.control(actor), cb("control")),
-            session.declare_subscriber(keys.control("all"), cb("control")),
-            session.declare_subscriber(keys.human_request("*"), cb("human_request")),
-            session.liveliness().declare_subscriber(keys.learners_alive, inbox.liveliness_callback("alive"),
-                                                    history=True),
-        ]
+        # acks, corrections and commands wait in Zenoh's ring buffers, polled by the control loop (a flood on them
+        # costs the loop nothing); learner liveliness comes through the inbox's callback
+        self.rings = Rings(session, on_oversize=None if rejects is None else _count_oversize(rejects))
+        for kind, key, capacity, limit in (
+                ("ack", keys.ack(actor), 64, Ack.MAX_BYTES), ("correction", keys.correction("*"), 256,
+                                                              Correction.MAX_BYTES),
+                ("control", keys.control("actor"), 16, Control.MAX_BYTES),
+                ("control", keys.control(actor), 16, Control.MAX_BYTES),
+                ("control", keys.control("all"), 16, Control.MAX_BYTES),
+                ("human_request", keys.human_request("*"), 16, Control.MAX_BYTES)):
+            self.rings.add(kind, key, capacity, limit)
+        self.subs = [session.liveliness().declare_subscriber(keys.learners_alive, inbox.liveliness_callback("alive"),
+                                                             history=True)]
         block, drop = zenoh.CongestionControl.BLOCK, zenoh.CongestionControl.DROP
         self.pubs = {
             "transitions": session.declare_publisher(keys.transitions(actor), congestion_control=block,
@@ -152,4 +167,5 @@ class ActorLink:
 
     def close(self) -> None:
         """Undeclare everything (best effort)."""
+        self.rings.undeclare()
         undeclare_all(*self.subs, *self.pubs.values(), *([self.token] if self.token is not None else []))

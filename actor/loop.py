@@ -54,6 +54,7 @@ __all__ = ["ActorParts", "ActorLoop"]
 log = logging.getLogger("khgrl.actor")
 
 MAX_SERVICE = 64  # messages handled per control step at most (a 50 Hz step has 20 ms)
+POLL_S = 0.002  # while waiting for messages: how often the ring buffers are looked at
 STATUS_EVERY_S = 1.0
 FINISH_WAIT_S = 5.0  # stopped mid-run: how long the actor waits for the learner to checkpoint its last batches
 
@@ -243,17 +244,19 @@ class ActorLoop:
     # ------------------------------------------------------------------ inbox
     def service(self, block: float = 0.0) -> None:
         """Handle what arrived -- at most :data:`MAX_SERVICE` messages, so a flood costs a step a bounded time (the
-        rest waits in the bounded inbox, whose overflow is dropped and counted) -- waiting up to ``block`` s for the
-        first; swap weights; re-send if stalled; publish the status about once a second.
+        rest waits in Zenoh's ring buffers, which keep the newest, or in the bounded inbox) -- waiting up to
+        ``block`` s for the first when nothing is waiting; swap weights; re-send if stalled; publish the status about
+        once a second.
 
         :param block: seconds to wait for something to arrive.
         """
-        timeout = block
-        for _ in range(MAX_SERVICE):
-            item = self.p.inbox.get(timeout)
+        first = self._arrivals(block)
+        for item in first:
+            self.inbound.handle(*item, episode=self.episode)
+        for _ in range(MAX_SERVICE - len(first)):
+            item = self.p.inbox.get()
             if item is None:
                 break
-            timeout = 0.0
             self.inbound.handle(*item, episode=self.episode)
         self.p.weights.swap()
         self.p.stream.check_resend(self.learner_alive)
@@ -261,6 +264,19 @@ class ActorLoop:
         if now - self._t_status >= STATUS_EVERY_S:
             self._t_status = now
             self._publish_status()
+
+    def _arrivals(self, block: float) -> list[tuple]:
+        """What waits in the link's ring buffers (at most :data:`MAX_SERVICE`), else the inbox's next item, waiting
+        up to ``block`` s for either (the rings are looked at every :data:`POLL_S`)."""
+        end = time.monotonic() + block
+        while True:
+            polled = self.p.link.rings.poll(MAX_SERVICE)
+            if polled:
+                return polled
+            left = end - time.monotonic()
+            item = self.p.inbox.get(min(POLL_S, left) if left > 0 else 0.0)
+            if item is not None or left <= 0:
+                return [] if item is None else [item]
 
     def _publish_status(self) -> None:
         p = self.p

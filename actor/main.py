@@ -74,7 +74,7 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
     cfg, keys = pc.cfg, Keys(pc.run)
     rejects = RejectCounter(f"actor/{actor}")
     inbox = Inbox(maxsize=10_000, overflow="drop_oldest")
-    link = ActorLink(session, keys, actor, inbox)
+    link = ActorLink(session, keys, actor, inbox, rejects)
     receiver = WeightsReceiver(link.weights_subscriber(), policy.actor.state_dict(), rejects, keys.weights)
     receiver.start()
     announcer = TaskAnnouncer(session, keys, "actor", actor, task) if task is not None else None

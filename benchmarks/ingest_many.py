@@ -81,7 +81,7 @@ def _secure_files(work_dir: Path, ep: str, senders: int) -> dict[str, Path]:
     from deploy import certs
     from deploy.secure import write_configs
 
-    d = work_dir / f"certs-{os.getpid()}"
+    d = work_dir / f"certs-{os.getpid()}-{time.time_ns()}"
     certs.init_ca(d)
     for role, ident in [("router", None), ("learner", None), *(("actor", f"s{i}") for i in range(senders))]:
         certs.issue(d, role, ident)

@@ -73,9 +73,9 @@ class Proc:
         self.signal(signal.SIGKILL)
         self.wait(10)
 
-    def stop(self, timeout: float = 30.0) -> int | None:
-        """SIGTERM, wait up to ``timeout`` s, then SIGKILL."""
-        self.signal(signal.SIGTERM)
+    def stop(self, timeout: float = 30.0, sig: int | None = None) -> int | None:
+        """``sig`` (default SIGTERM; SIGINT: as Ctrl-C), wait up to ``timeout`` s, then SIGKILL."""
+        self.signal(signal.SIGTERM if sig is None else sig)
         rc = self.wait(timeout)
         if rc is None:
             self.kill()

@@ -38,6 +38,8 @@ import time
 from dataclasses import dataclass
 from typing import Sequence
 
+from helpers import pid_alive
+
 __all__ = ["Host", "Network", "netns_available", "remove_stale", "LOSS_TABLE"]
 
 LOSS_TABLE = "khgrl_loss"
@@ -94,16 +96,6 @@ def _probe() -> str | None:
     return None
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _ns_pids(ns: str) -> list[int]:
     out = _ip("netns", "pids", ns, check=False)
     return [int(p) for p in out.stdout.split() if p.isdigit()]
@@ -135,7 +127,7 @@ def remove_stale() -> list[str]:
     for line in out.stdout.splitlines():
         name = line.split()[0] if line.split() else ""
         m = re.match(rf"{re.escape(PREFIX)}(\d+)-", name)
-        if m and int(m.group(1)) != os.getpid() and not _pid_alive(int(m.group(1))) and not _ns_pids(name):
+        if m and int(m.group(1)) != os.getpid() and not pid_alive(int(m.group(1))) and not _ns_pids(name):
             if _ip("netns", "del", name, check=False).returncode == 0:
                 removed.append(name)
     return removed

@@ -159,15 +159,6 @@ def _newest_batch(actor_dir: Path) -> int:
     return max(seqs, default=-1)
 
 
-def _interrupt(proc, timeout: float = 60.0) -> int | None:
-    """SIGINT (a clean stop, as Ctrl-C), then wait; SIGKILL after ``timeout`` s (returns None then)."""
-    proc.signal(signal.SIGINT)
-    rc = proc.wait(timeout)
-    if rc is None:
-        proc.kill()
-    return rc
-
-
 @pytest.fixture
 def net():
     reason = netns_available()
@@ -262,12 +253,12 @@ def test_loss_and_a_10s_outage_lose_nothing_and_the_actor_reconnects(net, tmp_pa
         wait_for(lambda: all(st and seen.received(a) >= st[-1]["info"]["next_seq"] - 1 for a in ACTORS
                              for st in [[s for s in seen.status("actor", a) if s["t"] > t_now]]),
                  60, "the learner caught up with every actor", procs=procs)
-        rcs = {a: _interrupt(p) for a, p in actors.items()}
-        rcs["human"] = _interrupt(human)
+        rcs = {a: p.stop(60, signal.SIGINT) for a, p in actors.items()}
+        rcs["human"] = human.stop(60, signal.SIGINT)
         learner_status = seen.status("learner", "learner")[-1]["info"]
-        rcs["learner"] = _interrupt(learner, 120)
-        rcs["monitor"] = _interrupt(monitor)
-        rcs["router"] = _interrupt(router)
+        rcs["learner"] = learner.stop(120, signal.SIGINT)
+        rcs["monitor"] = monitor.stop(60, signal.SIGINT)
+        rcs["router"] = router.stop(60, signal.SIGINT)
         logs = {p.name: p.text() for p in g.procs}
         wall = time.monotonic() - t_start
 

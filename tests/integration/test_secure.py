@@ -35,8 +35,8 @@ def _session(run_dir, cn: str, endpoint: str):
     return _open(conf, lambda: False, 20, cn)
 
 
-def _forgeries(keys, weights_payload: bytes) -> list[tuple[str, bytes]]:
-    """(key, payload) of every forged message: each well-formed, so that only the router can stop it."""
+def _forgeries(keys, weights_payload: bytes) -> list[tuple[str, str, bytes]]:
+    """(attack, key, payload) of every forged message: each well-formed, so that only the router can stop it."""
     from benchmarks.ingest_many import _as_actor
     from benchmarks.runtime.link import batches
     from common.messages import Ack, Control, Correction, Weights
@@ -45,21 +45,22 @@ def _forgeries(keys, weights_payload: bytes) -> list[tuple[str, bytes]]:
     real = decode(Weights, weights_payload)
     forged_w = encode(real.replace(version=10**9, tensors={k: np.zeros_like(v) for k, v in real.tensors.items()}),
                       "learner", 10**6)
-    out = [(keys.weights, forged_w)]
-    for actor in ("evil", "a0"):
-        out += [(keys.transitions(actor), _as_actor(p, actor, decode, encode)) for p in batches(64, 32, seed=1)]
-    out.append((keys.ack("a0"), encode(Ack(actor="a0", received=10**6, durable=10**6, trained=0, version=0,
-                                           epoch=real.epoch or "e"), "learner", 10**6)))
-    out.append((keys.correction("scripted"), encode(Correction(client="scripted", actor="a0", active=False),
-                                                    "scripted", 10**6)))
-    out.append((keys.correction("scripted"), encode(Correction(client="scripted", actor="a0", active=True,
-                                                               p_h=np.array([0.99, 0.99])), "scripted", 10**6 + 1)))
-    out.append((keys.control("all"), encode(Control(command="stop"), "launcher", 10**6)))
+    out = [("forged weights, version 10**9", keys.weights, forged_w)]
+    for actor, what in (("evil", "transitions from a made-up actor id"), ("a0", "transitions under a0's key")):
+        out += [(what, keys.transitions(actor), _as_actor(p, actor, decode, encode)) for p in batches(64, 32, seed=1)]
+    out.append(("forged ack", keys.ack("a0"), encode(Ack(actor="a0", received=10**6, durable=10**6, trained=0,
+                                                         version=0, epoch=real.epoch or "e"), "learner", 10**6)))
+    out.append(("spoofed release", keys.correction("scripted"),
+                encode(Correction(client="scripted", actor="a0", active=False), "scripted", 10**6)))
+    out.append(("forged correction", keys.correction("scripted"), encode(
+        Correction(client="scripted", actor="a0", active=True, p_h=np.array([0.99, 0.99])), "scripted", 10**6 + 1)))
+    out.append(("control/all stop", keys.control("all"), encode(Control(command="stop"), "launcher", 10**6)))
     return out
 
 
-def _attack(up: Launcher, runtime: dict) -> tuple[list[bytes], list[bytes]]:
-    """Every forgery from every attacking identity; returns (what was sent, what the observer received)."""
+def _attack(up: Launcher, runtime: dict) -> tuple[list[tuple[str, bytes]], list[bytes]]:
+    """Every forgery from every attacking identity; returns ((attacker: attack, payload) sent, what the observer
+    received)."""
     import zenoh
 
     from common.protocol import Keys
@@ -77,16 +78,16 @@ def _attack(up: Launcher, runtime: dict) -> tuple[list[bytes], list[bytes]]:
     sub = observer.declare_subscriber(f"khgrl/{runtime['run']}/**", lambda s: seen.append(s.payload.to_bytes()),
                                       allowed_origin=zenoh.Locality.REMOTE)
     attackers = [_session(up.run_dir, cn, ep) for cn in ("monitor", "human-user", "actor-a0")]
-    sent: list[bytes] = []
+    sent: list[tuple[str, bytes]] = []
     try:
         weights = [r.ok.payload.to_bytes() for r in observer.get(keys.weights, timeout=5.0) if r.ok]
         assert weights, "a monitor may query the weights"
-        for s in attackers:
-            for key, payload in _forgeries(keys, weights[0]):
-                if s is attackers[2] and key == keys.transitions("a0"):
+        for s, cn in zip(attackers, ("monitor", "human-user", "actor-a0")):
+            for attack, key, payload in _forgeries(keys, weights[0]):
+                if cn == "actor-a0" and key == keys.transitions("a0"):
                     continue  # the actor's own certificate may publish its own stream: that is its key
                 s.put(key, payload)
-                sent.append(payload)
+                sent.append((f"{cn}: {attack}", payload))
         time.sleep(3.0)
     finally:
         sub.undeclare()
@@ -105,7 +106,9 @@ def test_secure_run_rejects_every_attack_and_repeats_the_plain_run(tmp_path):
         runtime = read_json(up.run_dir / "config.json")["runtime"]
         assert runtime["endpoint"].startswith("tls/127.0.0.1:") and runtime["secure"] is True
         sent, seen = _attack(up, runtime)
-        assert not set(sent) & set(seen), "a forged message got through the router"
+        delivered = set(seen)
+        through = sorted({attack for attack, payload in sent if payload in delivered})
+        assert not through, f"forged messages got through the router: {through}"
         assert seen, "the observer received the run's own messages"
         rc = up.proc.wait(timeout=400)
         assert rc == 0, f"secure run exited {rc}\n{up.stdout}\n{up.stderr}"
@@ -114,6 +117,7 @@ def test_secure_run_rejects_every_attack_and_repeats_the_plain_run(tmp_path):
     summary = read_json(up.run_dir / "summary.json")
     assert summary["stopped_by"] is None and not summary["failed"]
     assert summary["a0"].get("refused_acks", 0) == 0, "the forged ack reached the actor"
+    assert summary["a0"]["weights"]["final_version"] < 10**6 and not summary["a0"]["rejects"], summary["a0"]
     state = read_json(up.run_dir / "learner" / "checkpoint" / "state.json")
     assert set(state["actors"]) == {"a0"}, f"the learner admitted {sorted(state['actors'])}"
     from benchmarks.scale import provenance_check
