@@ -53,7 +53,7 @@ __all__ = ["ActorParts", "ActorLoop"]
 
 log = logging.getLogger("khgrl.actor")
 
-MAX_SERVICE = 64  # messages handled per control step at most (a 50 Hz step has 20 ms)
+MAX_SERVICE = 16  # messages handled per control step at most (a step needs ~2: a correction, an ack)
 POLL_S = 0.002  # while waiting for messages: how often the ring buffers are looked at
 STATUS_EVERY_S = 1.0
 FINISH_WAIT_S = 5.0  # stopped mid-run: how long the actor waits for the learner to checkpoint its last batches
