@@ -19,6 +19,7 @@ learner; robot: they never do). The machine's load average is recorded before an
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import platform
@@ -36,6 +37,7 @@ from common.transport import free_port, open_client, wait_reachable
 __all__ = ["run_scale_benchmark", "provenance_check", "scale_case"]
 
 REPO = Path(__file__).resolve().parents[1]
+_CASES = itertools.count()  # run ids of one process's cases differ (a case may be measured twice)
 
 
 def provenance_check(run_dir: Path) -> dict:
@@ -75,7 +77,7 @@ def scale_case(work: Path, actors: int, rate: float, mode: str, seconds: float, 
     :param secure: ``khgrl up --secure`` (mutual TLS and access control) instead of plain TCP
     """
     port = free_port()
-    run = f"scale{actors}r{int(rate)}{mode[0]}{'m' if secure else ''}{os.getpid()}"
+    run = f"scale{actors}r{int(rate)}{mode[0]}{'m' if secure else ''}{os.getpid()}-{next(_CASES)}"
     run_dir = work / run
     argv = [sys.executable, "-m", "deploy.cli", "up", "--actors", str(actors), "--rate", str(rate), "--mode", mode,
             "--episodes", "1000000", "--human", "none", "--run", run, "--run-dir", str(run_dir), "--port", str(port),
