@@ -6,7 +6,9 @@ live progress view, stopped cleanly when the actors finish, on Ctrl-C/SIGTERM, o
 The run directory (layout: :mod:`deploy.rundir`) is refused if it already holds a run, unless ``--resume``
 (continue it: episode numbering, episodes.csv, corrections.csv and the learner's checkpoint carry on) or
 ``--overwrite`` (delete the earlier run first). Children are spawned by :class:`deploy.supervisor.ProcessGroup`
-and die with the launcher (parent-death signal), even if it is killed.
+and die with the launcher (parent-death signal), even if it is killed. ``--secure`` runs everything over mutual
+TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mod:`deploy.secure`);
+``--zenoh-config FILE`` gives every process a Zenoh configuration file.
 
 Exit codes: 0 the actors finished; 1 a process failed, the router was unreachable, ``--timeout`` or a stop
 command from elsewhere; 2 a bad configuration or run directory; 128 + signal number on SIGINT/SIGTERM.
@@ -99,11 +101,14 @@ class RunPlan:
     zenoh_config: str | None = None  # --zenoh-config for every process (not with --secure)
     secure_run: SecureRun | None = None  # made by prepare_run_dir with --secure
 
+    def zenoh_file(self, role: str, ident: str | None = None) -> str | None:
+        """The Zenoh configuration of a process (its own identity's with --secure), or None."""
+        return self.secure_run.config_for(role, ident) if self.secure_run is not None else self.zenoh_config
+
     def zenoh_args(self, role: str, ident: str | None = None) -> list[str]:
-        """``--zenoh-config FILE`` for a process (its own identity's with --secure), or nothing."""
-        if self.secure_run is not None:
-            return ["--zenoh-config", self.secure_run.config_for(role, ident)]
-        return ["--zenoh-config", self.zenoh_config] if self.zenoh_config else []
+        """``--zenoh-config FILE`` for a process, or nothing."""
+        file = self.zenoh_file(role, ident)
+        return ["--zenoh-config", file] if file else []
 
     @property
     def config_json(self) -> Path:
@@ -237,9 +242,9 @@ class Run:
             self._start_children()
             print(f"khgrl up: run {self.plan.run_id} on {self.plan.endpoint}; logs in {self.group.log_dir}",
                   flush=True)
-            zenoh_config = (self.plan.zenoh_args("launcher") or [None, None])[1]
             with open_client(self.plan.endpoint, self.cfg.stream.lease_ms, stop=lambda: bool(self.flag),
-                             timeout=self.cfg.connect_timeout, zenoh_config=zenoh_config) as session:
+                             timeout=self.cfg.connect_timeout,
+                             zenoh_config=self.plan.zenoh_file("launcher")) as session:
                 self._supervise(session)
         except ConnectionError as exc:
             if not self.flag:

@@ -333,7 +333,7 @@ class LearnerLoop:
                            duplicates={st.actor: st.duplicates for st in streams},
                            weights_queries=int(self.pub.queries), checkpoint_error=self.saves.error,
                            checkpoint_failures=self.saves.failures, mode=self.mode, utd=round(tr.utd, 4),
-                           rss_mb=rss_mb())
+                           rss_mb=rss_mb(), not_admitted_dropped=int(getattr(self.inbox, "dropped", 0)))
 
     def publish_status(self) -> None:
         """Publish :meth:`info` as this learner's status."""

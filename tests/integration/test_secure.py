@@ -24,7 +24,7 @@ from launch import FAST, Launcher, _rows, _run
 
 pytestmark = pytest.mark.integration
 
-ARGS = [*FAST, "--episodes", "3", "--human-episodes", "2", "--seed", "11"]
+ARGS = [*FAST, "--episodes", "2", "--human-episodes", "2", "--seed", "11"]
 
 
 def _session(run_dir, cn: str, endpoint: str):

@@ -16,6 +16,7 @@ from common.process import StopFlag
 from common.protocol import Ack, Control, Transitions, decode, encode
 from common.transport import Inbox
 from common.wire import RejectCounter
+from learner.ingest import FairInbox
 from learner.loop import LearnerLoop
 from learner.replay import SIDE_ARRAYS
 from learner.resume import open_learner
@@ -111,6 +112,10 @@ def test_robot_mode_trains_whenever_free_and_reports_its_update_to_data_ratio(tm
     assert trainer.iterations == 5 and trainer.utd == pytest.approx(5 * SMALL.gradient_steps / (32 - 16))
     assert loop.info().mode == "robot" and loop.info().utd == pytest.approx(trainer.utd, abs=1e-3)
     assert loop.info().rss_mb > 10
+    assert loop.info().not_admitted_dropped == 0
+    loop.inbox = FairInbox(Inbox(), lambda actor: False)
+    loop.inbox.dropped = 7  # batches of ids not admitted yet, dropped over the caps: in the status, not only at the end
+    assert loop.info().not_admitted_dropped == 7
 
 
 def test_ingest_never_waits_for_a_gradient_step(tmp_path):
