@@ -16,30 +16,15 @@ from typing import Any
 from actor.trust import WeightsGate
 from common.messages import Ack, Control, Correction, Dims
 from common.process import StopFlag
-from common.protocol import Keys, decode
+from common.protocol import Keys, attribute_control, decode
 from common.wire import ProtocolError
 
-__all__ = ["Inbound", "LAUNCHER", "attribute_control"]
+__all__ = ["Inbound"]
 
 log = logging.getLogger("khgrl.actor")
 
-LAUNCHER = "launcher"  # the sender id of the launcher's control messages
 _KINDS = {"ack": Ack, "correction": Correction, "control": Control, "human_request": Control}
 HUMAN_COMMANDS = ("pause", "resume")  # what a human-input client may ask the actors (human/<id>/request)
-
-
-def attribute_control(msg: Control, key: str, logger: logging.Logger) -> None:
-    """Log a control command with who sent it: a warning for a ``stop`` or ``pause`` not from the launcher.
-
-    :param msg: the decoded command.
-    :param key: the key it came on.
-    :param logger: the process's logger.
-    """
-    sender = msg.envelope.sender if msg.envelope is not None else "?"
-    if msg.command in ("stop", "pause") and sender != LAUNCHER:
-        logger.warning("control %s from %r on %s: not from the launcher", msg.command, sender, key)
-    else:
-        logger.info("control: %s from %r on %s", msg.command, sender, key)
 
 
 class Inbound:

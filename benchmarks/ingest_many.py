@@ -78,13 +78,10 @@ def _as_actor(payload: bytes, actor: str, decode, encode) -> bytes:
 
 def _secure_files(work_dir: Path, ep: str, senders: int) -> dict[str, Path]:
     """A CA, certificates for the router, the learner and each sender, and their Zenoh configurations."""
-    from deploy import certs
-    from deploy.secure import write_configs
+    from deploy.secure import issue_identities, write_configs
 
-    d = work_dir / f"certs-{os.getpid()}-{time.time_ns()}"
-    certs.init_ca(d)
-    for role, ident in [("router", None), ("learner", None), *(("actor", f"s{i}") for i in range(senders))]:
-        certs.issue(d, role, ident)
+    ids = [("router", None), ("learner", None), *(("actor", f"s{i}") for i in range(senders))]
+    d = issue_identities(work_dir / f"certs-{os.getpid()}-{time.time_ns()}", ids)
     return write_configs(d, ep, ep)
 
 

@@ -11,6 +11,7 @@ Every payload is a msgpack map: the envelope ``v`` (schema version, the integer 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from dataclasses import dataclass, fields
 from typing import Any, TypeVar
@@ -37,7 +38,8 @@ from common.wire import MAX_ID_LEN, ProtocolError, RejectCounter, ident, pack_ar
 
 __all__ = ["SCHEMA_VERSION", "Keys", "Envelope", "encode", "decode", "decode_any", "KINDS", "ProtocolError",
            "RejectCounter", "pack_array", "unpack_array", "Message", "Transitions", "Ack", "Weights", "Correction",
-           "Frame", "Scale", "EpisodeReport", "Status", "Control", "TaskInfo", "Dims", "ANY_DIMS", "with_base_seq"]
+           "Frame", "Scale", "EpisodeReport", "Status", "Control", "TaskInfo", "Dims", "ANY_DIMS", "with_base_seq",
+           "LAUNCHER", "attribute_control"]
 
 SCHEMA_VERSION = 1
 M = TypeVar("M", bound=Message)
@@ -231,3 +233,19 @@ def with_base_seq(payload: bytes, base_seq: int) -> bytes:
     msg["base_seq"] = base
     return msgpack.packb(msg, use_bin_type=True)
 
+
+LAUNCHER = "launcher"  # the sender id of the launcher's control messages
+
+
+def attribute_control(msg: Control, key: str, logger: logging.Logger) -> None:
+    """Log a control command with who sent it: a warning for a ``stop`` or ``pause`` not from the launcher.
+
+    :param msg: the decoded command.
+    :param key: the key it came on.
+    :param logger: the process's logger.
+    """
+    sender = msg.envelope.sender if msg.envelope is not None else "?"
+    if msg.command in ("stop", "pause") and sender != LAUNCHER:
+        logger.warning("control %s from %r on %s: not from the launcher", msg.command, sender, key)
+    else:
+        logger.info("control: %s from %r on %s", msg.command, sender, key)

@@ -18,7 +18,7 @@ from common.acl import Identity, access_control
 from deploy import certs
 
 __all__ = ["SecureRun", "router_settings", "client_settings", "write_configs", "prepare_secure_run",
-           "add_configs_parser", "run_identities"]
+           "add_configs_parser", "run_identities", "issue_identities"]
 
 CONFIG_DIR = "zenoh"  # under the certificate directory
 EXTRA_IDS = (("human", "user"), ("monitor", "monitor"))  # for a client the user plugs in, and for watching
@@ -105,6 +105,23 @@ def run_identities(cfg) -> list[tuple[str, str]]:
     return ids
 
 
+def issue_identities(cert_dir: str | os.PathLike, identities: list[tuple[str, str | None]],
+                     router_hosts: tuple[str, ...] = ()) -> Path:
+    """A CA in ``cert_dir`` (unless it has one) and a certificate for each (role, id) it does not have yet.
+
+    :param cert_dir: the certificate directory
+    :param identities: (role, id) pairs; ``("router", ...)`` gets ``router_hosts`` as its names
+    :param router_hosts: the router's addresses and names (default: 127.0.0.1 and localhost)
+    """
+    d = Path(cert_dir)
+    if not (d / certs.CA_CERT).is_file():
+        certs.init_ca(d)
+    for role, ident in identities:
+        if not (d / f"{certs.cn_for(role, ident)}.pem").is_file():
+            certs.issue(d, role, ident, hosts=router_hosts if role == "router" else ())
+    return d
+
+
 def prepare_secure_run(run_dir: Path, endpoint: str, processes: list[tuple[str, str]]) -> SecureRun:
     """``RUN_DIR/certs``: a CA for this run, a certificate for the router, the launcher, each process in
     ``processes`` and the extra identities (``human-user``, ``monitor``), and their Zenoh configurations. An
@@ -114,14 +131,7 @@ def prepare_secure_run(run_dir: Path, endpoint: str, processes: list[tuple[str, 
     :param endpoint: the router's ``tls/`` endpoint on this machine
     :param processes: (role, id) of the learner, actors and human-input client
     """
-    d = run_dir / "certs"
-    if not (d / certs.CA_CERT).is_file():
-        certs.init_ca(d)
-    wanted = [("router", "router"), ("launcher", "launcher"), *processes, *EXTRA_IDS]
-    for role, ident in wanted:
-        cn = certs.cn_for(role, ident)
-        if not (d / f"{cn}.pem").is_file():
-            certs.issue(d, role, ident)
+    d = issue_identities(run_dir / "certs", [("router", "router"), ("launcher", "launcher"), *processes, *EXTRA_IDS])
     return SecureRun(d, write_configs(d, endpoint, endpoint))
 
 

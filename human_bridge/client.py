@@ -22,7 +22,7 @@ import numpy as np
 from common.messages import Control, Correction, EpisodeReport, Frame, HumanInfo, Message, Scale, Status
 from common.process import StopFlag
 from common.process_config import ProcessConfig
-from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from common.protocol import Keys, ProtocolError, RejectCounter, attribute_control, decode, encode
 from common.task_link import fetch_task
 from common.transport import Inbox, open_client, undeclare_all
 
@@ -146,8 +146,7 @@ class HumanClient:
         while (item := self.controls.get()) is not None:
             msg = read("control", item[1], item[2], self.rejects)
             if msg is not None and msg.command == "stop":
-                if msg.envelope.sender != "launcher":
-                    log.warning("control stop from %r on %s: not from the launcher", msg.envelope.sender, item[1])
+                attribute_control(msg, item[1], log)
                 self.flag.set("stop command")
 
     def publish_status(self, force: bool = False) -> None:

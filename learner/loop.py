@@ -37,6 +37,7 @@ from common.protocol import (
     Status,
     Transitions,
     Weights,
+    attribute_control,
     decode,
 )
 from learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint
@@ -138,11 +139,7 @@ class LearnerLoop:
                 self.offer(msg)
             else:
                 cmd = decode(Control, payload)
-                sender = cmd.envelope.sender
-                if cmd.command in ("stop", "pause") and sender != "launcher":
-                    log.warning("control %s from %r on %s: not from the launcher", cmd.command, sender, key)
-                else:
-                    log.info("control: %s from %r on %s", cmd.command, sender, key)
+                attribute_control(cmd, key, log)
                 self.control(cmd)
         except ProtocolError as exc:
             self.rejects.reject("control" if kind == "request" else kind, key, exc)

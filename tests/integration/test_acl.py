@@ -12,7 +12,7 @@ import pytest
 from common.transport import _open, free_port
 from common.zenoh_config import build_config
 from deploy import certs
-from deploy.secure import write_configs
+from deploy.secure import issue_identities, write_configs
 
 pytestmark = pytest.mark.integration
 
@@ -39,10 +39,7 @@ MATRIX = [
 
 @pytest.fixture(scope="module")
 def secure_router(tmp_path_factory):
-    d = tmp_path_factory.mktemp("acl") / "certs"
-    certs.init_ca(d)
-    for role, ident in IDS:
-        certs.issue(d, role, ident)
+    d = issue_identities(tmp_path_factory.mktemp("acl") / "certs", IDS)
     ep = f"tls/127.0.0.1:{free_port()}"
     files = write_configs(d, ep, ep)
     router = _open(build_config("router", [ep], [], 3000, files["router"]), lambda: False, 20, "router")

@@ -143,13 +143,11 @@ def _write_run(run_dir: Path, run: str, endpoint: str) -> Path:
 def _certificates(d: Path, router_addr: str, endpoint: str) -> dict[str, Path]:
     """A CA, the router's certificate for its address and one per process, and every Zenoh configuration (the
     README's steps 1-2): {common name: configuration file}."""
-    from deploy import certs
-    from deploy.secure import write_configs
+    from deploy.secure import issue_identities, write_configs
 
-    certs.init_ca(d)
-    certs.issue(d, "router", hosts=[router_addr])
-    for role, ident in [("learner", None), ("human", "scripted"), ("monitor", None), *(("actor", a) for a in ACTORS)]:
-        certs.issue(d, role, ident)
+    ids = [("router", None), ("learner", None), ("human", "scripted"), ("monitor", None),
+           *(("actor", a) for a in ACTORS)]
+    issue_identities(d, ids, router_hosts=(router_addr,))
     return write_configs(d, f"tls/{router_addr}:{PORT}", endpoint)
 
 
