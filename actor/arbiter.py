@@ -2,7 +2,7 @@
 timeouts (docs/protocol.md, "Corrections").
 
 Nothing here touches Zenoh or the environment: the control loop offers it every validated
-:class:`~common.messages.Correction` and asks it, before each step, whether it may step (:meth:`ready`) and
+:class:`~khgrl.common.wire.messages.Correction` and asks it, before each step, whether it may step (:meth:`ready`) and
 which P_h applies (:meth:`current`).
 """
 
@@ -11,8 +11,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-
-from common.messages import Correction
+from khgrl.common.wire.messages import Correction
 
 __all__ = ["CorrectionArbiter"]
 

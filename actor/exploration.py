@@ -10,9 +10,8 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-
-from common.messages import Scale
-from common.scale import ScaleModel
+from khgrl.common.kmp.scale import ScaleModel
+from khgrl.common.wire.messages import Scale
 
 __all__ = ["ExplorationScale"]
 
@@ -25,7 +24,7 @@ class ExplorationScale:
     :param env: the task's KGRL environment (its ``mapping`` holds the scale model).
     :param actor: this actor's id.
     :param khgrl: whether the method uses human corrections (KGRL publishes and learns nothing).
-    :param publish: sends a :class:`~common.messages.Scale` message.
+    :param publish: sends a :class:`~khgrl.common.wire.messages.Scale` message.
     """
 
     def __init__(self, env, actor: str, khgrl: bool, publish: Callable[[Scale], None]) -> None:

@@ -1,8 +1,9 @@
 """What the actor does with what arrives between steps: acks, corrections, control commands and learner
-liveliness. The control loop (:mod:`actor.loop`) takes them out of its inbox and hands them to :class:`Inbound`.
+liveliness. The control loop (:mod:`khgrl.actor.loop`) takes them out of its inbox and hands them to :class:`Inbound`.
 
 Here too are the actor's checks that hold without access control (docs/protocol.md): the
-:class:`~actor.trust.WeightsGate` is installed in the weights receiver and told which learner epochs are alive
+:class:`~khgrl.common.delivery.trust.WeightsGate` is installed in the weights receiver and told which learner epochs
+are alive
 (weights only from those, with plausible versions); an ack whose weights version is implausible is refused like
 one that claims batches never sent; a ``stop`` or ``pause`` that does not come from the launcher is obeyed but
 logged as such (a warning with its sender and key).
@@ -13,11 +14,11 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from actor.trust import WeightsGate
-from common.messages import Ack, Control, Correction, Dims
-from common.process import StopFlag
-from common.protocol import Keys, attribute_control, decode
-from common.wire import ProtocolError
+from khgrl.common.delivery.trust import WeightsGate
+from khgrl.common.process import StopFlag
+from khgrl.common.wire.checks import ProtocolError
+from khgrl.common.wire.messages import Ack, Control, Correction, Dims
+from khgrl.common.wire.protocol import Keys, attribute_control, decode
 
 __all__ = ["Inbound"]
 
@@ -31,7 +32,7 @@ class Inbound:
     """Handles the actor's incoming messages and keeps what they tell: the learners alive, paused, and why the
     actor must stop with exit code 2 (a learner of another task, or its stream superseded).
 
-    :param parts: the loop's :class:`~actor.loop.ActorParts`.
+    :param parts: the loop's :class:`~khgrl.actor.loop.ActorParts`.
     :param flag: the process's stop flag.
     :param dims: the sizes corrections must have.
     :param gate: the weights gate (default: a new one), installed in ``parts.weights.receiver``.

@@ -2,9 +2,9 @@
 
 Per control step:
 
-1. service the inbox (acks, corrections, learner liveliness, control: :mod:`actor.inbound`) and swap in new policy
+1. service the inbox (acks, corrections, learner liveliness, control: :mod:`khgrl.actor.inbound`) and swap in new policy
    weights if the background receiver has a validated, admitted state dict ready (no stall: the swap is a
-   ``load_state_dict``; :mod:`actor.trust` says which weights are admitted);
+   ``load_state_dict``; :mod:`khgrl.common.delivery.trust` says which weights are admitted);
 2. rate limit: while the learner is alive, wait while ``sent - ack.trained >= max_lead`` or the loaded
    weights are older than ``ack.version``. The transition about to be collected would otherwise make the
    actor more than ``max_lead`` transitions ahead of what the learner has trained on. With ``max_lead`` =
@@ -12,12 +12,12 @@ Per control step:
    SB3 would use: the weights trained at the last multiple of ``train_freq`` (after ``learning_starts``).
    If the learner is not alive, or in ``--mode robot``, the actor keeps acting with its last weights (a robot
    does not stop for the learner);
-3. pace to ``rate`` (:class:`~actor.pacing.Pacer`), choose the action (uniform random, seeded, for the first
+3. pace to ``rate`` (:class:`~khgrl.actor.pacing.Pacer`), choose the action (uniform random, seeded, for the first
    ``learning_starts`` transitions of the run, as SB3 does; then ``policy.predict(obs, deterministic=False)``),
    apply the arbitrated correction (``env.set_correction``), step;
 4. record the transition (the stored action is ``info["action"]``: the human's a_h when intervened), publish a
    frame (``last`` on the episode's final one), and every ``batch`` transitions of the actor's running index
-   (and at episode end) cut a batch (:class:`~actor.stream.TransitionStream`).
+   (and at episode end) cut a batch (:class:`~khgrl.common.delivery.stream.TransitionStream`).
 
 At the end the actor waits until the learner holds every batch in a checkpoint (``flush_timeout``).
 """
@@ -31,23 +31,22 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-
-from actor.arbiter import CorrectionArbiter
-from actor.exploration import ExplorationScale
-from actor.inbound import Inbound
-from actor.link import ActorLink
-from actor.pacing import Pacer
-from actor.record import CorrectionRecord
-from actor.results import EpisodeLog
-from actor.stream import TransitionStream
-from actor.telemetry import RateLimitStats, TensorBoard, frame, status_info, summary
-from actor.weights import PolicyWeights
-from common.config import RunConfig
-from common.messages import Dims, EpisodeReport, Status
-from common.metrics import EpisodeAccumulator
-from common.process import StopFlag
-from common.transport import Inbox
-from common.wire import RejectCounter
+from khgrl.actor.arbiter import CorrectionArbiter
+from khgrl.actor.exploration import ExplorationScale
+from khgrl.actor.inbound import Inbound
+from khgrl.actor.pacing import Pacer
+from khgrl.actor.record import CorrectionRecord
+from khgrl.actor.results import EpisodeLog
+from khgrl.actor.telemetry import RateLimitStats, TensorBoard, frame, status_info, summary
+from khgrl.actor.weights import PolicyWeights
+from khgrl.common.config.settings import RunConfig
+from khgrl.common.delivery.actor_link import ActorLink
+from khgrl.common.delivery.stream import TransitionStream
+from khgrl.common.delivery.transport import Inbox
+from khgrl.common.metrics import EpisodeAccumulator
+from khgrl.common.process import StopFlag
+from khgrl.common.wire.checks import RejectCounter
+from khgrl.common.wire.messages import Dims, EpisodeReport, Status
 
 __all__ = ["ActorParts", "ActorLoop"]
 
@@ -61,9 +60,9 @@ FINISH_WAIT_S = 5.0  # stopped mid-run: how long the actor waits for the learner
 
 @dataclass
 class ActorParts:
-    """The pieces the loop drives (built and wired by :mod:`actor.main`)."""
+    """The pieces the loop drives (built and wired by :mod:`khgrl.actor.main`)."""
 
-    env: Any  # common.kgrl_env.KGRLEnv (the task behind the KGRL mapping)
+    env: Any  # khgrl.common.tasks.kgrl_env.KGRLEnv (the task behind the KGRL mapping)
     policy: Any  # sb3_contrib TQCPolicy
     link: ActorLink
     inbox: Inbox
@@ -75,8 +74,8 @@ class ActorParts:
     episodes: EpisodeLog
     tensorboard: TensorBoard
     rejects: RejectCounter
-    task: Any = None  # common.descriptor.TaskDescriptor this actor announced
-    announcer: Any = None  # common.task_link.TaskAnnouncer
+    task: Any = None  # khgrl.common.wire.descriptor.TaskDescriptor this actor announced
+    announcer: Any = None  # khgrl.common.delivery.task_link.TaskAnnouncer
 
 
 @dataclass

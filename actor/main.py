@@ -6,13 +6,14 @@ to the learner without losing or duplicating any.
     khgrl actor --run RUN --connect tcp/HOST:PORT --run-dir DIR --id a0 [any run setting flag]
 
 Wiring, top to bottom: settings -> logging and signals -> world and policy (seeded exactly as single-process
-SB3 seeds them) -> Zenoh session -> the loop's parts (:mod:`actor.loop`) -> run -> result files in
+SB3 seeds them) -> Zenoh session -> the loop's parts (:mod:`khgrl.actor.loop`) -> run -> result files in
 RUN_DIR/actor-ID/ (episodes.csv/json, corrections.csv, summary.json, config.json, scale.npz, tb/).
 With ``--resume`` the actor continues the episode numbering of its earlier part and appends to its files.
 
 One process per actor id: a second one with the same run directory is refused by the lock in RUN_DIR/actor-ID,
 one elsewhere by the liveliness token of the live one (exit code 2, one line on stderr). A restarted actor
-continues its transition stream (:mod:`actor.restart`): after a kill, without ``--resume`` too, it re-sends
+continues its transition stream (:mod:`khgrl.common.delivery.restart`): after a kill, without ``--resume`` too, it
+re-sends
 what the learner has not confirmed and appends to its episode and correction files.
 """
 
@@ -24,24 +25,24 @@ import sys
 import time
 from pathlib import Path
 
-from actor.arbiter import CorrectionArbiter
-from actor.exploration import ExplorationScale
-from actor.link import ActorLink, actor_alive
-from actor.loop import ActorLoop, ActorParts
-from actor.pacing import set_realtime
-from actor.record import CorrectionRecord
-from actor.restart import AlreadyRunning, StreamRecord, StreamStart, lock_actor_dir, open_stream
-from actor.results import EpisodeLog
-from actor.stream import TransitionStream
-from actor.telemetry import TensorBoard
-from actor.weights import PolicyWeights, WeightsReceiver
-from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
-from common.process_config import ProcessConfig, add_process_flags, resolve_process
-from common.protocol import Keys
-from common.task import TaskError, load_task
-from common.task_link import TaskAnnouncer
-from common.transport import Inbox, open_client
-from common.wire import RejectCounter, ident
+from khgrl.actor.arbiter import CorrectionArbiter
+from khgrl.actor.exploration import ExplorationScale
+from khgrl.actor.loop import ActorLoop, ActorParts
+from khgrl.actor.pacing import set_realtime
+from khgrl.actor.record import CorrectionRecord
+from khgrl.actor.results import EpisodeLog
+from khgrl.actor.telemetry import TensorBoard
+from khgrl.actor.weights import PolicyWeights, WeightsReceiver
+from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
+from khgrl.common.delivery.actor_link import ActorLink, actor_alive
+from khgrl.common.delivery.restart import AlreadyRunning, StreamRecord, StreamStart, lock_actor_dir, open_stream
+from khgrl.common.delivery.stream import TransitionStream
+from khgrl.common.delivery.task_link import TaskAnnouncer
+from khgrl.common.delivery.transport import Inbox, open_client
+from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
+from khgrl.common.tasks.api import TaskError, load_task
+from khgrl.common.wire.checks import RejectCounter, ident
+from khgrl.common.wire.protocol import Keys
 
 __all__ = ["main", "build_parser", "run"]
 
@@ -123,9 +124,8 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     :param resume: continue the actor's earlier part of the run.
     """
     import torch
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
     from sb3_contrib.tqc.policies import TQCPolicy
-
-    from common.kgrl_env import KGRLEnv
 
     cfg = pc.cfg
     seed = cfg.actor_seed(actor)

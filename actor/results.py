@@ -1,7 +1,7 @@
 """The actor's result files in RUN_DIR/actor-ID/: ``episodes.csv`` and ``episodes.json`` (a row per finished
 episode, written as it finishes, so a killed actor keeps its history), ``config.json`` and ``summary.json``.
 
-With ``--resume`` (or when it continues the stream of a killed process, :mod:`actor.restart`) the actor
+With ``--resume`` (or when it continues the stream of a killed process, :mod:`khgrl.common.delivery.restart`) the actor
 continues an earlier part of the run: its episodes are read back, numbering continues after the last one, and
 new rows are appended. Otherwise earlier files are replaced.
 """
@@ -14,8 +14,8 @@ import logging
 from dataclasses import asdict
 from pathlib import Path
 
-from actor.record import trim_partial_line
-from common.metrics import EpisodeStats, append_episode_row
+from khgrl.actor.record import trim_partial_line
+from khgrl.common.metrics import EpisodeStats, append_episode_row
 
 __all__ = ["EpisodeLog"]
 

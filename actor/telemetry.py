@@ -1,5 +1,6 @@
 """What the actor tells people about itself: per-episode TensorBoard scalars (RUN_DIR/actor-ID/tb), the
-status message it publishes about once a second (:class:`~common.messages.ActorInfo`), and ``summary.json``."""
+status message it publishes about once a second (:class:`~khgrl.common.wire.messages.ActorInfo`), and
+``summary.json``."""
 
 from __future__ import annotations
 
@@ -7,8 +8,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
-
-from common.messages import ActorInfo, Frame
+from khgrl.common.wire.messages import ActorInfo, Frame
 
 __all__ = ["TensorBoard", "RateLimitStats", "status_info", "summary", "frame"]
 
@@ -36,7 +36,7 @@ class TensorBoard:
     def episode(self, st) -> None:
         """Write one finished episode's scalars at step = its episode number.
 
-        :param st: a :class:`~common.metrics.EpisodeStats`.
+        :param st: a :class:`~khgrl.common.metrics.EpisodeStats`.
         """
         if self.writer is None:
             return
@@ -75,7 +75,7 @@ class RateLimitStats:
 def frame(env, actor: str, episode: int, info: dict, t: int, intervening: bool, ret: float, last: bool) -> Frame:
     """The frame the actor publishes after a step.
 
-    :param env: the actor's :class:`~common.kgrl_env.KGRLEnv`.
+    :param env: the actor's :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv`.
     :param actor: actor id.
     :param episode: the episode (whole run).
     :param info: the step's info.
@@ -103,10 +103,10 @@ def status_info(*, actor: str, episode: int, t: int, stream, weights, arbiter, r
     :param actor: actor id.
     :param episode: current episode (whole run).
     :param t: current step.
-    :param stream: the :class:`~actor.stream.TransitionStream`.
-    :param weights: the :class:`~actor.weights.PolicyWeights`.
-    :param arbiter: the :class:`~actor.arbiter.CorrectionArbiter`.
-    :param rejects: the :class:`~common.wire.RejectCounter`.
+    :param stream: the :class:`~khgrl.common.delivery.stream.TransitionStream`.
+    :param weights: the :class:`~khgrl.actor.weights.PolicyWeights`.
+    :param arbiter: the :class:`~khgrl.actor.arbiter.CorrectionArbiter`.
+    :param rejects: the :class:`~khgrl.common.wire.checks.RejectCounter`.
     :param waits: the flow-control waits.
     :param learner_alive: whether a learner is alive.
     :param paused: whether a ``pause`` command holds the actor.
@@ -134,10 +134,10 @@ def summary(*, actor: str, rc: int, stopped_by: str, wall: float, episodes: list
     :param episodes: the episodes finished (EpisodeStats).
     :param first_episode: the number of the first of them (> 1 when resumed; the run has then finished
         ``first_episode - 1 + len(episodes)`` episodes in all).
-    :param stream: the :class:`~actor.stream.TransitionStream`.
-    :param weights: the :class:`~actor.weights.PolicyWeights`.
-    :param arbiter: the :class:`~actor.arbiter.CorrectionArbiter`.
-    :param rejects: the :class:`~common.wire.RejectCounter`.
+    :param stream: the :class:`~khgrl.common.delivery.stream.TransitionStream`.
+    :param weights: the :class:`~khgrl.actor.weights.PolicyWeights`.
+    :param arbiter: the :class:`~khgrl.actor.arbiter.CorrectionArbiter`.
+    :param rejects: the :class:`~khgrl.common.wire.checks.RejectCounter`.
     :param waits: the flow-control waits.
     :param max_lead: the flow-control lead.
     :param rate: the control rate (Hz; 0: free-running).

@@ -1,6 +1,7 @@
 """The actor's copy of the policy weights: receive the learner's ``weights`` messages in a background
 thread, validate them against the local actor network, admit them by learner epoch and version (a
-:class:`~actor.trust.WeightsGate`, when one is installed: the control loop installs it), and swap them into the
+:class:`~khgrl.common.delivery.trust.WeightsGate`, when one is installed: the control loop installs it), and swap them
+into the
 policy between steps (a ``load_state_dict``, no stall). Also counts how far the loaded weights lag behind the
 transitions taken."""
 
@@ -12,11 +13,10 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-
-from actor.trust import WeightsGate
-from common.messages import Weights
-from common.protocol import decode
-from common.wire import ProtocolError, RejectCounter
+from khgrl.common.delivery.trust import WeightsGate
+from khgrl.common.wire.checks import ProtocolError, RejectCounter
+from khgrl.common.wire.messages import Weights
+from khgrl.common.wire.protocol import decode
 
 __all__ = ["WeightsUpdate", "WeightsReceiver", "PolicyWeights"]
 

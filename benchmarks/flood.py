@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 FLOOD = """
 import os, sys, time
-from common.transport import open_client
+from khgrl.common.delivery.transport import open_client
 endpoint, run, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
 with open_client(endpoint, timeout=20) as s:
     pubs = [s.declare_publisher(f"khgrl/{run}/human/flood/correction"), s.declare_publisher(f"khgrl/{run}/control/all")]
@@ -67,10 +67,10 @@ def run_flood_benchmark(messages: int = 100_000, rate: float = 50.0, quiet_s: fl
     :param work: run directory
     :param out: also write the results as JSON here
     """
-    from benchmarks.runtime.procs import BenchProcs, run_id
-    from common.messages import Frame
-    from common.protocol import Keys, ProtocolError, decode
-    from common.transport import open_client
+    from khgrl.benchmarks.runtime.procs import BenchProcs, run_id
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Frame
+    from khgrl.common.wire.protocol import Keys, ProtocolError, decode
 
     work_dir = Path(work).resolve()
     work_dir.mkdir(parents=True, exist_ok=True)

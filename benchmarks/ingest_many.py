@@ -24,11 +24,10 @@ REPO = Path(__file__).resolve().parents[1]
 def sender_main(argv: list[str]) -> int:
     """One sender process: ``ENDPOINT RUN ACTOR N BATCH WINDOW SEED``; prints a JSON line with its times."""
     import numpy as np
-
-    from benchmarks.runtime.link import batches
-    from common.messages import Ack
-    from common.protocol import Keys, ProtocolError, decode, encode
-    from common.transport import Inbox, open_client
+    from khgrl.benchmarks.runtime.link import batches
+    from khgrl.common.delivery.transport import Inbox, open_client
+    from khgrl.common.wire.messages import Ack
+    from khgrl.common.wire.protocol import Keys, ProtocolError, decode, encode
 
     endpoint, run, actor = argv[0], argv[1], argv[2]
     n, batch, window, seed = (int(x) for x in argv[3:7])
@@ -70,7 +69,7 @@ def sender_main(argv: list[str]) -> int:
 
 
 def _as_actor(payload: bytes, actor: str, decode, encode) -> bytes:
-    from common.messages import Transitions
+    from khgrl.common.wire.messages import Transitions
 
     msg = decode(Transitions, payload)
     return encode(msg.replace(actor=actor), actor, msg.envelope.seq)
@@ -78,7 +77,7 @@ def _as_actor(payload: bytes, actor: str, decode, encode) -> bytes:
 
 def _secure_files(work_dir: Path, ep: str, senders: int) -> dict[str, Path]:
     """A CA, certificates for the router, the learner and each sender, and their Zenoh configurations."""
-    from deploy.secure import issue_identities, write_configs
+    from khgrl.deploy.secure import issue_identities, write_configs
 
     ids = [("router", None), ("learner", None), *(("actor", f"s{i}") for i in range(senders))]
     d = issue_identities(work_dir / f"certs-{os.getpid()}-{time.time_ns()}", ids)
@@ -99,8 +98,8 @@ def run_ingest_benchmark(senders: int = 8, transitions: int = 400_000, batch: in
     :param out: also write the result as JSON here
     :param secure: mutual TLS and access control (as ``khgrl up --secure``) instead of plain TCP
     """
-    from benchmarks.runtime.procs import BenchProcs, run_id
-    from common.transport import free_port, wait_reachable
+    from khgrl.benchmarks.runtime.procs import BenchProcs, run_id
+    from khgrl.common.delivery.transport import free_port, wait_reachable
 
     work_dir = Path(work).resolve()
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -112,7 +111,7 @@ def run_ingest_benchmark(senders: int = 8, transitions: int = 400_000, batch: in
     learner = procs.learner("learner", run, ep, work_dir / run, "--learning-starts", str(10 * transitions),
                             "--checkpoint-every", "0", *zargs("learner"))
     each = transitions // senders
-    code = "import sys; from benchmarks.ingest_many import sender_main; sys.exit(sender_main(sys.argv[1:]))"
+    code = "import sys; from khgrl.benchmarks.ingest_many import sender_main; sys.exit(sender_main(sys.argv[1:]))"
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     envs = [{**env, "ZENOH_CONFIG": str(files[f"actor-s{i}"])} if secure else env for i in range(senders)]
     ps = [subprocess.Popen([sys.executable, "-c", code, ep, run, f"s{i}", str(each), str(batch), str(window),

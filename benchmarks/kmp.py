@@ -21,9 +21,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from common.model import KMPConfig, box_constraints, fit_model
-from common.scenarios import make_demos
+from khgrl.common.kmp.fit import KMPConfig, box_constraints, fit_model
+from khgrl.common.tasks.passage.scenarios import make_demos
 
 __all__ = ["run_kmp_benchmark"]
 
@@ -63,8 +62,8 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
     t0 = time.perf_counter()
     boxed, _ = fit_model(demos, config, (G, c))
     t_fit_boxed = time.perf_counter() - t0
-    from common.kernels import RBF
-    from common.kmp import LCNSKMP
+    from khgrl.common.kmp.kernels import RBF
+    from khgrl.common.kmp.lcnskmp import LCNSKMP
 
     def build(_):
         LCNSKMP(ref.s, ref.mu, ref.sigma, lam=config.lam, beta=config.beta, kernel=RBF(config.length_scale),

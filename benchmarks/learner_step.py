@@ -118,8 +118,8 @@ def _sb3_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int):
     transitions; returns a callable doing ``n`` gradient steps as the learner's training iteration does."""
     from types import SimpleNamespace
 
-    from common.config import TQCSettings
-    from learner.trainer import build_model
+    from khgrl.common.config.settings import TQCSettings
+    from khgrl.learner.trainer import build_model
 
     task = SimpleNamespace(out_dim=act_dim, obs_low=[-10.0] * obs_dim, obs_high=[10.0] * obs_dim)  # spaces only
     model = build_model(TQCSettings(device=device, learning_starts=0), seed, task)

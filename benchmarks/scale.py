@@ -30,9 +30,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from common.protocol import Keys, Status, decode
-from common.transport import free_port, open_client, wait_reachable
+from khgrl.common.delivery.transport import free_port, open_client, wait_reachable
+from khgrl.common.wire.protocol import Keys, Status, decode
 
 __all__ = ["run_scale_benchmark", "provenance_check", "scale_case"]
 
@@ -47,7 +46,7 @@ def provenance_check(run_dir: Path) -> dict:
 
     :param run_dir: the run directory of a finished ``khgrl up``
     """
-    from learner.checkpoint import find_checkpoint, load_checkpoint_arrays
+    from khgrl.learner.checkpoint import find_checkpoint, load_checkpoint_arrays
 
     ckpt = find_checkpoint(run_dir / "learner")
     arrays = load_checkpoint_arrays(ckpt)
@@ -79,7 +78,8 @@ def scale_case(work: Path, actors: int, rate: float, mode: str, seconds: float, 
     port = free_port()
     run = f"scale{actors}r{int(rate)}{mode[0]}{'m' if secure else ''}{os.getpid()}-{next(_CASES)}"
     run_dir = work / run
-    argv = [sys.executable, "-m", "deploy.cli", "up", "--actors", str(actors), "--rate", str(rate), "--mode", mode,
+    argv = [sys.executable, "-m", "khgrl.deploy.cli", "up", "--actors", str(actors), "--rate", str(rate),
+            "--mode", mode,
             "--episodes", "1000000", "--human", "none", "--run", run, "--run-dir", str(run_dir), "--port", str(port),
             "--seed", str(seed), "--no-progress", *(["--secure"] if secure else [])]
     ep = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"

@@ -36,8 +36,8 @@ def run_secure_benchmark(senders: int = 8, transitions: int = 200_000, actors: i
     :param work: where runs go
     :param out: JSON file of the results
     """
-    from benchmarks.ingest_many import run_ingest_benchmark
-    from benchmarks.scale import scale_case
+    from khgrl.benchmarks.ingest_many import run_ingest_benchmark
+    from khgrl.benchmarks.scale import scale_case
 
     work_dir = Path(work).resolve()
     work_dir.mkdir(parents=True, exist_ok=True)

@@ -25,9 +25,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-
-from deploy.figures import axis_names, figure_name, plot_learning, plot_scale
-from deploy.run_results import (
+from khgrl.deploy.figures import axis_names, figure_name, plot_learning, plot_scale
+from khgrl.deploy.run_results import (
     STABLE_WINDOW,
     RunResult,
     corrected_phases,
@@ -39,7 +38,7 @@ from deploy.run_results import (
     summarize_run,
     zero_cost_from,
 )
-from deploy.summary_table import summary_markdown
+from khgrl.deploy.summary_table import summary_markdown
 
 __all__ = ["RunResult", "find_runs", "load_run", "stable_success", "zero_cost_from", "analyse", "STABLE_WINDOW"]
 

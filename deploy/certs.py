@@ -53,10 +53,9 @@ from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives import serialization as ser
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
-
-from common.acl import ROLES
-from common.acl import cn_for as _cn_of
-from common.wire import ident as _check_id
+from khgrl.common.delivery.acl import ROLES
+from khgrl.common.delivery.acl import cn_for as _cn_of
+from khgrl.common.wire.checks import ident as _check_id
 
 __all__ = ["ROLES", "CertError", "Identity", "init_ca", "issue", "identities", "common_name", "cn_for",
            "parse_cn", "expires", "tls_settings", "add_parser"]
@@ -369,7 +368,7 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 def add_parser(sub: Any) -> Any:
     """Register ``khgrl certs`` on the subcommands ``sub`` of the ``khgrl`` parser; returns its own subcommands
-    (where :mod:`deploy.secure` adds ``configs``).
+    (where :mod:`khgrl.deploy.secure` adds ``configs``).
 
     :param sub: the ``add_subparsers()`` object.
     """

@@ -7,15 +7,15 @@ import json
 import sys
 from pathlib import Path
 
-from common.config import METHODS, SCENARIOS
-from common.process import die_with_parent
+from khgrl.common.config.settings import METHODS, SCENARIOS
+from khgrl.common.process import die_with_parent
 
 __all__ = ["main", "build_parser"]
 
 
 def _cmd_demos_make(args: argparse.Namespace) -> int:
-    from common.demos import save_demos
-    from common.scenarios import make_demos
+    from khgrl.common.tasks.demos import save_demos
+    from khgrl.common.tasks.passage.scenarios import make_demos
 
     demos = make_demos(args.scenario, n_demos=args.n_demos, n_steps=args.n_steps, seed=args.seed)
     path = save_demos(args.out, demos)
@@ -24,10 +24,10 @@ def _cmd_demos_make(args: argparse.Namespace) -> int:
 
 
 def _cmd_kmp_fit(args: argparse.Namespace) -> int:
-    from common.demos import load_demos
-    from common.model import KMPConfig, box_constraints, fit_model
-    from common.plots import plot_kmp
-    from common.scenarios import get_scenario
+    from khgrl.common.kmp.fit import KMPConfig, box_constraints, fit_model
+    from khgrl.common.kmp.plots import plot_kmp
+    from khgrl.common.tasks.demos import load_demos
+    from khgrl.common.tasks.passage.scenarios import get_scenario
 
     demos = load_demos(args.demos)
     config = KMPConfig(
@@ -63,14 +63,14 @@ def _cmd_kmp_fit(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_kmp(args: argparse.Namespace) -> int:
-    from benchmarks.kmp import run_kmp_benchmark
+    from khgrl.benchmarks.kmp import run_kmp_benchmark
 
     run_kmp_benchmark(repeats=args.repeats, seed=args.seed, out=args.out)
     return 0
 
 
 def _cmd_bench_runtime(args: argparse.Namespace) -> int:
-    from benchmarks.runtime import run_runtime_benchmark
+    from khgrl.benchmarks.runtime import run_runtime_benchmark
 
     run_runtime_benchmark(quick=args.quick, out=args.out, episodes=args.episodes, actor_episodes=args.actor_episodes,
                           ingest_transitions=args.ingest_transitions,
@@ -82,7 +82,7 @@ def _cmd_bench_runtime(args: argparse.Namespace) -> int:
 
 
 def _cmd_reference(args: argparse.Namespace) -> int:
-    from learner.baseline import ReferenceConfig, run_reference
+    from khgrl.learner.baseline import ReferenceConfig, run_reference
 
     config = ReferenceConfig(scenario=args.scenario, method=args.method, episodes=args.episodes, seed=args.seed,
                              human_noise=args.human_noise)
@@ -97,13 +97,13 @@ def _cmd_reference(args: argparse.Namespace) -> int:
 # Commands that are whole programs with their own argument parsers (each has --help):
 # name -> (module, function, one-line help)
 PROCESS_COMMANDS = {
-    "up": ("deploy.launcher", "main", "launch router, learner, actor(s) and human-input process locally"),
-    "router": ("deploy.router", "main", "a Zenoh router (zenoh-python in router mode)"),
-    "learner": ("learner.main", "main", "the learner process (TQC, replay buffer from the transition stream)"),
-    "actor": ("actor.main", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
-    "human": ("human_bridge.main", "main", "a human-input process (scripted, gui, keyboard, gamepad or replay client)"),
-    "experiment": ("deploy.experiment", "main", "methods x scenarios x seeds through the real system (resumable)"),
-    "report": ("deploy.report", "main", "per-episode results of runs: figure and markdown table"),
+    "up": ("khgrl.deploy.launcher", "main", "launch router, learner, actor(s) and human-input process locally"),
+    "router": ("khgrl.deploy.router", "main", "a Zenoh router (zenoh-python in router mode)"),
+    "learner": ("khgrl.learner.main", "main", "the learner process (TQC, replay buffer from the transition stream)"),
+    "actor": ("khgrl.actor.main", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
+    "human": ("khgrl.human_bridge.main", "main", "a human-input process (scripted, gui, keyboard, gamepad or replay)"),
+    "experiment": ("khgrl.deploy.experiment", "main", "methods x scenarios x seeds through the real system, resumable"),
+    "report": ("khgrl.deploy.report", "main", "per-episode results of runs: figure and markdown table"),
 }
 # the processes a supervisor starts: they die with it, from before their (slow) imports on
 SUPERVISED = ("router", "learner", "actor", "human")
@@ -119,7 +119,7 @@ def _add_demos(sub) -> None:
     p.add_argument("--n-steps", type=int, default=400, help="points per demonstration (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
     p.set_defaults(func=_cmd_demos_make)
-    from human_bridge.record import add_parser as _add_record
+    from khgrl.human_bridge.record import add_parser as _add_record
 
     _add_record(demos)
 
@@ -160,7 +160,7 @@ def _add_reference(sub) -> None:
 
 
 def _cmd_bench_learner(args: argparse.Namespace) -> int:
-    from benchmarks.learner_step import run_learner_benchmark
+    from khgrl.benchmarks.learner_step import run_learner_benchmark
 
     run_learner_benchmark(devices=tuple(args.devices), seconds=args.seconds, threads=args.threads, seed=args.seed,
                           out=args.out)
@@ -168,7 +168,7 @@ def _cmd_bench_learner(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_scale(args: argparse.Namespace) -> int:
-    from benchmarks.scale import run_scale_benchmark
+    from khgrl.benchmarks.scale import run_scale_benchmark
 
     run_scale_benchmark(actors=tuple(args.actors), rates=tuple(args.rates), modes=tuple(args.modes),
                         seconds=args.seconds, seed=args.seed, work=args.work, out=args.out)
@@ -176,7 +176,7 @@ def _cmd_bench_scale(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_ingest(args: argparse.Namespace) -> int:
-    from benchmarks.ingest_many import run_ingest_benchmark
+    from khgrl.benchmarks.ingest_many import run_ingest_benchmark
 
     run_ingest_benchmark(senders=args.senders, transitions=args.transitions, batch=args.batch, window=args.window,
                          seed=args.seed, out=args.out)
@@ -184,7 +184,7 @@ def _cmd_bench_ingest(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_flood(args: argparse.Namespace) -> int:
-    from benchmarks.flood import run_flood_benchmark
+    from khgrl.benchmarks.flood import run_flood_benchmark
 
     run_flood_benchmark(messages=args.messages, rate=args.rate, quiet_s=args.quiet_s, seed=args.seed,
                         rt_priority=args.rt_priority, out=args.out)
@@ -192,7 +192,7 @@ def _cmd_bench_flood(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_secure(args: argparse.Namespace) -> int:
-    from benchmarks.secure import run_secure_benchmark
+    from khgrl.benchmarks.secure import run_secure_benchmark
 
     run_secure_benchmark(senders=args.senders, transitions=args.transitions, actors=args.actors, rate=args.rate,
                          seconds=args.seconds, repeats=args.repeats, seed=args.seed, out=args.out)
@@ -294,12 +294,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_demos(sub)
     _add_kmp(sub)
     _add_reference(sub)
-    from deploy.evaluate import add_parser as _add_eval
+    from khgrl.deploy.evaluate import add_parser as _add_eval
 
     _add_eval(sub)
     _add_bench(sub)
-    from deploy.certs import add_parser as _add_certs
-    from deploy.secure import add_configs_parser
+    from khgrl.deploy.certs import add_parser as _add_certs
+    from khgrl.deploy.secure import add_configs_parser
 
     add_configs_parser(_add_certs(sub))
     return parser

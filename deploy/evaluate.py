@@ -7,7 +7,7 @@ it learned (KhGRL), with which the policy's actions were trained -- without it L
 is reset with ``seed + i``; the policy acts deterministically (the mean action). Output: a per-episode table
 and success rate / return mean ± std on stdout, a CSV (``RUN_DIR/eval/eval.csv`` by default; an existing file is
 never overwritten: ``eval-2.csv``, ...), and with ``--gif`` an animation of the first episode drawn with
-:mod:`common.task_render`. A missing or unusable run directory, checkpoint or task is one line and exit 2.
+:mod:`khgrl.common.tasks.render`. A missing or unusable run directory, checkpoint or task is one line and exit 2.
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ def read_config(run_dir: Path) -> tuple[Any, dict]:
     :param run_dir: the run directory.
     :raises EvalError: no such file, or it does not parse.
     """
-    from common.config import read_run_file
+    from khgrl.common.config.settings import read_run_file
 
     path = Path(run_dir) / "config.json"
     if not path.is_file():
@@ -108,7 +108,7 @@ def find_model(run_dir: Path, checkpoint: str | Path | None) -> Path:
     :param checkpoint: what ``--checkpoint`` gave (None: the run's).
     :raises EvalError: nothing to load.
     """
-    from learner.checkpoint import MODEL_FILE, find_checkpoint
+    from khgrl.learner.checkpoint import MODEL_FILE, find_checkpoint
 
     if checkpoint is None:
         found = find_checkpoint(Path(run_dir) / "learner")
@@ -126,12 +126,12 @@ def find_model(run_dir: Path, checkpoint: str | Path | None) -> Path:
 def load_run_task(cfg: Any, cwd: str | None = None) -> tuple[Any, str]:
     """The run's task (``--task`` / ``--scenario``, ``--demos``) and its spec.
 
-    :param cfg: the run's :class:`~common.config.RunConfig`.
+    :param cfg: the run's :class:`~khgrl.common.config.settings.RunConfig`.
     :param cwd: the directory ``khgrl up`` ran in, if the run recorded it: the task's module and a relative
         ``--demos`` path are also looked for there.
     :raises EvalError: the task does not load.
     """
-    from common.task import TaskError, load_task
+    from khgrl.common.tasks.api import TaskError, load_task
 
     demos = cfg.demos or None
     if cwd and Path(cwd).is_dir():
@@ -153,7 +153,7 @@ def load_scale(run_dir: Path, actor: str, dim: int) -> tuple[Any, str]:
     :param actor: the actor id.
     :param dim: the task's command size O.
     """
-    from common.scale import ScaleModel
+    from khgrl.common.kmp.scale import ScaleModel
 
     path = Path(run_dir) / f"actor-{actor}" / "scale_model.json"
     if not path.is_file():
@@ -216,7 +216,7 @@ def run_episode(env: Any, policy: Any, episode: int, seed: int,
                 on_step: Callable[[Any, bool], None] | None = None) -> EpisodeResult:
     """One deterministic episode without a human.
 
-    :param env: a :class:`~common.kgrl_env.KGRLEnv`.
+    :param env: a :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv`.
     :param policy: the TQC policy.
     :param episode: the episode number (from 1).
     :param seed: the reset seed.
@@ -264,10 +264,9 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     :raises EvalError: one line saying what is missing.
     """
     import torch
-
-    from common.kgrl_env import KGRLEnv
-    from common.task import TaskError
-    from common.task_world import build_task_world
+    from khgrl.common.tasks.api import TaskError
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
+    from khgrl.common.tasks.world import build_task_world
 
     run_dir = Path(run_dir)
     if episodes < 1:
@@ -286,7 +285,7 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     policy = load_policy(model_zip, env, cfg.tqc.net_arch, cfg.tqc.learning_rate)
     result = Evaluation(task=task.name, spec=spec, checkpoint=model_zip.parent, trained=_trained(model_zip),
                         scale=scale_text, episodes=[])
-    from deploy.gif import GifRecorder
+    from khgrl.deploy.gif import GifRecorder
 
     recorder = GifRecorder(env, every=-(-env.horizon // GIF_MAX_FRAMES)) if gif else None
     with torch.no_grad():

@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from common.config import METHODS, PAPER_EPISODES, SCENARIOS, TQCSettings
+from khgrl.common.config.settings import METHODS, PAPER_EPISODES, SCENARIOS, TQCSettings
 
 __all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main",
            "build_parser"]
@@ -149,7 +149,7 @@ def run_is_done(run_dir: Path, cfg: ExperimentConfig) -> bool:
 
 def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
     """The command of one run (the same a user types)."""
-    khgrl = [sys.executable, "-m", "deploy.cli"]
+    khgrl = [sys.executable, "-m", "khgrl.deploy.cli"]
     if cfg.system == "reference":
         return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
                 "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]

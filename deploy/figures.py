@@ -5,8 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-
-from deploy.run_results import METHOD_LABEL, episode_matrix, human_episodes
+from khgrl.deploy.run_results import METHOD_LABEL, episode_matrix, human_episodes
 
 __all__ = ["FIGURE", "METHOD_COLOR", "figure_name", "plot_learning", "plot_scale", "axis_names"]
 
@@ -71,8 +70,7 @@ def plot_scale(scales: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from common.scenarios import SCENARIOS, get_scenario
+    from khgrl.common.tasks.passage.scenarios import SCENARIOS, get_scenario
 
     scenarios = sorted({k[0] for k in scales})
     outputs = max(table.shape[1] for items in scales.values() for _, table, _ in items)

@@ -14,7 +14,8 @@ GIF_SIZE = (720, 360)
 
 
 class GifRecorder:
-    """Frames of one episode drawn by :class:`common.task_render.TaskRenderer` -- beside the simulator's own camera
+    """Frames of one episode drawn by :class:`khgrl.common.tasks.render.TaskRenderer` -- beside the simulator's own
+    camera
     view where the task's environment has one (``camera_frame(size)``, e.g. the Fetch arm) -- as an animated GIF.
 
     :param env: the evaluation environment (its descriptor sets up the drawing).
@@ -22,7 +23,7 @@ class GifRecorder:
     """
 
     def __init__(self, env: Any, every: int = 1) -> None:
-        from common.task_render import TaskRenderer, frame_from_env
+        from khgrl.common.tasks.render import TaskRenderer, frame_from_env
 
         self.renderer = TaskRenderer(env.descriptor(env.task.name), size=GIF_SIZE)
         self.frame_from_env = frame_from_env

@@ -3,11 +3,11 @@ client, each its own OS process reading the run's resolved configuration (``RUN_
 live progress view, stopped cleanly when the actors finish, on Ctrl-C/SIGTERM, on a stop command, at
 ``--timeout``, or when a process fails (reported with its exit code and the tail of its log).
 
-The run directory (layout: :mod:`deploy.rundir`) is refused if it already holds a run, unless ``--resume``
+The run directory (layout: :mod:`khgrl.deploy.rundir`) is refused if it already holds a run, unless ``--resume``
 (continue it: episode numbering, episodes.csv, corrections.csv and the learner's checkpoint carry on) or
-``--overwrite`` (delete the earlier run first). Children are spawned by :class:`deploy.supervisor.ProcessGroup`
+``--overwrite`` (delete the earlier run first). Children are spawned by :class:`khgrl.deploy.supervisor.ProcessGroup`
 and die with the launcher (parent-death signal), even if it is killed. ``--secure`` runs everything over mutual
-TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mod:`deploy.secure`);
+TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mod:`khgrl.deploy.secure`);
 ``--zenoh-config FILE`` gives every process a Zenoh configuration file.
 
 Exit codes: 0 the actors finished; 1 a process failed, the router was unreachable, ``--timeout`` or a stop
@@ -26,16 +26,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.config import RunConfig, add_config_flags, resolve, write_run_config
-from common.messages import Control, EpisodeReport, Status
-from common.process import StopFlag, install_stop_handlers
-from common.protocol import Keys, ProtocolError, RejectCounter, decode, encode
-from common.task_link import TASK_FILE, save_task
-from common.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
-from common.zenoh_config import config_file
-from deploy.outcome import Outcome, exit_code, report_failures, write_summary
-from deploy.progress import ProgressView
-from deploy.rundir import (
+from khgrl.common.config.settings import RunConfig, add_config_flags, resolve, write_run_config
+from khgrl.common.delivery.task_link import TASK_FILE, save_task
+from khgrl.common.delivery.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
+from khgrl.common.delivery.zenoh_config import config_file
+from khgrl.common.process import StopFlag, install_stop_handlers
+from khgrl.common.wire.messages import Control, EpisodeReport, Status
+from khgrl.common.wire.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from khgrl.deploy.outcome import Outcome, exit_code, report_failures, write_summary
+from khgrl.deploy.progress import ProgressView
+from khgrl.deploy.rundir import (
     RunDirError,
     archive_part,
     clear_run,
@@ -45,8 +45,8 @@ from deploy.rundir import (
     results_in,
     write_pids,
 )
-from deploy.secure import SecureRun, prepare_secure_run, run_identities
-from deploy.supervisor import Proc, ProcessGroup, khgrl_argv
+from khgrl.deploy.secure import SecureRun, prepare_secure_run, run_identities
+from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 
 __all__ = ["main", "build_parser", "RunPlan", "plan_run"]
 
@@ -173,8 +173,8 @@ def check_task(cfg: RunConfig):
     :param cfg: the run's settings
     :raises TaskError: naming what is wrong with the task
     """
-    from common.kgrl_env import KGRLEnv
-    from common.task import TaskError, load_task
+    from khgrl.common.tasks.api import TaskError, load_task
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
 
     task = load_task(cfg.task_spec, cfg.demos or None)
     env = KGRLEnv(task, seed=cfg.seed)

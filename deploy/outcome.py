@@ -6,8 +6,8 @@ import json
 import sys
 from dataclasses import dataclass, field
 
-from common.process import StopFlag
-from deploy.supervisor import ProcessGroup
+from khgrl.common.process import StopFlag
+from khgrl.deploy.supervisor import ProcessGroup
 
 __all__ = ["Outcome", "write_summary", "report_failures", "exit_code"]
 

@@ -4,15 +4,15 @@ return and human interventions, with the learner's ingest, gradient steps and we
 finished episode (``[a0] episode 3: return ...``, the line ``khgrl experiment`` follows) and one when the
 learner's checkpoints start failing or recover.
 
-It gets typed, already validated messages (:class:`common.messages.EpisodeReport`,
-:class:`common.messages.Status` with :class:`common.messages.LearnerInfo`) and only formats them.
+It gets typed, already validated messages (:class:`khgrl.common.wire.messages.EpisodeReport`,
+:class:`khgrl.common.wire.messages.Status` with :class:`khgrl.common.wire.messages.LearnerInfo`) and only formats them.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.messages import EpisodeReport, LearnerInfo, Status
+from khgrl.common.wire.messages import EpisodeReport, LearnerInfo, Status
 
 __all__ = ["ProgressView", "ActorRow", "episode_line", "checkpoint_line"]
 

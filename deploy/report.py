@@ -1,7 +1,7 @@
 """``khgrl report``: results of runs or of whole experiments.
 
 * Experiment directories (``khgrl experiment`` output: run directories named ``<scenario>-<method>-seed<S>``):
-  statistics across seeds, Fig. 4-6 and the data behind them (:mod:`deploy.analysis`), written to
+  statistics across seeds, Fig. 4-6 and the data behind them (:mod:`khgrl.deploy.analysis`), written to
   ``--out`` (default ``EXP/report``).
 * Run directories of ``khgrl reference`` (``RUN/episodes.csv``) or ``khgrl up`` (``RUN/actor-<id>/episodes.csv``,
   one series per actor): per-episode curves in one figure and a markdown table.
@@ -14,7 +14,7 @@ import csv
 import sys
 from pathlib import Path
 
-from common.config import SCENARIOS
+from khgrl.common.config.settings import SCENARIOS
 
 __all__ = ["main", "load_series", "summarize"]
 
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"experiments: only these scenarios ({', '.join(SCENARIOS)}) or task labels (fetch_moved, "
                         "...) (default: all)")
     args = p.parse_args(argv)
-    from deploy.analysis import analyse, find_runs
+    from khgrl.deploy.analysis import analyse, find_runs
 
     missing = [r for r in args.runs if not Path(r).is_dir()]
     if missing:

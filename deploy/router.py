@@ -8,8 +8,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from common.process import StopFlag, die_with_parent, install_stop_handlers
-from common.transport import DEFAULT_ENDPOINT, open_router
+from khgrl.common.delivery.transport import DEFAULT_ENDPOINT, open_router
+from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers
 
 __all__ = ["main", "build_parser"]
 
@@ -30,8 +30,7 @@ def _acl_enabled(file: str | None) -> bool:
     import json
 
     import zenoh
-
-    from common.zenoh_config import config_file
+    from khgrl.common.delivery.zenoh_config import config_file
 
     path = config_file(file)
     if not path:

@@ -172,7 +172,7 @@ def load_scale(run_dir: Path, scenario: str) -> tuple[np.ndarray, np.ndarray, bo
     """(phases (N,), L (N, O), recorded) at the end of a run. Runs without a recorded table (single-process
     reference KGRL, or runs made before the actor wrote ``scale.npz``) never refit L: the scenario's default
     (passage-world scenarios only; a task's run without ``scale.npz`` is an error)."""
-    from common.scenarios import SCENARIOS, get_scenario
+    from khgrl.common.tasks.passage.scenarios import SCENARIOS, get_scenario
 
     f = run_dir / "actor-a0" / "scale.npz"
     if f.exists():

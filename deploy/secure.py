@@ -1,5 +1,6 @@
 """Zenoh configuration files for a secure deployment, made from a certificate directory (``khgrl certs``): the
-router's (TLS listener, mutual TLS, access control per identity: :mod:`common.acl`) and one per process identity
+router's (TLS listener, mutual TLS, access control per identity: :mod:`khgrl.common.delivery.acl`) and one per process
+identity
 (its certificate and key, the CA). ``khgrl certs configs DIR`` writes them for machines on a network;
 ``khgrl up --secure`` makes a CA, the run's identities and these files in ``RUN_DIR/certs`` and starts every
 process with its own.
@@ -14,8 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.acl import Identity, access_control
-from deploy import certs
+from khgrl.common.delivery.acl import Identity, access_control
+from khgrl.deploy import certs
 
 __all__ = ["SecureRun", "router_settings", "client_settings", "write_configs", "prepare_secure_run",
            "add_configs_parser", "run_identities", "issue_identities"]
@@ -97,7 +98,7 @@ class SecureRun:
 def run_identities(cfg) -> list[tuple[str, str]]:
     """(role, id) of every process ``khgrl up`` starts besides the router and itself.
 
-    :param cfg: the run's :class:`~common.config.RunConfig`
+    :param cfg: the run's :class:`~khgrl.common.config.settings.RunConfig`
     """
     ids = [("learner", "learner")] + [("actor", a) for a in cfg.actor_ids()]
     if cfg.method == "khgrl" and cfg.human != "none":

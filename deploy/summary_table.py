@@ -7,8 +7,7 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-
-from deploy.run_results import METHOD_LABEL, STABLE_WINDOW, RunResult
+from khgrl.deploy.run_results import METHOD_LABEL, STABLE_WINDOW, RunResult
 
 __all__ = ["summary_markdown", "median_text", "fmt_episode"]
 

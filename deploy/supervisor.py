@@ -4,7 +4,7 @@ tests use.
 Children are spawned (``subprocess``, never forked from a process with an open Zenoh session) in a new session
 of their own (a Ctrl-C at the terminal reaches only the supervisor, which stops them in order), with
 ``KHGRL_PARENT_PID`` set so that each KhGRL process asks Linux for SIGTERM when its supervisor dies, even by
-SIGKILL (:func:`common.process.die_with_parent`): no child outlives its launcher.
+SIGKILL (:func:`khgrl.common.process.die_with_parent`): no child outlives its launcher.
 """
 
 from __future__ import annotations
@@ -16,14 +16,14 @@ import sys
 import time
 from pathlib import Path
 
-from common.process import PARENT_ENV
+from khgrl.common.process import PARENT_ENV
 
 __all__ = ["Proc", "ProcessGroup", "khgrl_argv"]
 
 
 def khgrl_argv(command: str, *args: str) -> list[str]:
     """argv of ``khgrl COMMAND ARGS`` run by this interpreter (no console script needed)."""
-    return [sys.executable, "-m", "deploy.cli", command, *args]
+    return [sys.executable, "-m", "khgrl.deploy.cli", command, *args]
 
 
 class Proc:

@@ -1,10 +1,10 @@
 """What every human-input client shares (docs/protocol.md): its Zenoh side.
 
-* :class:`CorrectionPublisher` -- the client's correction stream: typed :class:`~common.protocol.Correction`
+* :class:`CorrectionPublisher` -- the client's correction stream: typed :class:`~khgrl.common.wire.protocol.Correction`
   messages, sequence-numbered, express and high priority. A stream is ``active`` messages with P_h while the
   person (or script) holds the robot, sent for every frame, then one ``active=False`` release.
 * :class:`HumanClient` -- one client's subscriptions (frames and whatever else it shows) into an
-  :class:`~common.transport.Inbox` that keeps the newest, decoded into typed messages; stop commands on
+  :class:`~khgrl.common.delivery.transport.Inbox` that keeps the newest, decoded into typed messages; stop commands on
   ``control/human`` and ``control/all``; its liveliness token; its ``status/human/<id>`` (:class:`HumanInfo`),
   and ``pause`` / ``resume`` for the actors.
 * :func:`connected` -- a :class:`HumanClient` on a session to the run's router, closed (holds released) on exit.
@@ -18,13 +18,12 @@ from contextlib import contextmanager
 from typing import Iterator
 
 import numpy as np
-
-from common.messages import Control, Correction, EpisodeReport, Frame, HumanInfo, Message, Scale, Status
-from common.process import StopFlag
-from common.process_config import ProcessConfig
-from common.protocol import Keys, ProtocolError, RejectCounter, attribute_control, decode, encode
-from common.task_link import fetch_task
-from common.transport import Inbox, open_client, undeclare_all
+from khgrl.common.config.process import ProcessConfig
+from khgrl.common.delivery.task_link import fetch_task
+from khgrl.common.delivery.transport import Inbox, open_client, undeclare_all
+from khgrl.common.process import StopFlag
+from khgrl.common.wire.messages import Control, Correction, EpisodeReport, Frame, HumanInfo, Message, Scale, Status
+from khgrl.common.wire.protocol import Keys, ProtocolError, RejectCounter, attribute_control, decode, encode
 
 __all__ = ["CorrectionPublisher", "HumanClient", "connected", "read", "KINDS", "fetch_task"]
 

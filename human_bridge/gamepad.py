@@ -1,7 +1,7 @@
 """``khgrl human gamepad``: correct an actor with a game controller (no mouse), for any task.
 
-The same window and hold logic as ``khgrl human keyboard`` (:mod:`human_bridge.keyboard`,
-:class:`~human_bridge.velocity.VelocityHold`); the controller (:class:`GamepadInput`, pygame joystick events):
+The same window and hold logic as ``khgrl human keyboard`` (:mod:`khgrl.human_bridge.keyboard`,
+:class:`~khgrl.human_bridge.velocity.VelocityHold`); the controller (:class:`GamepadInput`, pygame joystick events):
 
 * **button 0** (``--hold-button``; "A" / "cross" on most pads), held -- hold the robot: P_h starts at its desired
   position and the sticks move it; letting go releases it.
@@ -9,7 +9,7 @@ The same window and hold logic as ``khgrl human keyboard`` (:mod:`human_bridge.k
   along ``view_axes[1]``; the further the stick is pushed, the faster (full push: ``--speed``).
 * **right stick vertical** (axis 3, ``--third-axis``) -- up / down along the third axis (``view_third``; z of a
   3-D task such as ``fetch:moved``).
-* A dead zone of 0.15 (:data:`~human_bridge.velocity.DEAD_ZONE`) around the centre is no push. q or Esc in the
+* A dead zone of 0.15 (:data:`~khgrl.human_bridge.velocity.DEAD_ZONE`) around the centre is no push. q or Esc in the
   window, or closing it, quits (releasing first); unplugging the controller releases.
 
 Exit code 3 with one line when there is no display or pygame finds no controller (``--joystick`` picks one
@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import argparse
 
-from common.process_config import ProcessConfig
-from human_bridge import keyboard
-from human_bridge.velocity import DEAD_ZONE, Push, dead_zone
+from khgrl.common.config.process import ProcessConfig
+from khgrl.human_bridge import keyboard
+from khgrl.human_bridge.velocity import DEAD_ZONE, Push, dead_zone
 
 __all__ = ["GamepadInput", "open_joystick", "add_arguments", "run", "HOLD_BUTTON", "THIRD_AXIS"]
 
@@ -31,7 +31,7 @@ THIRD_AXIS = 3  # the right stick's vertical axis on most pads (SDL's joystick n
 
 
 class GamepadInput:
-    """A controller's sticks and buttons, as a :class:`~human_bridge.velocity.Push` (see the module docstring).
+    """A controller's sticks and buttons, as a :class:`~khgrl.human_bridge.velocity.Push` (see the module docstring).
 
     :param hold_button: the button that holds the robot while down.
     :param third_axis: the axis that moves the third output (up = +).
@@ -99,7 +99,7 @@ def open_joystick(index: int = 0):
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The gamepad's flags (those of :func:`human_bridge.keyboard.add_arguments` and its own)."""
+    """The gamepad's flags (those of :func:`khgrl.human_bridge.keyboard.add_arguments` and its own)."""
     keyboard.add_arguments(parser, default_id="gamepad")
     parser.add_argument("--joystick", type=int, default=0, help="which controller (default: %(default)s)")
     parser.add_argument("--hold-button", type=int, default=HOLD_BUTTON,

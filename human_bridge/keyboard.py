@@ -14,9 +14,9 @@ A small pygame window (it needs the keyboard focus) shows the task, the driven a
 
 P_h moves at ``--speed`` command units per second (default: 10 % of each axis's workspace span per second) and
 stays in the workspace box; the hold logic (one correction per frame, the release, the end of an episode) is
-:class:`~human_bridge.velocity.VelocityHold`. The window and the loop (:class:`PadClient`, :func:`run_pad`) are
-shared with ``khgrl human gamepad`` (:mod:`human_bridge.gamepad`). Without a usable display the client exits
-with code 3 and one line (see :func:`human_bridge.gui.main.display_problem`).
+:class:`~khgrl.human_bridge.velocity.VelocityHold`. The window and the loop (:class:`PadClient`, :func:`run_pad`) are
+shared with ``khgrl human gamepad`` (:mod:`khgrl.human_bridge.gamepad`). Without a usable display the client exits
+with code 3 and one line (see :func:`khgrl.human_bridge.gui.main.display_problem`).
 """
 
 from __future__ import annotations
@@ -27,14 +27,13 @@ import time
 from typing import Callable, Protocol
 
 import numpy as np
-
-from common.descriptor import TaskDescriptor
-from common.messages import Frame
-from common.process import StopFlag, install_stop_handlers
-from common.process_config import ProcessConfig
-from human_bridge.client import connected, fetch_task
-from human_bridge.gui.main import NO_DISPLAY_EXIT, open_window
-from human_bridge.velocity import Push, VelocityHold
+from khgrl.common.config.process import ProcessConfig
+from khgrl.common.process import StopFlag, install_stop_handlers
+from khgrl.common.wire.descriptor import TaskDescriptor
+from khgrl.common.wire.messages import Frame
+from khgrl.human_bridge.client import connected, fetch_task
+from khgrl.human_bridge.gui.main import NO_DISPLAY_EXIT, open_window
+from khgrl.human_bridge.velocity import Push, VelocityHold
 
 __all__ = ["KeyboardInput", "PadClient", "Device", "quit_event", "run_pad", "window_loop", "positive", "add_arguments",
            "run", "WINDOW", "TASK_RETRY_S"]
@@ -64,7 +63,7 @@ def quit_event(event) -> bool:
 
 
 class KeyboardInput:
-    """The keys held down, as a :class:`~human_bridge.velocity.Push` (see the module docstring)."""
+    """The keys held down, as a :class:`~khgrl.human_bridge.velocity.Push` (see the module docstring)."""
 
     help = "hold Space (Enter: toggle) + arrows, PageUp/PageDown or W/S to move P_h; q: quit"
 
@@ -114,7 +113,7 @@ class PadClient:
     """A velocity client's window side: the run's task, the driven actor's frames in, the device's events in,
     corrections out (through ``link.pub``), its state as text.
 
-    :param link: the client's network side (a :class:`~human_bridge.client.HumanClient` subscribed to frames).
+    :param link: the client's network side (a :class:`~khgrl.human_bridge.client.HumanClient` subscribed to frames).
     :param device: the input device (:class:`Device`).
     :param actor: the actor to drive.
     :param speed: P_h's speed at full push in command units per second (None: 10 % of each span per second).

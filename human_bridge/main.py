@@ -3,13 +3,13 @@ messages (docs/protocol.md): it reads the actors' frames and publishes correctio
 
 Clients:
 
-* ``scripted`` -- the reproducible stand-in for a person (:mod:`human_bridge.scripted`): in the run's
+* ``scripted`` -- the reproducible stand-in for a person (:mod:`khgrl.human_bridge.scripted`): in the run's
   ``human_episodes``, over the scenario's help window, it holds the desired position on a safe path.
-* ``gui`` -- a pygame window: a person drags the robot with the mouse (:mod:`human_bridge.gui`).
+* ``gui`` -- a pygame window: a person drags the robot with the mouse (:mod:`khgrl.human_bridge.gui`).
 * ``replay`` -- feeds a recorded ``corrections.csv`` into a new run at the same episodes and steps
-  (:mod:`human_bridge.replay`).
+  (:mod:`khgrl.human_bridge.replay`).
 * ``keyboard`` / ``gamepad`` -- hold a key / button to intervene and move the desired position with the arrow
-  keys / a stick in the task's view axes (:mod:`human_bridge.keyboard`, :mod:`human_bridge.gamepad`).
+  keys / a stick in the task's view axes (:mod:`khgrl.human_bridge.keyboard`, :mod:`khgrl.human_bridge.gamepad`).
 
 Started by ``khgrl up`` as ``khgrl human CLIENT --config RUN_DIR/config.json``; by hand (another machine) with
 ``--run RUN --connect EP`` and any run setting as a flag.
@@ -21,10 +21,10 @@ import argparse
 import logging
 import sys
 
-from common.process import die_with_parent
-from common.process_config import ProcessConfig, add_process_flags, resolve_process
-from human_bridge import gamepad, keyboard, replay, scripted
-from human_bridge.gui import main as gui
+from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
+from khgrl.common.process import die_with_parent
+from khgrl.human_bridge import gamepad, keyboard, replay, scripted
+from khgrl.human_bridge.gui import main as gui
 
 __all__ = ["main", "build_parser", "SETTINGS"]
 

@@ -1,7 +1,7 @@
 """``khgrl demos record``: draw demonstrations of a task with the mouse and save them as a demonstration file.
 
 A window shows the task (its workspace, shapes, demonstrations and KMP mean, drawn by
-:class:`common.task_render.TaskRenderer` from a world built here: ``load_task(spec)`` + ``build_task_world``, no
+:class:`khgrl.common.tasks.render.TaskRenderer` from a world built here: ``load_task(spec)`` + ``build_task_world``, no
 Zenoh). Pressing the left button in a view starts a demonstration; while the button is held the pen -- the
 pointer's position in that view's two axes, clipped to the workspace (with ``--speed``: trailing the pointer at
 most that fast) -- is sampled ``--rate`` times a second with its time; releasing ends it. Each demonstration is
@@ -12,7 +12,7 @@ exist) is shown with a placeholder: two straight lines from its ``start`` to its
 
 Keys: BACKSPACE discards the last demonstration (or the one being drawn), ENTER or S keeps them and saves the
 file (with ``--demos-per N``: saved when N are kept), ESC (or closing the window) quits without saving.
-The file (.npz or .csv, :func:`common.demos.save_demos`) is never overwritten unless ``--overwrite``.
+The file (.npz or .csv, :func:`khgrl.common.tasks.demos.save_demos`) is never overwritten unless ``--overwrite``.
 
 Exit codes: 0 saved, 1 quit without saving, 2 bad arguments or task, 3 no usable display.
 """
@@ -39,7 +39,7 @@ STRIP = 80  # the text strip's height in pixels
 
 
 class Layout(Protocol):
-    """The views' geometry (:class:`common.task_render.TaskRenderer` has it)."""
+    """The views' geometry (:class:`khgrl.common.tasks.render.TaskRenderer` has it)."""
 
     def view_at(self, pixel) -> int | None: ...
 
@@ -235,7 +235,7 @@ class Recorder:
 def placeholder_demos(task, n: int) -> np.ndarray:
     """Two straight lines from the task's ``start`` to its ``goal`` point (its view's shapes; default: across the
     workspace's diagonal), for a task with no demonstrations yet: the KMP fitted to them is the reference."""
-    from common.task import vector
+    from khgrl.common.tasks.api import vector
 
     low = vector(task, "workspace low", task.workspace[0])
     high = vector(task, "workspace high", task.workspace[1], low.size)
@@ -253,11 +253,11 @@ def record_task(spec: str, steps: int | None = None):
     """(descriptor, placeholder) of ``spec`` built here (once per process); a task whose demonstrations cannot be
     loaded yet gets :func:`placeholder_demos` of ``steps`` (default 200) points (placeholder True).
 
-    :raises common.task.TaskError: naming what is wrong with the task.
+    :raises khgrl.common.tasks.api.TaskError: naming what is wrong with the task.
     """
-    from common.task import TaskError, load_task, task_demos
-    from common.task_world import build_task_world
-    from human_bridge.gui.task import local_descriptor
+    from khgrl.common.tasks.api import TaskError, load_task, task_demos
+    from khgrl.common.tasks.world import build_task_world
+    from khgrl.human_bridge.gui.task import local_descriptor
 
     task = load_task(spec)
     try:
@@ -273,8 +273,7 @@ def record_task(spec: str, steps: int | None = None):
 def draw(surface, renderer, rec: Recorder) -> None:
     """The task's views with the kept demonstrations (orange) and the one being drawn (the trail)."""
     import pygame
-
-    from common.task_render import TaskFrame
+    from khgrl.common.tasks.render import TaskFrame
 
     cur = rec.current()
     pen = rec.reference[0] if cur is None else cur[-1]
@@ -345,8 +344,8 @@ def run_record(args: argparse.Namespace, *, clock=time.monotonic, events=None) -
     :param clock: the time source of the samples (tests: a fake clock).
     :param events: the source of pygame events per frame (tests; default ``pygame.event.get``).
     """
-    from common.demos import save_demos
-    from human_bridge.gui.main import display_problem, open_window
+    from khgrl.common.tasks.demos import save_demos
+    from khgrl.human_bridge.gui.main import display_problem, open_window
 
     prog = "khgrl demos record"
     try:
@@ -361,7 +360,7 @@ def run_record(args: argparse.Namespace, *, clock=time.monotonic, events=None) -
     except ValueError as exc:  # TaskError and DemoFormatError too
         print(f"{prog}: {exc}", file=sys.stderr, flush=True)
         return 2
-    from common.task_render import TaskRenderer
+    from khgrl.common.tasks.render import TaskRenderer
 
     views = 1 if d.third is None else 2
     size = (int(args.size) * views, int(args.size) + STRIP)

@@ -24,11 +24,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-from common.process import StopFlag, install_stop_handlers
-from common.process_config import ProcessConfig
-from common.protocol import Frame
-from human_bridge.client import CorrectionPublisher, connected
+from khgrl.common.config.process import ProcessConfig
+from khgrl.common.process import StopFlag, install_stop_handlers
+from khgrl.common.wire.protocol import Frame
+from khgrl.human_bridge.client import CorrectionPublisher, connected
 
 __all__ = ["load_record", "ReplayPlan", "ReplayAnswers", "add_arguments", "run"]
 

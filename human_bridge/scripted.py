@@ -1,8 +1,10 @@
 """The scripted human: a reproducible stand-in for a person who drags the robot's desired position.
 
-In the given episodes it asks the task's ``scripted_human`` (:class:`common.task.Task`) for P_h at each step's
+In the given episodes it asks the task's ``scripted_human`` (:class:`khgrl.common.tasks.api.Task`) for P_h at each
+step's
 KMP mean; optional seeded noise imitates an unsteady hand; None releases. The passage world's
-(:class:`common.passage_task.PassageGuide`) knows a safe path through the gaps (and around the obstacle) -- the
+(:class:`khgrl.common.tasks.passage.task.PassageGuide`) knows a safe path through the gaps (and around the obstacle) --
+the
 scenario's ``human_waypoints`` -- and, over the part of the task where help is needed (the scenario's
 ``human_window``, in workspace x), sets P_h on that path at the point the KMP mean has reached in x.
 
@@ -21,15 +23,14 @@ from typing import Callable
 
 import gymnasium as gym
 import numpy as np
-
-from common.config import PAPER_EPISODES
-from common.passage_task import PassageGuide
-from common.process import StopFlag, install_stop_handlers
-from common.process_config import ProcessConfig
-from common.protocol import Frame
-from common.scenarios import Scenario, get_scenario
-from common.task import TaskError, load_task
-from human_bridge.client import CorrectionPublisher, connected
+from khgrl.common.config.process import ProcessConfig
+from khgrl.common.config.settings import PAPER_EPISODES
+from khgrl.common.process import StopFlag, install_stop_handlers
+from khgrl.common.tasks.api import TaskError, load_task
+from khgrl.common.tasks.passage.scenarios import Scenario, get_scenario
+from khgrl.common.tasks.passage.task import PassageGuide
+from khgrl.common.wire.protocol import Frame
+from khgrl.human_bridge.client import CorrectionPublisher, connected
 
 __all__ = ["PAPER_EPISODES", "ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper", "ScriptedAnswers",
            "add_arguments", "run"]

@@ -1,5 +1,6 @@
 """Velocity control of P_h for people without a pointer: the logic the ``keyboard`` and ``gamepad`` clients share
-(:mod:`human_bridge.keyboard`, :mod:`human_bridge.gamepad`). No Zenoh, no pygame: a device turns its state into
+(:mod:`khgrl.human_bridge.keyboard`, :mod:`khgrl.human_bridge.gamepad`). No Zenoh, no pygame: a device turns its state
+into
 a :class:`Push`, and :class:`VelocityHold` turns pushes and the driven actor's frames into corrections.
 
 A hold (docs/protocol.md, ``correction``): when the device's hold input goes down, P_h starts at the ``desired``
@@ -23,9 +24,8 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-
-from common.descriptor import TaskDescriptor
-from common.messages import Frame
+from khgrl.common.wire.descriptor import TaskDescriptor
+from khgrl.common.wire.messages import Frame
 
 __all__ = ["Push", "VelocityHold", "axes_of", "dead_zone", "axis_speeds", "velocity", "DEFAULT_SPEED_FRACTION",
            "DEAD_ZONE", "KEEPALIVE_S", "MAX_DT"]
@@ -107,7 +107,7 @@ class VelocityHold:
 
     :param task: the run's task (its size, axes and workspace box).
     :param send: ``send(actor, p_h or None, episode, t)`` publishes one correction
-        (:meth:`human_bridge.client.CorrectionPublisher.send`).
+        (:meth:`khgrl.human_bridge.client.CorrectionPublisher.send`).
     :param actor: the actor to drive.
     :param speed: command units per second at full push (None: :data:`DEFAULT_SPEED_FRACTION` of each span).
     :param clock: the time source for the keepalive (seconds).

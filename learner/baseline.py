@@ -1,9 +1,9 @@
 """Single-process baseline: sb3-contrib TQC on the passage world through SB3's own ``learn()`` loop.
 
 This is what a user would run instead of the distributed system (``khgrl reference``), and the baseline it
-must match in sample efficiency: TQC with the run's settings (:class:`common.config.TQCSettings`, the one
+must match in sample efficiency: TQC with the run's settings (:class:`khgrl.common.config.settings.TQCSettings`, the one
 source the learner uses too: the paper's 2 x 256, lr 1e-3, tau 0.02, gamma 0.99, train_freq 8,
-gradient_steps 8, automatic entropy coefficient); for KhGRL the scripted human (:mod:`human_bridge.scripted`)
+gradient_steps 8, automatic entropy coefficient); for KhGRL the scripted human (:mod:`khgrl.human_bridge.scripted`)
 corrects the desired position in the given episodes and the replay buffer stores the human's action a_h in
 place of the policy's (:class:`InterventionTQC`); in the low-covariance scenario the exploration scale L is
 refit from each intervention.
@@ -23,14 +23,13 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 import torch
+from khgrl.common.config.settings import METHODS, PAPER_EPISODES, TQCSettings
+from khgrl.common.kmp.scale import ScaleModel
+from khgrl.common.metrics import EpisodeAccumulator, EpisodeStats, write_episodes
+from khgrl.common.tasks.passage.env import PassageEnv
+from khgrl.human_bridge.scripted import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 from sb3_contrib import TQC
 from stable_baselines3.common.callbacks import StopTrainingOnMaxEpisodes
-
-from common.config import METHODS, PAPER_EPISODES, TQCSettings
-from common.env import PassageEnv
-from common.metrics import EpisodeAccumulator, EpisodeStats, write_episodes
-from common.scale import ScaleModel
-from human_bridge.scripted import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 
 __all__ = ["ReferenceConfig", "InterventionTQC", "build_env", "run_reference"]
 

@@ -2,7 +2,7 @@
 unless ``--checkpoint-dir`` puts it elsewhere, e.g. on a data disk).
 
 A checkpoint holds ``model.zip`` (policy, optimisers, entropy coefficient), ``replay_buffer.pkl`` (SB3's
-pickle of the :class:`~learner.replay.StreamReplayBuffer`: transitions with their intervention and clip flags
+pickle of the :class:`~khgrl.learner.replay.StreamReplayBuffer`: transitions with their intervention and clip flags
 and provenance) and ``state.json`` (stream positions, counters, pending training iterations, weights version).
 It is written to a temporary directory (``checkpoint.tmp-PID``, fsynced) that is then renamed into place,
 ``state.json`` last, so a crash leaves either the previous checkpoint or the new one, never a mix. The pickle
@@ -246,12 +246,11 @@ def load_checkpoint(ckpt: str | Path, env: Any, device: str = "cpu") -> tuple[An
     """The model (with its replay buffer) and the state of a checkpoint.
 
     :param ckpt: the checkpoint directory (:func:`find_checkpoint`)
-    :param env: an environment with the model's spaces (``common.spaces.SpacesEnv``)
+    :param env: an environment with the model's spaces (``khgrl.common.tasks.spaces.SpacesEnv``)
     :param device: the torch device to train on (a checkpoint made on a GPU resumes on a CPU and back)
     """
+    from khgrl.learner.replay import StreamReplayBuffer
     from sb3_contrib import TQC
-
-    from learner.replay import StreamReplayBuffer
 
     ckpt = Path(ckpt)
     state = json.loads((ckpt / STATE_FILE).read_text())
@@ -273,9 +272,8 @@ def load_checkpoint_arrays(ckpt: str | Path) -> dict[str, np.ndarray]:
 
     :param ckpt: the checkpoint directory
     """
+    from khgrl.learner.replay import SIDE_ARRAYS, StreamReplayBuffer
     from stable_baselines3.common.save_util import load_from_pkl
-
-    from learner.replay import SIDE_ARRAYS, StreamReplayBuffer
 
     ckpt = Path(ckpt)
     if all((ckpt / f"{name}.npy").is_file() for name in SIDE_ARRAYS):  # format 1

@@ -1,7 +1,8 @@
 """The learner's main loop, without Zenoh: messages in, acks / weights / status out through a publisher.
 
 :meth:`LearnerLoop.run` keeps ingest apart from training. Its *ingest thread* takes messages as they arrive
-(served per actor, :class:`~learner.ingest.FairInbox`), decodes and checks them, stores accepted batches in the
+(served per actor, :class:`~khgrl.common.delivery.ingest.FairInbox`), decodes and checks them, stores accepted batches
+in the
 replay buffer and acks their actors; it never waits for a gradient step. The calling thread trains -- one due
 iteration at a time (``simulation`` mode: the schedule of SB3's ``learn()``; ``robot`` mode: whenever it is
 free, on everything stored) -- publishes the new weights and acks every actor, checkpoints when due or asked
@@ -23,10 +24,11 @@ from collections import Counter
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
-from common.descriptor import TaskDescriptor
-from common.messages import LearnerInfo
-from common.process import StopFlag
-from common.protocol import (
+from khgrl.common.delivery.ingest import FairInbox, StreamTable
+from khgrl.common.process import StopFlag
+from khgrl.common.wire.descriptor import TaskDescriptor
+from khgrl.common.wire.messages import LearnerInfo
+from khgrl.common.wire.protocol import (
     ANY_DIMS,
     Ack,
     Control,
@@ -40,10 +42,9 @@ from common.protocol import (
     attribute_control,
     decode,
 )
-from learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint
-from learner.ingest import FairInbox, StreamTable
-from learner.resume import open_learner, rss_mb
-from learner.trainer import Trainer
+from khgrl.learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint
+from khgrl.learner.resume import open_learner, rss_mb
+from khgrl.learner.trainer import Trainer
 
 __all__ = ["Publisher", "LearnerLoop", "open_learner", "MAX_DRAIN"]
 
@@ -160,7 +161,7 @@ class LearnerLoop:
     def set_task(self, task) -> None:
         """The run's task descriptor: transitions are checked against its sizes and digest, acks carry its digest.
 
-        :param task: a :class:`~common.descriptor.TaskDescriptor`
+        :param task: a :class:`~khgrl.common.wire.descriptor.TaskDescriptor`
         """
         self.task = task
         self.dims = Dims(obs=task.obs_dim, out=task.out_dim)
@@ -206,7 +207,7 @@ class LearnerLoop:
     def drain(self, inbox: _Inbox) -> int:
         """Take up to :data:`MAX_DRAIN` messages (waiting briefly for the first when there is nothing to train).
 
-        :param inbox: a :class:`common.transport.Inbox` (items ``(kind, key, payload, arrival)``)
+        :param inbox: a :class:`khgrl.common.delivery.transport.Inbox` (items ``(kind, key, payload, arrival)``)
         """
         n = 0
         while n < MAX_DRAIN:
@@ -284,7 +285,7 @@ class LearnerLoop:
     def checkpoint(self) -> Path | None:
         """Save a checkpoint of everything accepted so far, then tell every actor (``durable`` in the acks). A disk
         fault (full, read-only, unwritable) leaves the previous checkpoint and marks nothing durable: it is logged,
-        shown in the status, retried with backoff (:class:`~learner.checkpoint.SaveFaults`), and None returned."""
+        shown in the status, retried with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`), and None returned."""
         with self.lock:  # ingest waits (the inbox holds what arrives): the buffer is saved as the acks will say
             return self._checkpoint()
 
@@ -341,7 +342,7 @@ class LearnerLoop:
         """Turn until the stop flag is set (SIGINT/SIGTERM or a ``stop`` command). The caller checkpoints last.
 
         :param inbox: where the Zenoh callbacks file transitions and control messages (served per actor, see
-            :class:`~learner.ingest.FairInbox`)
+            :class:`~khgrl.common.delivery.ingest.FairInbox`)
         """
         inbox = self.inbox = FairInbox(inbox, self.streams.__contains__)
         ingest = threading.Thread(target=self._ingest, args=(inbox,), name="ingest", daemon=True)

@@ -6,9 +6,12 @@ resumes. See docs/protocol.md for the messages and the flow control.
     khgrl learner --run RUN --connect tcp/HOST:PORT --run-dir DIR [--learning-starts N ...]
 
 The parts, in the order a transition meets them: the Zenoh callback files the payload in an inbox
-(:class:`common.transport.Inbox`), :mod:`learner.loop` decodes it, :mod:`learner.ingest` orders it into its
-actor's stream, :mod:`learner.trainer` stores it in the replay buffer (:mod:`learner.replay`) and trains when
-an iteration is due; acks and weights go out through :mod:`learner.publish`; :mod:`learner.checkpoint`
+(:class:`khgrl.common.delivery.transport.Inbox`), :mod:`khgrl.learner.loop` decodes it,
+:mod:`khgrl.common.delivery.ingest` orders it into its
+actor's stream, :mod:`khgrl.learner.trainer` stores it in the replay buffer (:mod:`khgrl.learner.replay`) and trains
+when
+an iteration is due; acks and weights go out through :mod:`khgrl.common.delivery.learner_link`;
+:mod:`khgrl.learner.checkpoint`
 saves and loads everything in ``RUN_DIR/learner/checkpoint`` (or ``CHECKPOINT_DIR/checkpoint`` with
 ``--checkpoint-dir``). A checkpoint that fails on a full or unwritable disk is logged, shown in the status and
 retried while training goes on; if the final one fails the learner says so and exits with 1.
@@ -23,15 +26,15 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
-from common.process_config import ProcessConfig, add_process_flags, resolve_process
-from common.protocol import Keys
-from common.task_link import TASK_FILE, TaskAnnouncer, fetch_task, load_task_file, save_task
-from common.transport import Inbox, open_client, undeclare_all
-from learner.checkpoint import CheckpointError, find_checkpoint
+from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
+from khgrl.common.delivery.task_link import TASK_FILE, TaskAnnouncer, fetch_task, load_task_file, save_task
+from khgrl.common.delivery.transport import Inbox, open_client, undeclare_all
+from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
+from khgrl.common.wire.protocol import Keys
+from khgrl.learner.checkpoint import CheckpointError, find_checkpoint
 
 if TYPE_CHECKING:
-    from learner.loop import LearnerLoop
+    from khgrl.learner.loop import LearnerLoop
 
 __all__ = ["main", "build_parser"]
 
@@ -99,11 +102,10 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     :param resume: continue from the checkpoint
     """
     import torch  # (imported here: --help and flag errors answer at once)
-
-    from learner.loop import LearnerLoop
-    from learner.publish import ZenohPublisher
-    from learner.resume import open_learner
-    from learner.trainer import torch_device
+    from khgrl.common.delivery.learner_link import ZenohPublisher
+    from khgrl.learner.loop import LearnerLoop
+    from khgrl.learner.resume import open_learner
+    from khgrl.learner.trainer import torch_device
 
     cfg = pc.cfg
     setup_process_logging(learner_dir / "learner.log")
@@ -167,7 +169,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
 def _final_checkpoint_failed(loop: LearnerLoop) -> int:
     """Say (log and stderr, no traceback) that the last checkpoint failed and what that means; exit code 1.
 
-    :param loop: the learner loop whose final :meth:`~learner.loop.LearnerLoop.checkpoint` failed
+    :param loop: the learner loop whose final :meth:`~khgrl.learner.loop.LearnerLoop.checkpoint` failed
     """
     unsaved = loop.trainer.total - loop.last_ckpt_total
     message = f"the final checkpoint in {loop.ckpt_dir} failed ({loop.saves.error}): "

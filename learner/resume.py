@@ -6,11 +6,11 @@ import logging
 import os
 from pathlib import Path
 
-from common.config import TQCSettings
-from common.spaces import SpacesEnv
-from learner.checkpoint import CheckpointError, fault_reason, find_checkpoint, load_checkpoint, remove_stale_temps
-from learner.ingest import StreamTable
-from learner.trainer import Trainer, build_model, torch_device
+from khgrl.common.config.settings import TQCSettings
+from khgrl.common.delivery.ingest import StreamTable
+from khgrl.common.tasks.spaces import SpacesEnv
+from khgrl.learner.checkpoint import CheckpointError, fault_reason, find_checkpoint, load_checkpoint, remove_stale_temps
+from khgrl.learner.trainer import Trainer, build_model, torch_device
 
 __all__ = ["open_learner", "rss_mb"]
 
@@ -28,7 +28,7 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     :param learner_dir: ``RUN_DIR/learner`` (checkpoint, SB3 logs under ``tb/``)
     :param resume: continue from the checkpoint (:class:`CheckpointError` if there is none)
     :param logger_formats: SB3 logger output formats
-    :param task: the run's :class:`~common.descriptor.TaskDescriptor` (None: the passage world's spaces)
+    :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (None: the passage world's spaces)
     :param checkpoint_dir: where the checkpoints are (None: ``learner_dir``)
     """
     learner_dir = Path(learner_dir)

@@ -22,12 +22,11 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-
-from common.config import TQCSettings
-from common.protocol import Ack, Transitions, Weights
-from common.spaces import SpacesEnv
-from learner.ingest import ActorStream
-from learner.replay import StreamReplayBuffer
+from khgrl.common.config.settings import TQCSettings
+from khgrl.common.delivery.ingest import ActorStream
+from khgrl.common.tasks.spaces import SpacesEnv
+from khgrl.common.wire.protocol import Ack, Transitions, Weights
+from khgrl.learner.replay import StreamReplayBuffer
 
 __all__ = ["Trainer", "build_model", "torch_device"]
 
@@ -53,9 +52,9 @@ def build_model(tqc: TQCSettings, seed: int, task=None):
     """A fresh sb3-contrib TQC with the run's settings on the task's spaces, whose replay buffer is a
     :class:`StreamReplayBuffer` (which draws no random numbers: the seeded model is SB3's own).
 
-    :param tqc: the TQC settings (``common.config.TQCSettings``)
+    :param tqc: the TQC settings (``khgrl.common.config.settings.TQCSettings``)
     :param seed: the model's seed
-    :param task: the run's :class:`~common.descriptor.TaskDescriptor` (None: the passage world's spaces)
+    :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (None: the passage world's spaces)
     """
     from sb3_contrib import TQC
 
@@ -111,7 +110,7 @@ class Trainer:
     def add(self, msg: Transitions, stream: ActorStream, positions: Callable[[], dict[str, int]]) -> None:
         """Store one accepted batch as SB3's ``_store_transition`` would, transition by transition, for one
         environment (done = terminated or truncated, ``TimeLimit.truncated`` for the time limit; in one
-        :meth:`~learner.replay.StreamReplayBuffer.add_batch`), and note each iteration that becomes due.
+        :meth:`~khgrl.learner.replay.StreamReplayBuffer.add_batch`), and note each iteration that becomes due.
 
         :param msg: the batch
         :param stream: its actor's stream (provenance code, running index)

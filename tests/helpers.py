@@ -24,8 +24,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from common.transport import free_port
-from deploy.supervisor import Proc, ProcessGroup
+from khgrl.common.delivery.transport import free_port
+from khgrl.deploy.supervisor import Proc, ProcessGroup
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -81,7 +81,7 @@ def read_json(path: str | Path) -> Any:
 
 
 class ProcGroup(ProcessGroup):
-    """The supervisor of ``khgrl up`` (deploy.supervisor) with shortcuts for KhGRL processes: starts them under
+    """The supervisor of ``khgrl up`` (khgrl.deploy.supervisor) with shortcuts for KhGRL processes: starts them under
     ``base`` (logs in ``base/logs``) and kills leftovers by PID on exit."""
 
     def __init__(self, base: str | Path) -> None:
@@ -97,7 +97,7 @@ class ProcGroup(ProcessGroup):
     def router(self, endpoint: str | None = None, timeout: float = 30.0) -> str:
         """Start a router; returns its endpoint once it accepts TCP connections."""
         endpoint = endpoint or free_endpoint()
-        p = self.start("router", python_main("deploy.router") + ["--listen", endpoint])
+        p = self.start("router", python_main("khgrl.deploy.router") + ["--listen", endpoint])
         host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
 
         def up() -> bool:
@@ -112,16 +112,16 @@ class ProcGroup(ProcessGroup):
 
     def learner(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
         run_dir = Path(run_dir or self.base / "run")
-        return self.start("learner", python_main("learner.main") + [
+        return self.start("learner", python_main("khgrl.learner.main") + [
             "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
 
     def actor(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
         run_dir = Path(run_dir or self.base / "run")
-        return self.start("actor", python_main("actor.main") + [
+        return self.start("actor", python_main("khgrl.actor.main") + [
             "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
 
     def human(self, run: str, endpoint: str, *extra: str) -> Proc:
-        return self.start("human", python_main("human_bridge.main") + [*extra[:1], "--run", run,
+        return self.start("human", python_main("khgrl.human_bridge.main") + [*extra[:1], "--run", run,
                                                                             "--connect", endpoint, *extra[1:]])
 
 
@@ -157,7 +157,7 @@ def kill_pids(pids: list[int]) -> None:
 
 
 class RecordingPublisher:
-    """Stands in for :class:`human_bridge.client.CorrectionPublisher` in tests of a client's answers: records
+    """Stands in for :class:`khgrl.human_bridge.client.CorrectionPublisher` in tests of a client's answers: records
     what it would send, with the same rule (a live release only after a hold). ``sent`` holds
     ``(actor, p_h as a tuple or None, episode, t, step)``."""
 

@@ -14,7 +14,7 @@ from helpers import REPO, endpoint_pattern, kill_pids, pid_alive, pids_matching,
 
 __all__ = ["UP", "FAST", "KGRL", "HUMAN_EPISODE", "Launcher", "_env", "_run", "_rows", "_ingested"]
 
-UP = [sys.executable, "-m", "deploy.cli", "up"]
+UP = [sys.executable, "-m", "khgrl.deploy.cli", "up"]
 FAST = ["--scenario", "low_cov", "--learning-starts", "64", "--no-progress"]
 KGRL = [*FAST, "--method", "kgrl", "--human", "none"]
 HUMAN_EPISODE = 3  # the scripted human helps in episode 3 of the run only

@@ -1,7 +1,7 @@
 """Runtime of the distributed system (``khgrl bench runtime``): what the Zenoh split costs and buys.
 
 Every measurement runs real processes (a router, learners, actors: ``khgrl ...`` subprocesses under one
-:class:`deploy.supervisor.ProcessGroup`, stopped at the end) on this machine, in ONE benchmark run, one after
+:class:`khgrl.deploy.supervisor.ProcessGroup`, stopped at the end) on this machine, in ONE benchmark run, one after
 the other, so the ratios are taken under the same load:
 
 1. **ingest** (:mod:`.ingest`): transitions per second a learner (``--learning-starts`` 10^9: it never trains)
@@ -17,7 +17,7 @@ the other, so the ratios are taken under the same load:
    the 8-gradient-step update every 8 steps.
 4. **gradient steps per second** (:mod:`.train`): a learner with a backlog of due training iterations
    (transitions published by this process), from its status messages, next to a standalone TQC (the paper's
-   :class:`common.config.TQCSettings`, replay buffer of random transitions) timing
+   :class:`khgrl.common.config.settings.TQCSettings`, replay buffer of random transitions) timing
    ``model.train(gradient_steps=8, batch_size=256)`` in this process; the two alternate in slices (the learner
    is paused by a control message while this process trains, so they never compete for a core and a drifting
    load hits both alike); the ratio (target >= 90 %). Also reported: the learner's time inside ``train()``
@@ -31,6 +31,6 @@ Numbers on a small shared machine are noisy; the printed note says so and record
 :mod:`.run` runs the stages and :mod:`.table` prints them.
 """
 
-from benchmarks.runtime.run import run_runtime_benchmark
+from khgrl.benchmarks.runtime.run import run_runtime_benchmark
 
 __all__ = ["run_runtime_benchmark"]

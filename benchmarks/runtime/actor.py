@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from benchmarks.runtime.procs import BenchProcs, run_id
+from khgrl.benchmarks.runtime.procs import BenchProcs, run_id
 
 __all__ = ["measure_actor", "measure_reference"]
 
@@ -82,7 +82,7 @@ def measure_reference(work: Path, *, scenario: str, episodes: int, seed: int) ->
     :param episodes: episodes
     :param seed: seed
     """
-    from learner.baseline import ReferenceConfig, run_reference
+    from khgrl.learner.baseline import ReferenceConfig, run_reference
 
     run_dir = work / "reference"
     t0 = time.perf_counter()

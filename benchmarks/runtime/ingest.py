@@ -5,9 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from benchmarks.runtime.link import Link, batches
-from benchmarks.runtime.procs import BENCH_ACTOR, BenchProcs, run_id, wait_until
-from common.transport import open_client
+from khgrl.benchmarks.runtime.link import Link, batches
+from khgrl.benchmarks.runtime.procs import BENCH_ACTOR, BenchProcs, run_id, wait_until
+from khgrl.common.delivery.transport import open_client
 
 __all__ = ["measure_ingest"]
 

@@ -1,5 +1,5 @@
 """This process as a stand-in actor: valid transition batches published to a learner as fast as its acks
-allow, and the learner's status messages -- typed messages through :mod:`common.protocol`."""
+allow, and the learner's status messages -- typed messages through :mod:`khgrl.common.wire.protocol`."""
 
 from __future__ import annotations
 
@@ -9,13 +9,12 @@ import time
 from typing import Callable
 
 import numpy as np
-
-from benchmarks.runtime.procs import BENCH_ACTOR
-from common.messages import Ack, Control, Status, Transitions
-from common.protocol import Keys, ProtocolError, decode, encode
-from common.spaces import ACT_DIM, OBS_DIM
-from common.transport import Inbox, undeclare_all
-from deploy.supervisor import Proc
+from khgrl.benchmarks.runtime.procs import BENCH_ACTOR
+from khgrl.common.delivery.transport import Inbox, undeclare_all
+from khgrl.common.tasks.spaces import ACT_DIM, OBS_DIM
+from khgrl.common.wire.messages import Ack, Control, Status, Transitions
+from khgrl.common.wire.protocol import Keys, ProtocolError, decode, encode
+from khgrl.deploy.supervisor import Proc
 
 __all__ = ["batches", "Link"]
 

@@ -1,4 +1,4 @@
-"""The benchmark's processes: KhGRL commands under one :class:`deploy.supervisor.ProcessGroup`, and waiting
+"""The benchmark's processes: KhGRL commands under one :class:`khgrl.deploy.supervisor.ProcessGroup`, and waiting
 for conditions while watching them."""
 
 from __future__ import annotations
@@ -10,10 +10,9 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-
-from common.config import TQCSettings
-from common.transport import free_port, wait_reachable
-from deploy.supervisor import Proc, ProcessGroup, khgrl_argv
+from khgrl.common.config.settings import TQCSettings
+from khgrl.common.delivery.transport import free_port, wait_reachable
+from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 
 __all__ = ["REPO", "TRAIN_FREQ", "BENCH_ACTOR", "BenchProcs", "wait_until", "run_id", "pct", "load",
            "passage_task_file"]
@@ -70,9 +69,9 @@ class BenchProcs:
 def passage_task_file(run_dir: Path) -> None:
     """``RUN_DIR/learner/task.msgpack`` of the passage world (high_cov), as ``khgrl up`` writes it: a learner
     started by hand takes its spaces from there instead of waiting for an actor to announce the task."""
-    from common.config import RunConfig
-    from common.task_link import TASK_FILE, save_task
-    from deploy.launcher import check_task
+    from khgrl.common.config.settings import RunConfig
+    from khgrl.common.delivery.task_link import TASK_FILE, save_task
+    from khgrl.deploy.launcher import check_task
 
     path = Path(run_dir) / "learner" / TASK_FILE
     if not path.exists():

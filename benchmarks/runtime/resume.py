@@ -10,8 +10,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-
-from benchmarks.runtime.procs import BenchProcs, run_id, wait_until
+from khgrl.benchmarks.runtime.procs import BenchProcs, run_id, wait_until
 
 __all__ = ["measure_kill_resume", "buffer_steps"]
 
@@ -22,7 +21,7 @@ def buffer_steps(ckpt: Path, actor: str) -> np.ndarray:
     :param ckpt: ``RUN_DIR/learner/checkpoint``
     :param actor: the actor id
     """
-    from learner.checkpoint import load_checkpoint_arrays
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     state = json.loads((ckpt / "state.json").read_text())
     arrays = load_checkpoint_arrays(ckpt)

@@ -14,12 +14,12 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from benchmarks.runtime.actor import measure_actor, measure_reference
-from benchmarks.runtime.ingest import measure_ingest
-from benchmarks.runtime.procs import BenchProcs, load
-from benchmarks.runtime.resume import measure_kill_resume
-from benchmarks.runtime.table import load_note, results_table
-from benchmarks.runtime.train import measure_train
+from khgrl.benchmarks.runtime.actor import measure_actor, measure_reference
+from khgrl.benchmarks.runtime.ingest import measure_ingest
+from khgrl.benchmarks.runtime.procs import BenchProcs, load
+from khgrl.benchmarks.runtime.resume import measure_kill_resume
+from khgrl.benchmarks.runtime.table import load_note, results_table
+from khgrl.benchmarks.runtime.train import measure_train
 
 __all__ = ["run_runtime_benchmark", "Sizes"]
 
@@ -144,7 +144,7 @@ def run_runtime_benchmark(*, quick: bool = False, out: str | None = None, episod
                           train_seconds: float | None = None, rate: float = 50.0, scenario: str = "high_cov",
                           loss_check: bool | None = None, seed: int = 0, keep: bool = False,
                           rt_priority: int = 20) -> dict:
-    """Run the measurements (:mod:`benchmarks.runtime`), print a table, write JSON to ``out``; returns the record.
+    """Run the measurements (:mod:`khgrl.benchmarks.runtime`), print a table, write JSON to ``out``; returns the record.
 
     :param quick: small sizes (a smoke run); each size below given as None takes the default or quick value
     :param out: also write the record as JSON here

@@ -62,7 +62,7 @@ def _train_rows(table, r: dict) -> None:
 def results_table(record: dict):
     """A rich table of a finished benchmark record.
 
-    :param record: what :func:`benchmarks.runtime.run.run_runtime_benchmark` returns
+    :param record: what :func:`khgrl.benchmarks.runtime.run.run_runtime_benchmark` returns
     """
     from rich.table import Table
 

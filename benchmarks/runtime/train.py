@@ -10,12 +10,11 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-
-from benchmarks.runtime.link import Link, batches
-from benchmarks.runtime.procs import TRAIN_FREQ, BenchProcs, pct, run_id
-from common.config import TQCSettings
-from common.spaces import ACT_DIM, OBS_DIM
-from common.transport import open_client
+from khgrl.benchmarks.runtime.link import Link, batches
+from khgrl.benchmarks.runtime.procs import TRAIN_FREQ, BenchProcs, pct, run_id
+from khgrl.common.config.settings import TQCSettings
+from khgrl.common.delivery.transport import open_client
+from khgrl.common.tasks.spaces import ACT_DIM, OBS_DIM
 
 __all__ = ["measure_train", "standalone_model"]
 
@@ -29,10 +28,9 @@ def standalone_model(seed: int, n_fill: int):
     :param n_fill: transitions in the buffer
     """
     import torch
+    from khgrl.common.tasks.spaces import SpacesEnv
     from sb3_contrib import TQC
     from stable_baselines3.common.logger import Logger
-
-    from common.spaces import SpacesEnv
 
     torch.set_num_threads(1)  # as the learner (--learner-threads 1) and the baseline
     model = TQC("MlpPolicy", SpacesEnv(), **TQCSettings().sb3_kwargs(seed))

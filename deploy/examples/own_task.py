@@ -1,6 +1,6 @@
 """A minimal own task (README, "Bring your own task"): a point robot in 3-D goes around a keep-out box.
 
-``khgrl up --task deploy.examples.own_task:make_task --episodes 20`` trains on it. The environment's action is
+``khgrl up --task khgrl.deploy.examples.own_task:make_task --episodes 20`` trains on it. The environment's action is
 the desired position (x, y, z); the robot moves toward it at most ``SPEED`` per step and stops at the face of
 the box it would enter (reward -10 while blocked); reaching the goal gives +200 and ends the episode. The six
 demonstrations go from start to goal, some of them lifting over the box: RL (or a human) finds the way over.
@@ -11,7 +11,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 
-from common.task import Box, Point, Task, View
+from khgrl.task import Cuboid, Point, Task, View
 
 START, GOAL = np.array([0.1, 0.5, 0.1]), np.array([0.9, 0.5, 0.1])
 BOX_LOW, BOX_HIGH = np.array([0.4, 0.3, 0.0]), np.array([0.6, 0.7, 0.3])  # the keep-out box
@@ -76,10 +76,10 @@ def lift_over_box(mean: np.ndarray) -> np.ndarray | None:
 
 
 def make_task() -> Task:
-    """The task (``--task deploy.examples.own_task:make_task``)."""
+    """The task (``--task khgrl.deploy.examples.own_task:make_task``)."""
     return Task(name="point-3d", make_env=lambda seed: PointRobot3D(), demos=make_demos(),
                 workspace=((0.02, 0.02, 0.02), (0.98, 0.98, 0.8)), default_scale=5.0, learn_scale=True,
                 position=lambda obs: obs, scripted_human=lift_over_box,
                 view=View(axes=(0, 1), third=2, names=("x", "y", "z"),
-                          shapes=(Box("keep-out", tuple(BOX_LOW), tuple(BOX_HIGH)),
+                          shapes=(Cuboid("keep-out", tuple(BOX_LOW), tuple(BOX_HIGH)),
                                   Point("start", tuple(START)), Point("goal", tuple(GOAL)))))

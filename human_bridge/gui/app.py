@@ -1,8 +1,8 @@
 """The GUI's state and input logic (no drawing, no network): the run's task, what it knows of each actor, and
 what a person's mouse and keys do.
 
-The task comes as a :class:`~common.descriptor.TaskDescriptor` (:meth:`GuiApp.set_task`); its views' geometry
-(:class:`~common.task_render.TaskRenderer`: view 0 shows the task's two view axes, view 1, if the task has a
+The task comes as a :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (:meth:`GuiApp.set_task`); its views' geometry
+(:class:`~khgrl.common.tasks.render.TaskRenderer`: view 0 shows the task's two view axes, view 1, if the task has a
 third axis, the first against the third) turns a pointer position into command coordinates. A drag in a view
 sets that view's two coordinates of P_h; the others stay where the driven robot's desired position is when the
 button goes down (so a 3-D task is corrected from its two views, one pair of axes at a time).
@@ -22,10 +22,18 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
-
-from common.descriptor import TaskDescriptor
-from common.messages import ActorInfo
-from common.protocol import EpisodeReport, Frame, Message, ProtocolError, RejectCounter, Scale, Status, TaskInfo
+from khgrl.common.wire.descriptor import TaskDescriptor
+from khgrl.common.wire.messages import ActorInfo
+from khgrl.common.wire.protocol import (
+    EpisodeReport,
+    Frame,
+    Message,
+    ProtocolError,
+    RejectCounter,
+    Scale,
+    Status,
+    TaskInfo,
+)
 
 __all__ = ["GuiApp", "ActorState", "window_size", "KEEPALIVE_S", "CURVE_HEIGHT", "HELP"]
 
@@ -59,7 +67,7 @@ class GuiApp:
     """The GUI's state machine: messages in (:meth:`offer`), pygame events in (:meth:`handle`), corrections out.
 
     :param send: ``send(actor, p_h or None, episode, t)`` publishes one correction
-        (:meth:`human_bridge.client.CorrectionPublisher.send`).
+        (:meth:`khgrl.human_bridge.client.CorrectionPublisher.send`).
     :param control: ``control(command)`` publishes ``pause`` / ``resume`` to the actors.
     :param actor: the actor to drive (``*`` or None: the first that sends a frame).
     :param task: the run's task (None: until :meth:`set_task`; frames are kept, nothing is drawn or dragged).
@@ -104,7 +112,7 @@ class GuiApp:
                 self.rejects.reject("task", task.name, ProtocolError(f"task {task.name!r} ({task.digest}) is not "
                                                                      f"the run's task {self.task.name!r}"))
             return
-        from common.task_render import TaskRenderer
+        from khgrl.common.tasks.render import TaskRenderer
 
         views = 1 if task.third is None else 2
         self.width, self.height = window_size(self.size, self.strip_height, views)

@@ -1,9 +1,9 @@
 """``khgrl human gui``: the window process -- a person watches an actor and drags its robot with the mouse.
 
 Wiring, top to bottom: resolve the run settings; open the window (or fail loudly, exit code 3, when there is no
-usable display); connect a :class:`~human_bridge.client.HumanClient` that takes the actors' frames, scale models,
+usable display); connect a :class:`~khgrl.human_bridge.client.HumanClient` that takes the actors' frames, scale models,
 episode reports and status; ask the actors for the run's task (``task/actor/*``, a
-:class:`~common.descriptor.TaskDescriptor`; asked again every :data:`TASK_RETRY_S` until one answers, the
+:class:`~khgrl.common.wire.descriptor.TaskDescriptor`; asked again every :data:`TASK_RETRY_S` until one answers, the
 window is then resized to the task's views); then, every display frame: hand the network's messages to the
 :class:`GuiApp` (:class:`GuiSession`), the window's events to the app (which publishes corrections directly),
 redraw (:class:`GuiView`).
@@ -23,14 +23,13 @@ import sys
 import time
 
 import numpy as np
-
-from common.process import StopFlag, install_stop_handlers
-from common.process_config import ProcessConfig
-from common.protocol import Frame
-from common.task_link import fetch_tasks
-from human_bridge.client import HumanClient, connected
-from human_bridge.gui.app import GuiApp, window_size
-from human_bridge.gui.view import GuiView
+from khgrl.common.config.process import ProcessConfig
+from khgrl.common.delivery.task_link import fetch_tasks
+from khgrl.common.process import StopFlag, install_stop_handlers
+from khgrl.common.wire.protocol import Frame
+from khgrl.human_bridge.client import HumanClient, connected
+from khgrl.human_bridge.gui.app import GuiApp, window_size
+from khgrl.human_bridge.gui.view import GuiView
 
 __all__ = ["GuiSession", "GUI_KINDS", "display_problem", "synthetic_frames", "add_arguments", "run", "NO_DISPLAY_EXIT",
            "TASK_RETRY_S"]
@@ -147,7 +146,8 @@ def screenshot_live(app: GuiApp, view: GuiView, net: GuiSession, args: argparse.
 
 def synthetic_frames(env, steps: int = 150, drag_from: int = 110, actor: str = "a0", lift: float = 0.08
                      ) -> list[Frame]:
-    """Frames like an actor's, from a local :class:`~common.kgrl_env.KGRLEnv` that follows the KMP mean (zero
+    """Frames like an actor's, from a local :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv` that follows the KMP mean
+    (zero
     action) and is dragged ``lift`` (a fraction of the workspace) off the mean along the main view's vertical axis
     from step ``drag_from`` on: for ``--offline`` screenshots and tests without a run."""
     o, up = env.world.out_dim, env.world.view.axes[1]
@@ -172,8 +172,8 @@ def synthetic_frames(env, steps: int = 150, drag_from: int = 110, actor: str = "
 
 def offline_screenshot(args: argparse.Namespace, spec: str, demos: str = "") -> int:
     """``--screenshot FILE --offline``: the window drawn from synthetic frames of the task built here."""
-    from common.kgrl_env import KGRLEnv
-    from human_bridge.gui.task import local_descriptor, local_world
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
+    from khgrl.human_bridge.gui.task import local_descriptor, local_world
 
     world = local_world(spec, demos or None)
     app = GuiApp(lambda *a: None, None, actor="a0", task=local_descriptor(spec, world=world), size=args.size,
@@ -220,7 +220,7 @@ def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
     if args.screenshot:
         os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # offscreen: no display needed
     if args.offline:
-        from common.task import TaskError
+        from khgrl.common.tasks.api import TaskError
 
         try:
             return offline_screenshot(args, proc.cfg.task_spec, proc.cfg.demos)

@@ -1,27 +1,27 @@
-"""The GUI's task: a :class:`~common.descriptor.TaskDescriptor` built locally (offline screenshots, ``khgrl demos
+"""The GUI's task: a :class:`~khgrl.common.wire.descriptor.TaskDescriptor` built locally (offline screenshots, ``khgrl
+demos
 record``, tests), and the exploration band from the descriptor's projector.
 
-The band an actor's L allows is eta0 +- |N| L per grid point (:meth:`common.kgrl.KGRLMapping.band`); the
+The band an actor's L allows is eta0 +- |N| L per grid point (:meth:`khgrl.common.kmp.mapping.KGRLMapping.band`); the
 descriptor carries N, the KMP's null-space projector on the grid, so the GUI never needs the task's code.
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-from common.descriptor import TaskDescriptor
+from khgrl.common.wire.descriptor import TaskDescriptor
 
 __all__ = ["local_descriptor", "local_world", "band"]
 
 
 def local_world(spec: str, demos=None):
-    """The :class:`~common.task_world.TaskWorld` of ``spec`` built here (``demos``: a file or (M, N, O) array
+    """The :class:`~khgrl.common.tasks.world.TaskWorld` of ``spec`` built here (``demos``: a file or (M, N, O) array
     replacing the task's demonstrations).
 
-    :raises common.task.TaskError: naming what is wrong with the task.
+    :raises khgrl.common.tasks.api.TaskError: naming what is wrong with the task.
     """
-    from common.task import load_task
-    from common.task_world import build_task_world
+    from khgrl.common.tasks.api import load_task
+    from khgrl.common.tasks.world import build_task_world
 
     task = load_task(spec)
     if demos is not None:
@@ -36,7 +36,7 @@ def local_descriptor(spec: str, demos=None, world=None) -> TaskDescriptor:
     :param demos: a demonstration file (or array) replacing the task's.
     :param world: an already built world of that task.
     """
-    from common.kgrl_env import KGRLEnv
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
 
     env = KGRLEnv(world=world if world is not None else local_world(spec, demos))
     try:

@@ -1,9 +1,9 @@
 """Drawing the GUI (pygame): the task's views of the driven actor, a text strip, and the L(s) curves below.
 
-The task's views are drawn by :class:`common.task_render.TaskRenderer` from the run's task descriptor (the app's
+The task's views are drawn by :class:`khgrl.common.tasks.render.TaskRenderer` from the run's task descriptor (the app's
 ``layout``): workspace, shapes, demonstrations, the red KMP mean; on top the exploration band the current L
 allows (the actor's L table from its ``scale`` messages, or its scale model tabulated here; without either, L is
-flat at the frame's ``scale``; the band from the descriptor's projector, :mod:`human_bridge.gui.task`),
+flat at the frame's ``scale``; the band from the descriptor's projector, :mod:`khgrl.human_bridge.gui.task`),
 the robot, its trail in the episode, the desired position and, while dragging, the person's P_h. The strip shows
 actor, episode, step, return, the intervention state and a help line; below it, one L(s) curve per output.
 """
@@ -13,10 +13,9 @@ from __future__ import annotations
 import os
 
 import numpy as np
-
-from common.protocol import ProtocolError
-from human_bridge.gui.app import CURVE_HEIGHT, HELP, ActorState, GuiApp
-from human_bridge.gui.task import band as task_band
+from khgrl.common.wire.protocol import ProtocolError
+from khgrl.human_bridge.gui.app import CURVE_HEIGHT, HELP, ActorState, GuiApp
+from khgrl.human_bridge.gui.task import band as task_band
 
 __all__ = ["GuiView", "L_COLORS", "curve_color"]
 
@@ -64,7 +63,7 @@ class GuiView:
         if key not in self._model_tables:
             self._model_tables[key] = None
             try:
-                from common.scale import ScaleModel
+                from khgrl.common.kmp.scale import ScaleModel
 
                 sm = ScaleModel.from_dict(v.model)
                 if sm.config.input == "phase":
@@ -124,8 +123,8 @@ class GuiView:
 
     # ------------------------------------------------------------------ drawing
     def frame_state(self, v: ActorState):
-        """The renderer's input (a :class:`~common.task_render.TaskFrame`) for the actor's latest frame."""
-        from common.task_render import TaskFrame
+        """The renderer's input (a :class:`~khgrl.common.tasks.render.TaskFrame`) for the actor's latest frame."""
+        from khgrl.common.tasks.render import TaskFrame
 
         app, f = self.app, v.frame
         return TaskFrame(position=np.asarray(f.robot), desired=np.asarray(f.desired), phase=float(f.phase), t=f.t,
@@ -138,8 +137,7 @@ class GuiView:
     def draw(self, surface) -> None:
         """The whole window: the views and strip of the driven actor, and its L(s) curves."""
         import pygame
-
-        from common.render_style import COLORS, get_font
+        from khgrl.common.tasks.passage.render_style import COLORS, get_font
 
         app, v = self.app, self.app.driven
         if app.layout is None or v is None or v.frame is None:
@@ -156,8 +154,7 @@ class GuiView:
     def draw_curve(self, surface, rect, v: ActorState) -> None:
         """L_d(s) of every output d over the phase, with the current phase marked."""
         import pygame
-
-        from common.render_style import COLORS, get_font
+        from khgrl.common.tasks.passage.render_style import COLORS, get_font
 
         surface.fill((246, 246, 248), rect)
         pygame.draw.line(surface, COLORS["strip_line"], rect.topleft, (rect.right - 1, rect.top), 1)

@@ -8,11 +8,10 @@ import json
 import time
 
 import pytest
-
-from common.transport import _open, free_port
-from common.zenoh_config import build_config
-from deploy import certs
-from deploy.secure import issue_identities, write_configs
+from khgrl.common.delivery.transport import _open, free_port
+from khgrl.common.delivery.zenoh_config import build_config
+from khgrl.deploy import certs
+from khgrl.deploy.secure import issue_identities, write_configs
 
 pytestmark = pytest.mark.integration
 

@@ -39,7 +39,7 @@ def batch_files(out: Path) -> list[Path]:
 def buffer_steps(run_dir: Path, actor: str) -> tuple[dict, list[int]]:
     """The learner's final checkpoint: its state, and the running indices of ``actor``'s transitions in the
     replay buffer (sorted; every provenance code of that actor id)."""
-    from learner.checkpoint import load_checkpoint_arrays
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     ck = run_dir / "learner" / "checkpoint"
     state, arrays = read_json(ck / "state.json"), load_checkpoint_arrays(ck)
@@ -168,7 +168,7 @@ def test_paused_actor_replaced_by_a_second_process_is_refused_when_it_wakes(tmp_
     s2 = read_json(run2 / "actor-a0" / "summary.json")
     state, _ = buffer_steps(run_dir, "a0")
     assert [c["stream"] for c in state["codes"]] == [s1, s2["stream"]]  # one switch, never back
-    from learner.checkpoint import load_checkpoint_arrays
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     arrays = load_checkpoint_arrays(run_dir / "learner" / "checkpoint")
     pos = state["replay"]["pos"]

@@ -36,7 +36,7 @@ class Clients:
     """
 
     def __init__(self, session, keys) -> None:
-        from human_bridge.client import CorrectionPublisher
+        from khgrl.human_bridge.client import CorrectionPublisher
 
         self.session, self.keys = session, keys
         self.frames: queue.Queue = queue.Queue()
@@ -45,8 +45,8 @@ class Clients:
                      for c in ("alice", "bob", "carol", "dave", "mallory", "frank")}
 
     def next_frame(self, timeout: float = 30.0):
-        from common.messages import Frame
-        from common.protocol import decode
+        from khgrl.common.wire.messages import Frame
+        from khgrl.common.wire.protocol import decode
 
         return decode(Frame, self.frames.get(timeout=timeout))
 
@@ -135,8 +135,8 @@ class Clients:
 @pytest.mark.integration
 @pytest.mark.timeout(240)
 def test_arbitration_timeout_projection_and_rejects_with_a_real_actor(tmp_path):
-    from common.protocol import Keys
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.protocol import Keys
 
     run, run_dir = unique_run("safe"), tmp_path / "run"
     keys = Keys(run)

@@ -1,8 +1,9 @@
 """``khgrl demos record``: demonstrations drawn with the mouse, resampled to N steps and saved.
 
-Unit level: :func:`human_bridge.record.resample` and the :class:`~human_bridge.record.Recorder` (pointer events
+Unit level: :func:`khgrl.human_bridge.record.resample` and the :class:`~khgrl.human_bridge.record.Recorder` (pointer
+events
 and keys in, (M, N, O) out) on a fake two-view layout of a 3-D task. Window level: the real command
-(:func:`~human_bridge.record.run_record`, headless ``SDL_VIDEODRIVER=dummy``) fed with synthetic pygame events
+(:func:`~khgrl.human_bridge.record.run_record`, headless ``SDL_VIDEODRIVER=dummy``) fed with synthetic pygame events
 (``pygame.event.post``) one frame at a time, under a fake clock: three demonstrations of the passage world are
 drawn (a fourth is discarded with BACKSPACE), ENTER saves them, and the file is a task's demonstrations
 (``load_task('passage:high_cov', demos=FILE)`` builds).
@@ -20,13 +21,12 @@ os.environ["SDL_AUDIODRIVER"] = "dummy"
 import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 import pytest  # noqa: E402
-
-from human_bridge.record import MIN_SAMPLES, STRIP, Recorder, add_parser, resample, run_record  # noqa: E402
+from khgrl.human_bridge.record import MIN_SAMPLES, STRIP, Recorder, add_parser, resample, run_record  # noqa: E402
 
 
 @functools.lru_cache(maxsize=None)
 def _passage():
-    from human_bridge.gui.task import local_descriptor
+    from khgrl.human_bridge.gui.task import local_descriptor
 
     return local_descriptor("passage:high_cov")
 
@@ -167,10 +167,10 @@ def _script(renderer_of, strokes, keys_between=None):
 
 
 def test_record_three_demos_through_the_window_and_train_from_them(tmp_path):
-    from common.demos import load_demos
-    from common.task import load_task
-    from common.task_render import TaskRenderer
-    from common.task_world import build_task_world
+    from khgrl.common.tasks.api import load_task
+    from khgrl.common.tasks.demos import load_demos
+    from khgrl.common.tasks.render import TaskRenderer
+    from khgrl.common.tasks.world import build_task_world
 
     d = _passage()
     out = tmp_path / "mine.csv"
@@ -213,14 +213,14 @@ def _train_from(path, run_dir, demos) -> None:
     from helpers import REPO
 
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "RUST_LOG": "error"}
-    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "up", "--demos", str(path), "--episodes", "2",
+    proc = subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", "up", "--demos", str(path), "--episodes", "2",
                            "--method", "kgrl", "--learning-starts", "32", "--run-dir", str(run_dir), "--no-progress"],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     config = json.loads((run_dir / "config.json").read_text())
     kept = run_dir / "demos.csv"
     assert config["demos"] == str(kept.resolve())
-    from common.demos import load_demos
+    from khgrl.common.tasks.demos import load_demos
 
     np.testing.assert_allclose(load_demos(kept), demos)
     episodes = json.loads((run_dir / "actor-a0" / "episodes.json").read_text())
@@ -237,10 +237,10 @@ def test_without_a_display_exit_3(tmp_path, monkeypatch, capsys):
 
 
 def test_a_task_without_demonstrations_gets_a_placeholder_from_start_to_goal(tmp_path):
-    from common.passage_task import make_task
-    from common.task import TaskError, task_demos
-    from common.task_world import build_task_world
-    from human_bridge.record import placeholder_demos
+    from khgrl.common.tasks.api import TaskError, task_demos
+    from khgrl.common.tasks.passage.task import make_task
+    from khgrl.common.tasks.world import build_task_world
+    from khgrl.human_bridge.record import placeholder_demos
 
     task = make_task("high_cov").with_demos(tmp_path / "not-yet.npz")
     with pytest.raises(TaskError):

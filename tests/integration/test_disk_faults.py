@@ -78,13 +78,13 @@ class _Statuses:
         self.learner = None
 
     def on(self, sample) -> None:
-        from common.protocol import Status, decode
+        from khgrl.common.wire.protocol import Status, decode
 
         self.learner = decode(Status, sample.payload.to_bytes()).info
 
 
 def _checkpoint(ckpt_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    from learner.checkpoint import load_checkpoint_arrays
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     return read_json(ckpt_dir / "checkpoint" / "state.json"), load_checkpoint_arrays(ckpt_dir / "checkpoint")
 
@@ -137,8 +137,8 @@ def _fault_and_fix(fault: str, disk: Path, ckpt_dir: Path, view: _Statuses, proc
 @pytest.mark.timeout(420)
 @pytest.mark.parametrize("fault", ["unwritable", "full"])
 def test_learner_survives_a_broken_checkpoint_disk_and_loses_nothing(tmp_path, small_disk, fault):
-    from common.protocol import Keys
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.protocol import Keys
 
     run, run_dir = unique_run("disk"), tmp_path / "run"
     ckpt_dir = small_disk / "ckpt"

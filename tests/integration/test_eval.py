@@ -17,19 +17,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from khgrl.common.config.settings import RunConfig, TQCSettings, write_run_config
+from khgrl.common.kmp.scale import ScaleModel
+from khgrl.common.tasks.api import load_task
+from khgrl.common.tasks.kgrl_env import KGRLEnv
+from khgrl.deploy.cli import main as khgrl
+from khgrl.deploy.evaluate import EvalError, evaluate, free_path
+from khgrl.deploy.examples.own_task import BOX_HIGH, BOX_LOW, GOAL, PointRobot3D, box_entry, lift_over_box, make_task
 
-from common.config import RunConfig, TQCSettings, write_run_config
-from common.kgrl_env import KGRLEnv
-from common.scale import ScaleModel
-from common.task import load_task
-from deploy.cli import main as khgrl
-from deploy.evaluate import EvalError, evaluate, free_path
-from deploy.examples.own_task import BOX_HIGH, BOX_LOW, GOAL, PointRobot3D, box_entry, lift_over_box, make_task
 from helpers import REPO, kill_pids, pid_alive, read_json
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # the GIF's renderer (pygame, offscreen)
 
-SPEC = "deploy.examples.own_task:make_task"
+SPEC = "khgrl.deploy.examples.own_task:make_task"
 NET = (32, 32)
 
 
@@ -159,12 +159,12 @@ def test_eval_is_deterministic_and_uses_the_learned_scale(run_dir, tmp_path):
 def test_eval_finds_the_task_module_and_demos_where_khgrl_up_ran(run_dir, tmp_path, capsys):
     """A run started in another directory (runtime ``cwd`` in config.json) with a task module and a relative
     ``--demos`` file there: eval finds both from anywhere."""
-    from common.demos import save_demos
-    from deploy.examples.own_task import make_demos
+    from khgrl.common.tasks.demos import save_demos
+    from khgrl.deploy.examples.own_task import make_demos
 
     home = tmp_path / "home"
     home.mkdir()
-    (home / "evaltask_h3.py").write_text("from deploy.examples.own_task import make_task\n")
+    (home / "evaltask_h3.py").write_text("from khgrl.deploy.examples.own_task import make_task\n")
     save_demos(home / "mine.npz", make_demos(m=4, seed=3))
     run = tmp_path / "run"
     write_run_config(run, RunConfig(run_dir=str(run), task="evaltask_h3:make_task", demos="mine.npz",
@@ -209,7 +209,7 @@ def test_eval_bad_inputs_exit_2_with_one_line(run_dir, tmp_path, capsys):
 # ------------------------------------------------------------------------------------ end to end
 def _khgrl(*args: str, timeout: float, cwd: Path = REPO) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "RUST_LOG": "error", "SDL_VIDEODRIVER": "dummy"}
-    return subprocess.run([sys.executable, "-m", "deploy.cli", *args], cwd=cwd, env=env, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", *args], cwd=cwd, env=env, capture_output=True,
                           text=True, timeout=timeout)
 
 

@@ -7,8 +7,8 @@ import subprocess
 import sys
 
 import pytest
+from khgrl.deploy.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
 
-from deploy.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
 from helpers import REPO
 
 
@@ -53,10 +53,10 @@ def test_plan_is_seed_major_and_commands_match_the_method(tmp_path):
 
 
 def test_run_argv_is_a_valid_khgrl_up_command(tmp_path):
-    """The command of a distributed run resolves (khgrl up's parser and common.config) to the planned run."""
-    from common.config import resolve
-    from deploy.cli import build_parser as cli_parser
-    from deploy.launcher import build_parser
+    """The command of a distributed run resolves (khgrl up's parser and common.config.settings) to the planned run."""
+    from khgrl.common.config.settings import resolve
+    from khgrl.deploy.cli import build_parser as cli_parser
+    from khgrl.deploy.launcher import build_parser
 
     cfg = ExperimentConfig(seeds=[3], scenarios=["low_cov"], episodes=7, human_episodes=[2, 3], timeout=99)
     for spec in plan_runs(cfg):
@@ -76,15 +76,15 @@ def test_run_argv_is_a_valid_khgrl_up_command(tmp_path):
 
 def test_tasks_replace_scenarios_in_the_plan_and_the_commands(tmp_path):
     """``tasks``: one run per task, method and seed, named after the task; each command is ``khgrl up --task``."""
-    from common.config import resolve
-    from deploy.launcher import build_parser
+    from khgrl.common.config.settings import resolve
+    from khgrl.deploy.launcher import build_parser
 
-    cfg = ExperimentConfig(seeds=[1], tasks=["fetch:control", "deploy.examples.own_task:make_task"], episodes=3,
+    cfg = ExperimentConfig(seeds=[1], tasks=["fetch:control", "khgrl.deploy.examples.own_task:make_task"], episodes=3,
                            human_episodes=[2])
     specs = plan_runs(cfg)
     assert [s.name for s in specs] == ["fetch_control-khgrl-seed1", "fetch_control-kgrl-seed1",
-                                       "deploy_examples_own_task_make_task-khgrl-seed1",
-                                       "deploy_examples_own_task_make_task-kgrl-seed1"]
+                                       "khgrl_deploy_examples_own_task_make_task-khgrl-seed1",
+                                       "khgrl_deploy_examples_own_task_make_task-kgrl-seed1"]
     for spec in specs:
         argv = run_argv(spec, cfg, tmp_path / spec.name)
         assert "--scenario" not in argv
@@ -110,7 +110,7 @@ def test_run_is_done_only_for_a_complete_clean_run(tmp_path):
 
 
 def _experiment(out, *extra, timeout=300):
-    argv = [sys.executable, "-m", "deploy.cli", "experiment", "--out", str(out), "--scenarios", "low_cov",
+    argv = [sys.executable, "-m", "khgrl.deploy.cli", "experiment", "--out", str(out), "--scenarios", "low_cov",
             "--methods", "kgrl", "--seeds", "0", "--episodes", "2", "--no-progress", "--timeout", "240", *extra]
     return subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout)
 
@@ -142,6 +142,6 @@ def test_experiment_runs_resumes_and_redoes_an_interrupted_run(tmp_path):
 def test_experiment_cli_reports_bad_config(tmp_path):
     f = tmp_path / "bad.toml"
     f.write_text("episodes = 'many'\n")
-    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "experiment", str(f), "--dry-run"], cwd=REPO,
+    proc = subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", "experiment", str(f), "--dry-run"], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "khgrl experiment: error" in proc.stderr

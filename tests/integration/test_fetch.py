@@ -21,13 +21,12 @@ pytest.importorskip("gymnasium_robotics", reason="gymnasium-robotics is a projec
 @pytest.mark.integration
 @pytest.mark.timeout(400)
 def test_fetch_moved_through_khgrl_up(tmp_path: Path) -> None:
+    from khgrl.common.tasks.fetch.task import DEMO_OBJECT, MOVE
     from stable_baselines3.common.save_util import load_from_pkl
-
-    from common.fetch_task import DEMO_OBJECT, MOVE
 
     run_dir = tmp_path / "run"
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "RUST_LOG": "error"}
-    proc = subprocess.run([sys.executable, "-m", "deploy.cli", "up", "--task", "fetch:moved", "--episodes", "2",
+    proc = subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", "up", "--task", "fetch:moved", "--episodes", "2",
                            "--human-episodes", "2", "--learning-starts", "64", "--run-dir", str(run_dir),
                            "--no-progress"], cwd=REPO, env=env, capture_output=True, text=True, timeout=360)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

@@ -19,7 +19,7 @@ FAST = ["--scenario", "low_cov", "--method", "khgrl", "--learning-starts", "16"]
 
 FLOOD = textwrap.dedent("""
     import os, sys, time
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
     endpoint, run, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
     with open_client(endpoint, timeout=20) as s:
         pubs = [s.declare_publisher(f"khgrl/{run}/human/flood/correction"),

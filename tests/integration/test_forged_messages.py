@@ -22,10 +22,10 @@ FORGED_VERSION = 10**9
 @pytest.mark.integration
 @pytest.mark.timeout(180)
 def test_forged_weights_and_acks_are_refused_and_nothing_is_lost(tmp_path):
-    from benchmarks.scale import provenance_check
-    from common.messages import Ack, Control, Status, Transitions, Weights
-    from common.protocol import Keys, decode, encode
-    from common.transport import open_client
+    from khgrl.benchmarks.scale import provenance_check
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Ack, Control, Status, Transitions, Weights
+    from khgrl.common.wire.protocol import Keys, decode, encode
 
     run, run_dir = unique_run("trust"), tmp_path / "run"
     keys = Keys(run)

@@ -1,7 +1,7 @@
 """``khgrl human gui``: the pygame human-input client.
 
-Unit level: typed frames and synthetic pygame events drive :class:`human_bridge.gui.app.GuiApp` (no Zenoh), and
-:class:`human_bridge.gui.view.GuiView` draws it, for the passage world (2-D, one view) and a 3-D task (two views:
+Unit level: typed frames and synthetic pygame events drive :class:`khgrl.human_bridge.gui.app.GuiApp` (no Zenoh), and
+:class:`khgrl.human_bridge.gui.view.GuiView` draws it, for the passage world (2-D, one view) and a 3-D task (two views:
 a drag in either sets that view's two coordinates). Process level: the real ``khgrl human gui`` process fails loudly
 without a display, writes offline screenshots, and runs its window (``SDL_VIDEODRIVER=dummy``) against a router
 until stopped. Integration: a GUI in this process, connected to a real router + learner + actor, receives the
@@ -24,18 +24,18 @@ os.environ["SDL_AUDIODRIVER"] = "dummy"
 import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 import pytest  # noqa: E402
+from khgrl.common.wire.messages import ActorInfo, LearnerInfo  # noqa: E402
+from khgrl.common.wire.protocol import Correction, Frame, RejectCounter, Scale, Status, TaskInfo, decode, encode  # noqa: E402
+from khgrl.human_bridge.gui.app import GuiApp  # noqa: E402
+from khgrl.human_bridge.gui.view import GuiView  # noqa: E402
 
-from common.messages import ActorInfo, LearnerInfo  # noqa: E402
-from common.protocol import Correction, Frame, RejectCounter, Scale, Status, TaskInfo, decode, encode  # noqa: E402
 from helpers import REPO, ProcGroup, python_main, read_json, unique_run, wait_for  # noqa: E402
-from human_bridge.gui.app import GuiApp  # noqa: E402
-from human_bridge.gui.view import GuiView  # noqa: E402
 
 
 @functools.lru_cache(maxsize=None)
 def _task(spec: str = "passage:low_cov"):
     """The descriptor an actor of ``spec`` announces (built here once)."""
-    from human_bridge.gui.task import local_descriptor
+    from khgrl.human_bridge.gui.task import local_descriptor
 
     return local_descriptor(spec)
 
@@ -65,13 +65,13 @@ class _Point3:
     @staticmethod
     def task():
         """Demonstrations from (0.1, 0.5, 0.2) to (0.9, 0.5, 0.2) over a box, fanning in y and lifting in z."""
-        from common.task import Box, Point, Task, View
+        from khgrl.common.tasks.api import Cuboid, Point, Task, View
 
         s = np.linspace(0.0, 1.0, 60)
         demos = np.stack([np.c_[0.1 + 0.8 * s, 0.5 + dy * np.sin(np.pi * s), 0.2 + dz * np.sin(np.pi * s)]
                           for dy, dz in ((-0.2, 0.5), (-0.1, 0.6), (0.1, 0.55), (0.2, 0.45))])
         view = View(axes=(0, 1), third=2, names=("x", "y", "z"),
-                    shapes=(Box("keep-out", (0.4, 0.4, 0.0), (0.6, 0.6, 0.4)), Point("start", (0.1, 0.5, 0.2)),
+                    shapes=(Cuboid("keep-out", (0.4, 0.4, 0.0), (0.6, 0.6, 0.4)), Point("start", (0.1, 0.5, 0.2)),
                             Point("goal", (0.9, 0.5, 0.2))))
         return Task(name="point3", make_env=_Point3.env, demos=demos, workspace=((0, 0, 0), (1, 1, 1)),
                     default_scale=0.5, position=lambda obs: obs, view=view)
@@ -79,8 +79,8 @@ class _Point3:
 
 @functools.lru_cache(maxsize=None)
 def _task3():
-    from common.task_world import build_task_world
-    from human_bridge.gui.task import local_descriptor
+    from khgrl.common.tasks.world import build_task_world
+    from khgrl.human_bridge.gui.task import local_descriptor
 
     return local_descriptor("tests.point3:task", world=build_task_world(_Point3.task()))
 
@@ -247,9 +247,9 @@ def test_the_task_comes_over_the_wire_and_sizes_the_window():
 
 
 def test_synthetic_frames_of_a_3d_task_make_a_screenshot(tmp_path):
-    from common.kgrl_env import KGRLEnv
-    from common.task_world import build_task_world
-    from human_bridge.gui.main import synthetic_frames
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
+    from khgrl.common.tasks.world import build_task_world
+    from khgrl.human_bridge.gui.main import synthetic_frames
 
     env = KGRLEnv(world=build_task_world(_Point3.task()))
     frames = synthetic_frames(env, steps=40, drag_from=30)
@@ -330,8 +330,8 @@ def test_keys_pause_overlays_tab_quit(display):
 
 
 def test_scale_table_drives_curve_and_band_and_bad_input_is_rejected(display):
-    from common.env import build_world
-    from human_bridge.client import read
+    from khgrl.common.tasks.passage.env import build_world
+    from khgrl.human_bridge.client import read
 
     app = GuiApp(Sink().send, task=_task())
     view = GuiView(app)
@@ -349,7 +349,7 @@ def test_scale_table_drives_curve_and_band_and_bad_input_is_rejected(display):
     half = np.einsum("nij,nj->ni", np.abs(w.model.grid_projector), table)
     np.testing.assert_allclose(band[:, 1] - band[:, 0], 2 * half)
     view.draw(display)
-    # what the wire brings in is decoded by the client (human_bridge.client.read) into typed messages
+    # what the wire brings in is decoded by the client (khgrl.human_bridge.client.read) into typed messages
     rejects = RejectCounter("test")
     assert read("frame", "k/a0", b"\xc1garbage", rejects) is None
     nan_ret = encode(_frame(), "a0", 1).replace(b"\xcb\xbf\xf8\x00\x00\x00\x00\x00\x00", b"\xcb\x7f\xf8" + bytes(6))
@@ -364,8 +364,8 @@ def test_scale_table_drives_curve_and_band_and_bad_input_is_rejected(display):
 
 
 def test_human_parser_takes_run_settings_and_client_flags(tmp_path):
-    from common.config import RunConfig, write_run_config
-    from human_bridge.main import _resolve, build_parser
+    from khgrl.common.config.settings import RunConfig, write_run_config
+    from khgrl.human_bridge.main import _resolve, build_parser
 
     a = build_parser().parse_args(["gui", "--run", "r", "--connect", "tcp/127.0.0.1:1", "--scenario", "low_cov",
                                    "--actor", "*", "--seed", "0", "--human-episodes", "2"])
@@ -385,20 +385,20 @@ def test_human_parser_takes_run_settings_and_client_flags(tmp_path):
 def test_gui_without_a_display_fails_loudly(tmp_path):
     """No DISPLAY, no WAYLAND_DISPLAY, no SDL_VIDEODRIVER: exit 3 at once (before waiting for the router, which
     is not there) with one line on stderr that names the problem."""
-    p = subprocess.run(python_main("human_bridge.main") + ["gui", "--run", "r", "--connect", "tcp/127.0.0.1:1"],
+    p = subprocess.run(python_main("khgrl.human_bridge.main") + ["gui", "--run", "r", "--connect", "tcp/127.0.0.1:1"],
                        cwd=REPO, env=_env(), capture_output=True, text=True, timeout=60)
     assert p.returncode == 3, p.stdout + p.stderr
     lines = p.stderr.strip().splitlines()
     assert len(lines) == 1 and "no display" in lines[0] and "DISPLAY" in lines[0], p.stderr
     # an explicit driver that cannot open a window: SDL's reason, same exit code
-    p = subprocess.run(python_main("human_bridge.main") + ["gui", "--run", "r", "--connect", "tcp/127.0.0.1:1"],
+    p = subprocess.run(python_main("khgrl.human_bridge.main") + ["gui", "--run", "r", "--connect", "tcp/127.0.0.1:1"],
                        cwd=REPO, env=_env(SDL_VIDEODRIVER="x11"), capture_output=True, text=True, timeout=60)
     assert p.returncode == 3 and "SDL could not open a window" in p.stderr, p.stdout + p.stderr
 
 
 def test_screenshot_offline_writes_png(tmp_path):
     out = tmp_path / "gui.png"
-    p = subprocess.run(python_main("human_bridge.main") + ["gui", "--screenshot", str(out), "--offline",
+    p = subprocess.run(python_main("khgrl.human_bridge.main") + ["gui", "--screenshot", str(out), "--offline",
                                                            "--scenario", "low_cov", "--size", "400"],
                        cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stdout + p.stderr
@@ -411,14 +411,15 @@ def test_screenshot_offline_writes_png(tmp_path):
 def test_gui_window_process_runs_with_the_dummy_driver_until_stopped(tmp_path):
     """``SDL_VIDEODRIVER=dummy`` set explicitly: the window opens (headless), joins the router, publishes its
     status, and stops cleanly on SIGTERM."""
-    from common.protocol import Keys
-    from common.transport import Inbox, open_client
+    from khgrl.common.delivery.transport import Inbox, open_client
+    from khgrl.common.wire.protocol import Keys
 
     run = unique_run("guiw")
     assert os.environ["SDL_VIDEODRIVER"] == "dummy"  # (set at the top of this module; the children inherit it)
     with ProcGroup(tmp_path) as g:
         ep = g.router()
-        gui = g.start("gui", python_main("human_bridge.main") + ["gui", "--run", run, "--connect", ep, "--fps", "20"])
+        gui = g.start("gui", python_main("khgrl.human_bridge.main")
+                      + ["gui", "--run", run, "--connect", ep, "--fps", "20"])
         inbox = Inbox()
         with open_client(ep) as s:
             sub = s.declare_subscriber(Keys(run).status("human", "gui"), inbox.callback("status"))
@@ -434,11 +435,11 @@ def test_gui_window_process_runs_with_the_dummy_driver_until_stopped(tmp_path):
 @pytest.mark.integration
 @pytest.mark.timeout(240)
 def test_gui_mouse_drag_over_real_actor_produces_intervened_transitions(tmp_path, display):
-    from common.process import StopFlag
-    from common.protocol import Keys
-    from common.transport import open_client
-    from human_bridge.client import HumanClient
-    from human_bridge.gui.main import GUI_KINDS, GuiSession
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.process import StopFlag
+    from khgrl.common.wire.protocol import Keys
+    from khgrl.human_bridge.client import HumanClient
+    from khgrl.human_bridge.gui.main import GUI_KINDS, GuiSession
 
     run = unique_run("gui")
     run_dir = tmp_path / "run"
@@ -542,7 +543,7 @@ def test_gui_mouse_drag_over_real_actor_produces_intervened_transitions(tmp_path
 
 def _check_replay_buffer(run_dir: Path, rows: list[dict], iv_steps: int) -> None:
     """The learner's checkpoint holds every transition, ``iv_steps`` of them intervened."""
-    from learner.checkpoint import load_checkpoint_arrays
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     arrays = load_checkpoint_arrays(run_dir / "learner" / "checkpoint")
     filled = arrays["provenance_actor"] >= 0

@@ -24,7 +24,7 @@ def _rows(path: Path) -> list[dict]:
 
 
 def test_plan_leads_by_one_step(tmp_path):
-    from human_bridge.replay import ReplayPlan, load_record
+    from khgrl.human_bridge.replay import ReplayPlan, load_record
 
     p = tmp_path / "corrections.csv"
     p.write_text("run,actor,episode,step,time,client,p_h_x,p_h_y,projected,clipped\n"
@@ -48,7 +48,7 @@ def test_plan_leads_by_one_step(tmp_path):
 
 
 def _frame(episode: int, t: int):
-    from common.protocol import Frame
+    from khgrl.common.wire.protocol import Frame
 
     p = np.array([0.5, 0.5])
     return Frame(actor="a0", episode=episode, t=t, phase=0.5, robot=p, desired=p, mean=p, scale=np.array([1.0, 1.0]),
@@ -56,7 +56,7 @@ def _frame(episode: int, t: int):
 
 
 def test_replay_answers_each_frame_with_the_recorded_word_for_the_next_step():
-    from human_bridge.replay import ReplayAnswers, ReplayPlan
+    from khgrl.human_bridge.replay import ReplayAnswers, ReplayPlan
 
     rows = [{"actor": "a0", "episode": 2, "step": s, "p_h": np.array([0.1 * s, 0.5]), "client": "x"} for s in (0, 1, 3)]
     stream = RecordingPublisher()

@@ -38,7 +38,7 @@ from helpers import (
     wait_for,
 )
 
-UP = [sys.executable, "-m", "deploy.cli", "up"]
+UP = [sys.executable, "-m", "khgrl.deploy.cli", "up"]
 FAST = ["--scenario", "low_cov", "--method", "khgrl", "--learning-starts", "64"]
 HUMAN_EPISODE = 2  # the scripted human helps in this episode only
 
@@ -74,7 +74,7 @@ def _episodes_csv(run_dir: Path, actor: str = "a0") -> list[dict]:
 
 
 def _checkpoint(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    from learner.checkpoint import load_checkpoint_arrays
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     ck = run_dir / "learner" / "checkpoint"
     return read_json(ck / "state.json"), load_checkpoint_arrays(ck)
@@ -191,7 +191,7 @@ def test_up_checkpoint_holds_each_step_once_with_exactly_the_intervened_flags(up
 # ================================================================== the scripted human's corrections, as stored
 @pytest.fixture(scope="module")
 def low_cov_env():
-    from common.env import PassageEnv
+    from khgrl.common.tasks.passage.env import PassageEnv
 
     return PassageEnv("low_cov")  # the actor's world (same seeds); fitting takes a few seconds
 
@@ -203,10 +203,9 @@ def test_intervened_transitions_store_the_scripted_humans_actions(up_run, low_co
     intervenes at exactly the steps where the scripted human, asked at that step's KMP mean, gives a P_h -- as the
     single-process reference does -- and stores clip(xi_h / L) for exactly that P_h, computed here, independently
     of the actor's process."""
+    from khgrl.common.tasks.passage.task import segment_blocked as _segment_blocked
+    from khgrl.human_bridge.scripted import ScriptedHuman, ScriptedHumanConfig
     from stable_baselines3.common.save_util import load_from_pkl
-
-    from common.passage_task import segment_blocked as _segment_blocked
-    from human_bridge.scripted import ScriptedHuman, ScriptedHumanConfig
 
     assert up_run["proc"].returncode == 0, up_run["proc"].stderr
     run_dir = up_run["run_dir"]
@@ -282,9 +281,9 @@ def test_env_correction_stores_clipped_inverse_of_the_scripted_p_h(low_cov_env):
     """In process, no Zenoh: PassageEnv.set_correction(P_h) with the scripted human's P_h moves the desired
     position to P_h and stores clip(xi_h / L) with xi_h the constrained inverse (eq. 6) -- checked against the
     forward LC-NS-KMP map (grid_step(t, xi_h) == P_h) and, with a large L, unclipped (a_h * L == xi_h)."""
-    from common.env import PassageEnv
-    from common.scale import ScaleModel
-    from human_bridge.scripted import ScriptedHuman, ScriptedHumanConfig
+    from khgrl.common.kmp.scale import ScaleModel
+    from khgrl.common.tasks.passage.env import PassageEnv
+    from khgrl.human_bridge.scripted import ScriptedHuman, ScriptedHumanConfig
 
     human = ScriptedHuman("low_cov", ScriptedHumanConfig(episodes=(1,)))
     rng = np.random.default_rng(0)
@@ -408,7 +407,7 @@ def _padded(msg: dict, size: int) -> bytes:
 
 def _generic(kind: str, valid: dict, other_kind: str) -> list[tuple[str, bytes, str]]:
     """Malformed envelopes of any kind: (label, payload, the reason the receiver logs)."""
-    from common.protocol import KINDS
+    from khgrl.common.wire.protocol import KINDS
 
     limit = KINDS[kind].MAX_BYTES
 
@@ -425,7 +424,7 @@ def _generic(kind: str, valid: dict, other_kind: str) -> list[tuple[str, bytes, 
 
 
 def _transitions_fields(n: int = 4) -> dict:
-    from common.protocol import pack_array
+    from khgrl.common.wire.protocol import pack_array
 
     rng = np.random.default_rng(1)
     return {
@@ -439,7 +438,7 @@ def _transitions_fields(n: int = 4) -> dict:
 
 
 def _hostile_transitions() -> list[tuple[str, bytes, str]]:
-    from common.protocol import pack_array
+    from khgrl.common.wire.protocol import pack_array
 
     base = _transitions_fields()
     valid = _env_msg("transitions", sender="a0", seq=1, **base)
@@ -528,7 +527,7 @@ CONTROL_TARGETS = {"all": [("learner", "control"), ("actor", "control"), ("human
 
 def _hostile_weights(real) -> list[tuple[str, bytes, str]]:
     """Weights messages the actor must refuse, built on the shapes of the learner's real weights ``real``."""
-    from common.protocol import pack_array
+    from khgrl.common.wire.protocol import pack_array
 
     names = sorted(real.tensors)
     shapes = {k: tuple(v.shape) for k, v in real.tensors.items()}
@@ -566,8 +565,8 @@ class _Observer:
         self.lock = threading.Lock()
 
     def on_status(self, sample) -> None:
-        from common.messages import Status
-        from common.protocol import ProtocolError, decode
+        from khgrl.common.wire.messages import Status
+        from khgrl.common.wire.protocol import ProtocolError, decode
 
         try:
             msg = decode(Status, sample.payload.to_bytes())
@@ -702,9 +701,9 @@ def _check_harmless(run_dir: Path, attack: _Attacker, err_text: str) -> None:
 @pytest.mark.integration
 @pytest.mark.timeout(300)
 def test_hostile_messages_on_every_topic_are_rejected_counted_and_harmless(tmp_path):
-    from common.messages import Weights
-    from common.protocol import Keys, decode
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Weights
+    from khgrl.common.wire.protocol import Keys, decode
 
     run_dir, port, run = tmp_path / "run", free_port(), unique_run("evil")
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -761,9 +760,9 @@ def test_launcher_survives_odd_and_malformed_episode_and_status(tmp_path, kind, 
     huge or negative numbers) is shown as it is: neither crashes the launcher (docs/protocol.md: a receiver
     "never crashes on input"). Episode messages are formatted in both modes, the learner's status only by
     the live table (the default)."""
-    from common.messages import EpisodeReport, LearnerInfo, Status
-    from common.protocol import Keys, encode
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import EpisodeReport, LearnerInfo, Status
+    from khgrl.common.wire.protocol import Keys, encode
 
     run_dir, port, run = tmp_path / "run", free_port(), unique_run("evil")
     endpoint = f"tcp/127.0.0.1:{port}"

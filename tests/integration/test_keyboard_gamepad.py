@@ -1,7 +1,7 @@
 """``khgrl human keyboard`` and ``khgrl human gamepad``: human input without a mouse.
 
 Unit level: synthetic pygame events (keys; joystick axis and button events posted to pygame's queue) turn into
-pushes, and a :class:`~human_bridge.keyboard.PadClient` on a stand-in link sends the held P_h. Process level: no
+pushes, and a :class:`~khgrl.human_bridge.keyboard.PadClient` on a stand-in link sends the held P_h. Process level: no
 display, or no controller, is exit code 3 with one line; the flags parse. Integration: a client in this process,
 connected to a real router + learner + actor of a 3-D task, fetches the task over the wire, is driven by posted
 events, and the actor's ``corrections.csv`` records the held P_h moving in the pushed direction, then the
@@ -21,15 +21,15 @@ os.environ["SDL_AUDIODRIVER"] = "dummy"
 import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 import pytest  # noqa: E402
+from khgrl.common.wire.messages import Correction, Frame  # noqa: E402
+from khgrl.common.wire.protocol import decode  # noqa: E402
+from khgrl.human_bridge.gamepad import GamepadInput  # noqa: E402
+from khgrl.human_bridge.keyboard import WINDOW, KeyboardInput, PadClient  # noqa: E402
+from khgrl.human_bridge.velocity import Push  # noqa: E402
 
-from common.messages import Correction, Frame  # noqa: E402
-from common.protocol import decode  # noqa: E402
 from helpers import REPO, ProcGroup, python_main, read_json, unique_run, wait_for  # noqa: E402
-from human_bridge.gamepad import GamepadInput  # noqa: E402
-from human_bridge.keyboard import WINDOW, KeyboardInput, PadClient  # noqa: E402
-from human_bridge.velocity import Push  # noqa: E402
 
-OWN = "deploy.examples.own_task:make_task"  # a 3-D task (O = 3, view axes x/y, third z), 200 steps an episode
+OWN = "khgrl.deploy.examples.own_task:make_task"  # a 3-D task (O = 3, view axes x/y, third z), 200 steps an episode
 OWN_LOW, OWN_HIGH = np.array([0.02, 0.02, 0.02]), np.array([0.98, 0.98, 0.8])
 
 
@@ -133,7 +133,7 @@ class _Link:
 
 
 def test_pad_client_sends_the_held_p_h_and_draws_its_state(display):
-    from human_bridge.gui.task import local_descriptor
+    from khgrl.human_bridge.gui.task import local_descriptor
 
     task = local_descriptor("passage:low_cov")  # 2-D: the third push moves nothing
     link, events = _Link(), []
@@ -167,7 +167,7 @@ def test_pad_client_sends_the_held_p_h_and_draws_its_state(display):
 
 # ------------------------------------------------------------------------------------------ the process
 def test_without_a_display_or_a_controller_the_clients_exit_3_with_one_line():
-    base = python_main("human_bridge.main")
+    base = python_main("khgrl.human_bridge.main")
     for name in ("keyboard", "gamepad"):
         p = subprocess.run(base + [name, "--run", "r", "--connect", "tcp/127.0.0.1:1"], cwd=REPO, env=_env(),
                            capture_output=True, text=True, timeout=60)
@@ -183,7 +183,7 @@ def test_without_a_display_or_a_controller_the_clients_exit_3_with_one_line():
 
 
 def test_the_flags_parse():
-    from human_bridge.main import build_parser
+    from khgrl.human_bridge.main import build_parser
 
     a = build_parser().parse_args(["keyboard", "--run", "r", "--task", OWN, "--speed", "0.05"])
     assert (a.client, a.actor, a.id, a.speed) == ("keyboard", "a0", "keyboard", 0.05)
@@ -200,10 +200,10 @@ def _drive_real_actor(tmp_path, display, client_id: str, device, script) -> tupl
     wire; at a frame early in an episode run ``script(tick)`` (posting events, calling ``tick``); wait for the
     actor's end. Returns the client's words on the wire, its rows of corrections.csv, the actor's summary and
     the frame the hold started at."""
-    from common.process import StopFlag
-    from common.protocol import Keys
-    from common.transport import open_client
-    from human_bridge.client import HumanClient
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.process import StopFlag
+    from khgrl.common.wire.protocol import Keys
+    from khgrl.human_bridge.client import HumanClient
 
     run, run_dir = unique_run(client_id[:3]), tmp_path / "run"
     wire: list[Correction] = []

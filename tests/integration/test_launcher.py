@@ -1,5 +1,5 @@
 """``khgrl up`` as a new user meets it: the launcher defects of issue 10, each against the real processes
-(``python -m deploy.cli up ...``: router, learner, actor, human-input client).
+(``python -m khgrl.deploy.cli up ...``: router, learner, actor, human-input client).
 
 * an unreachable ``--connect`` router: a clear error naming it within ``--connect-timeout``;
 * SIGTERM stops the launcher and every child within seconds, in every state (waiting for a router, while the
@@ -201,7 +201,7 @@ def test_resume_continues_episodes_corrections_checkpoint_and_the_human_schedule
 
 @pytest.mark.timeout(120)
 def test_resume_with_nothing_to_resume_is_an_error(tmp_path):
-    from common.config import RunConfig, write_run_config
+    from khgrl.common.config.settings import RunConfig, write_run_config
 
     empty = tmp_path / "empty"
     proc = _run(empty, *KGRL, "--resume", timeout=60)
@@ -233,9 +233,9 @@ def test_gui_without_a_display_fails_the_run_loudly(tmp_path):
 # ================================================================================= 7. a stop from elsewhere
 @pytest.mark.timeout(300)
 def test_a_stop_command_from_elsewhere_is_a_failure(tmp_path):
-    from common.messages import Control
-    from common.protocol import Keys, encode
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Control
+    from khgrl.common.wire.protocol import Keys, encode
 
     up = Launcher(tmp_path, tmp_path / "run", *KGRL, "--episodes", "1000", "--max-lead", "100000",
                   "--rate", "100")

@@ -26,7 +26,7 @@ LOCKSTEP_STARTS = 384  # random warm-up; ~15 lock-step iterations follow in 2 ep
 
 
 def checkpoint(run_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
-    from learner.checkpoint import load_checkpoint_arrays
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     ck = run_dir / "learner" / "checkpoint"
     return read_json(ck / "state.json"), load_checkpoint_arrays(ck)
@@ -171,9 +171,9 @@ def test_forged_ack_cannot_make_the_actor_drop_undelivered_batches(tmp_path):
     """Someone on the router acks every batch as durable (with the real stream id and epoch); then the learner
     dies and resumes from a checkpoint that holds less. The actor refused the forged acks, so it still holds
     and re-sends everything after that checkpoint: the learner ends up with every transition exactly once."""
-    from common.messages import Ack, Control, Transitions
-    from common.protocol import Keys, decode, encode
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Ack, Control, Transitions
+    from khgrl.common.wire.protocol import Keys, decode, encode
 
     run, run_dir = unique_run("forge"), tmp_path / "run"
     keys = Keys(run)
@@ -237,9 +237,9 @@ def test_resumed_actor_continues_episode_numbering_and_appends(tmp_path):
     left to run. The scripted human helps in episodes 1 and 3 of the whole run."""
     import csv
 
-    from common.messages import Frame
-    from common.protocol import Keys, decode
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Frame
+    from khgrl.common.wire.protocol import Keys, decode
 
     run, run_dir = unique_run("resume"), tmp_path / "run"
     out = run_dir / "actor-a0"

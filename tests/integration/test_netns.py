@@ -14,7 +14,7 @@ network misbehaves:
 Checked: the actor kept acting while its link was down (its outbox on disk grew: every batch is written there
 before it is published), it reconnected by itself (time from link up to the learner acknowledging a new batch
 from it, and to its liveliness token being back, measured by a monitor client in the router's namespace), and
-every transition it made is in the learner's final checkpoint exactly once (benchmarks.scale.provenance_check).
+every transition it made is in the learner's final checkpoint exactly once (khgrl.benchmarks.scale.provenance_check).
 A second actor, a1, on a healthy link, must keep streaming while a0's link is down: one robot losing its network
 must not stall the others (with the router's built-in settings it did -- docs/netns.md, "The router stall").
 
@@ -53,10 +53,10 @@ def monitor_main(argv: list[str]) -> int:
 
     argv: ENDPOINT RUN OUT ZENOH_CONFIG
     """
-    from common.messages import Ack, Status
-    from common.process import StopFlag, install_stop_handlers
-    from common.protocol import Keys, decode
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.process import StopFlag, install_stop_handlers
+    from khgrl.common.wire.messages import Ack, Status
+    from khgrl.common.wire.protocol import Keys, decode
 
     endpoint, run, out, zenoh_config = argv
     flag = StopFlag()
@@ -125,9 +125,9 @@ class Seen:
 # ----------------------------------------------------------------------------------------- helpers
 def _write_run(run_dir: Path, run: str, endpoint: str) -> Path:
     """``RUN_DIR/config.json`` and the learner's task file, as ``khgrl up`` writes them; returns config.json."""
-    from common.config import RunConfig, StreamSettings, TQCSettings, write_run_config
-    from common.task_link import TASK_FILE, save_task
-    from deploy.launcher import check_task
+    from khgrl.common.config.settings import RunConfig, StreamSettings, TQCSettings, write_run_config
+    from khgrl.common.delivery.task_link import TASK_FILE, save_task
+    from khgrl.deploy.launcher import check_task
 
     cfg = RunConfig(scenario="low_cov", method="khgrl", episodes=1000, seed=0, run_dir=str(run_dir), run=run,
                     actors=len(ACTORS), human="scripted", human_episodes=(1,), connect=endpoint, rate=RATE,
@@ -143,7 +143,7 @@ def _write_run(run_dir: Path, run: str, endpoint: str) -> Path:
 def _certificates(d: Path, router_addr: str, endpoint: str) -> dict[str, Path]:
     """A CA, the router's certificate for its address and one per process, and every Zenoh configuration (the
     README's steps 1-2): {common name: configuration file}."""
-    from deploy.secure import issue_identities, write_configs
+    from khgrl.deploy.secure import issue_identities, write_configs
 
     ids = [("router", None), ("learner", None), ("human", "scripted"), ("monitor", None),
            *(("actor", a) for a in ACTORS)]
@@ -170,8 +170,8 @@ def net():
 @pytest.mark.integration
 @pytest.mark.timeout(420)
 def test_loss_and_a_10s_outage_lose_nothing_and_the_actor_reconnects(net, tmp_path):
-    from benchmarks.scale import provenance_check
-    from deploy.supervisor import khgrl_argv
+    from khgrl.benchmarks.scale import provenance_check
+    from khgrl.deploy.supervisor import khgrl_argv
 
     t_start = time.monotonic()
     run, run_dir = unique_run("netns"), tmp_path / "run"

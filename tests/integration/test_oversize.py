@@ -10,15 +10,15 @@ import textwrap
 import time
 
 import pytest
+from khgrl.common.delivery.transport import MAX_MESSAGE_BYTES, Inbox, open_client
 
-from common.transport import MAX_MESSAGE_BYTES, Inbox, open_client
 from helpers import REPO, ProcGroup, wait_for
 
 pytestmark = pytest.mark.integration
 
 PUBLISHER = textwrap.dedent("""
     import sys, time
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
     endpoint, key, sizes = sys.argv[1], sys.argv[2], [int(s) for s in sys.argv[3:]]
     with open_client(endpoint, timeout=20) as s:
         import zenoh

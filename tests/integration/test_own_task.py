@@ -16,8 +16,8 @@ import pytest
 
 from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
 
-OWN = "deploy.examples.own_task:make_task"
-UP = [sys.executable, "-m", "deploy.cli", "up"]
+OWN = "khgrl.deploy.examples.own_task:make_task"
+UP = [sys.executable, "-m", "khgrl.deploy.cli", "up"]
 
 
 def _env() -> dict:
@@ -30,9 +30,8 @@ def _env() -> dict:
 @pytest.mark.integration
 @pytest.mark.timeout(400)
 def test_own_3d_task_through_khgrl_up(tmp_path: Path) -> None:
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
     from stable_baselines3.common.save_util import load_from_pkl
-
-    from learner.checkpoint import load_checkpoint_arrays
 
     run_dir = tmp_path / "run"
     proc = subprocess.run([*UP, "--task", OWN, "--episodes", "2", "--human-episodes", "2", "--learning-starts", "64",
@@ -66,9 +65,9 @@ def test_own_3d_task_through_khgrl_up(tmp_path: Path) -> None:
 @pytest.mark.integration
 @pytest.mark.timeout(300)
 def test_learner_and_actor_of_different_tasks_refuse_each_other(tmp_path: Path) -> None:
-    from common.messages import Transitions
-    from common.protocol import Keys, encode
-    from common.transport import open_client
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Transitions
+    from khgrl.common.wire.protocol import Keys, encode
 
     run, run_dir = unique_run(), tmp_path / "run"
     with ProcGroup(tmp_path) as g:

@@ -28,8 +28,8 @@ ARGS = [*FAST, "--episodes", "2", "--human-episodes", "2", "--seed", "11"]
 
 
 def _session(run_dir, cn: str, endpoint: str):
-    from common.transport import _open
-    from common.zenoh_config import build_config
+    from khgrl.common.delivery.transport import _open
+    from khgrl.common.delivery.zenoh_config import build_config
 
     conf = build_config("client", [], [endpoint], 3000, run_dir / "certs" / "zenoh" / f"{cn}.json5")
     return _open(conf, lambda: False, 20, cn)
@@ -37,10 +37,10 @@ def _session(run_dir, cn: str, endpoint: str):
 
 def _forgeries(keys, weights_payload: bytes) -> list[tuple[str, str, bytes]]:
     """(attack, key, payload) of every forged message: each well-formed, so that only the router can stop it."""
-    from benchmarks.ingest_many import _as_actor
-    from benchmarks.runtime.link import batches
-    from common.messages import Ack, Control, Correction, Weights
-    from common.protocol import decode, encode
+    from khgrl.benchmarks.ingest_many import _as_actor
+    from khgrl.benchmarks.runtime.link import batches
+    from khgrl.common.wire.messages import Ack, Control, Correction, Weights
+    from khgrl.common.wire.protocol import decode, encode
 
     real = decode(Weights, weights_payload)
     forged_w = encode(real.replace(version=10**9, tensors={k: np.zeros_like(v) for k, v in real.tensors.items()}),
@@ -62,10 +62,9 @@ def _attack(up: Launcher, runtime: dict) -> tuple[list[tuple[str, bytes]], list[
     """Every forgery from every attacking identity; returns ((attacker: attack, payload) sent, what the observer
     received)."""
     import zenoh
-
-    from common.protocol import Keys
-    from common.transport import _open
-    from common.zenoh_config import build_config
+    from khgrl.common.delivery.transport import _open
+    from khgrl.common.delivery.zenoh_config import build_config
+    from khgrl.common.wire.protocol import Keys
 
     keys, ep = Keys(runtime["run"]), runtime["endpoint"]
     plain = build_config("client", [], [ep.replace("tls/", "tcp/")], 3000)
@@ -120,7 +119,7 @@ def test_secure_run_rejects_every_attack_and_repeats_the_plain_run(tmp_path):
     assert summary["a0"]["weights"]["final_version"] < 10**6 and not summary["a0"]["rejects"], summary["a0"]
     state = read_json(up.run_dir / "learner" / "checkpoint" / "state.json")
     assert set(state["actors"]) == {"a0"}, f"the learner admitted {sorted(state['actors'])}"
-    from benchmarks.scale import provenance_check
+    from khgrl.benchmarks.scale import provenance_check
 
     acct = provenance_check(up.run_dir)
     assert acct["lost"] == 0 and acct["duplicated"] == 0 and acct["produced"] > 0, acct

@@ -31,7 +31,7 @@ def test_client_imports_only_zenoh_msgpack_and_the_stdlib():
 
 def test_client_speaks_the_typed_protocol_both_ways():
     """Our frames (with ``last``) parse in the client; its corrections decode as typed Correction messages."""
-    from common.protocol import Correction, Frame, ProtocolError, decode, encode
+    from khgrl.common.wire.protocol import Correction, Frame, ProtocolError, decode, encode
 
     spec = importlib.util.spec_from_file_location("drag_client", CLIENT)
     client = importlib.util.module_from_spec(spec)
@@ -57,7 +57,7 @@ def test_client_speaks_the_typed_protocol_both_ways():
 @pytest.mark.integration
 @pytest.mark.timeout(240)
 def test_drag_client_corrections_land_in_the_replay_buffer(tmp_path):
-    from learner.checkpoint import load_checkpoint_arrays
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     run, run_dir = unique_run("drag"), tmp_path / "run"
     with ProcGroup(tmp_path) as g:

@@ -10,9 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-
-from common.kernels import RBF
-from common.kmp import LCNSKMP
+from khgrl.common.kmp.kernels import RBF
+from khgrl.common.kmp.lcnskmp import LCNSKMP
 
 # Hyperparameters used throughout (gamma = 2.5).
 LAM = 0.5

@@ -10,17 +10,16 @@ import threading
 
 import numpy as np
 import pytest
-
-from actor.arbiter import CorrectionArbiter
-from actor.outbox import Outbox
-from actor.pacing import Pacer, set_realtime
-from actor.record import CorrectionRecord
-from actor.results import EpisodeLog
-from actor.stream import LEARNER_APPEARED_RESEND_S, TransitionStream
-from common.messages import Ack, Correction, Transitions
-from common.metrics import EpisodeStats
-from common.protocol import decode
-from common.wire import RejectCounter
+from khgrl.actor.arbiter import CorrectionArbiter
+from khgrl.actor.pacing import Pacer, set_realtime
+from khgrl.actor.record import CorrectionRecord
+from khgrl.actor.results import EpisodeLog
+from khgrl.common.delivery.outbox import Outbox
+from khgrl.common.delivery.stream import LEARNER_APPEARED_RESEND_S, TransitionStream
+from khgrl.common.metrics import EpisodeStats
+from khgrl.common.wire.checks import RejectCounter
+from khgrl.common.wire.messages import Ack, Correction, Transitions
+from khgrl.common.wire.protocol import decode
 
 
 # ------------------------------------------------------------------------------------ arbiter
@@ -247,11 +246,10 @@ def test_checkpoint_request_at_the_end(tmp_path):
 # ------------------------------------------------------------------------------------ weights
 def test_weights_parse_load_and_lag():
     import torch
-
-    from actor.weights import PolicyWeights, WeightsReceiver
-    from common.messages import Weights
-    from common.protocol import encode
-    from common.wire import ProtocolError
+    from khgrl.actor.weights import PolicyWeights, WeightsReceiver
+    from khgrl.common.wire.checks import ProtocolError
+    from khgrl.common.wire.messages import Weights
+    from khgrl.common.wire.protocol import encode
 
     net = torch.nn.Linear(3, 2)
 

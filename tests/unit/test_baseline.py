@@ -8,9 +8,8 @@ import json
 
 import numpy as np
 import pytest
-
-from common.config import TQCSettings
-from learner.baseline import InterventionTQC, ReferenceConfig, build_env, run_reference
+from khgrl.common.config.settings import TQCSettings
+from khgrl.learner.baseline import InterventionTQC, ReferenceConfig, build_env, run_reference
 
 EPISODES = 2  # episode 1: no human (blocked at the second wall); episode 2: the scripted human
 
@@ -84,7 +83,7 @@ def test_reference_config_validation():
 
 
 def test_tqc_settings_are_the_papers():
-    """The baseline takes its TQC settings from common.config.TQCSettings, as the learner does."""
+    """The baseline takes its TQC settings from khgrl.common.config.settings.TQCSettings, as the learner does."""
     assert ReferenceConfig().tqc == TQCSettings()
     kw = ReferenceConfig(seed=3).tqc.sb3_kwargs(3)
     assert kw["learning_rate"] == 1e-3 and kw["tau"] == 0.02 and kw["gamma"] == 0.99

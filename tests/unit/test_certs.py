@@ -16,10 +16,9 @@ from cryptography import x509
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from cryptography.x509.verification import PolicyBuilder, Store
-
-from common.transport import free_port
-from deploy import certs
-from deploy.cli import main as khgrl
+from khgrl.common.delivery.transport import free_port
+from khgrl.deploy import certs
+from khgrl.deploy.cli import main as khgrl
 
 
 def _cert(path: Path) -> x509.Certificate:

@@ -14,15 +14,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import khgrl.learner.loop as loop_module
 import numpy as np
 import pytest
-
-import learner.loop as loop_module
-from common.config import TQCSettings
-from common.messages import LearnerInfo
-from common.process import StopFlag
-from common.protocol import Ack, Status, Transitions, decode, encode
-from learner.checkpoint import (
+from khgrl.common.config.settings import TQCSettings
+from khgrl.common.process import StopFlag
+from khgrl.common.wire.messages import LearnerInfo
+from khgrl.common.wire.protocol import Ack, Status, Transitions, decode, encode
+from khgrl.learner.checkpoint import (
     RETRY_MAX_S,
     TMP_PREFIX,
     SaveFaults,
@@ -33,7 +32,7 @@ from learner.checkpoint import (
     remove_stale_temps,
     save_checkpoint,
 )
-from learner.loop import LearnerLoop, open_learner
+from khgrl.learner.loop import LearnerLoop, open_learner
 
 SMALL = TQCSettings(learning_starts=16, buffer_size=1000, net_arch=(32, 32), batch_size=32)
 ENOSPC = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), "/data/checkpoint.tmp-1/replay_buffer.pkl")
@@ -138,7 +137,7 @@ def test_open_learner_cleans_the_checkpoint_dir_and_resumes_from_it(tmp_path):
 
 
 def test_khgrl_up_resume_looks_in_the_checkpoint_dir(tmp_path):
-    from deploy.rundir import has_checkpoint
+    from khgrl.deploy.rundir import has_checkpoint
 
     save_checkpoint(tmp_path / "data", _FakeModel(), {"mark": 1})
     assert not has_checkpoint(tmp_path / "run") and has_checkpoint(tmp_path / "run", str(tmp_path / "data"))
@@ -228,9 +227,8 @@ def _learner_info(**kw) -> LearnerInfo:
 
 
 def test_progress_view_shows_a_failing_checkpoint(capsys):
+    from khgrl.deploy.progress import ProgressView
     from rich.console import Console
-
-    from deploy.progress import ProgressView
 
     failing = _learner_info(checkpoint_error="EROFS Read-only file system: /data/[x]", checkpoint_failures=3)
     live = ProgressView(["a0"], 2, enabled=True)
@@ -254,7 +252,7 @@ def test_progress_view_shows_a_failing_checkpoint(capsys):
 def test_a_failed_final_checkpoint_is_one_clear_error(capsys):
     from types import SimpleNamespace
 
-    from learner.main import _final_checkpoint_failed
+    from khgrl.learner.main import _final_checkpoint_failed
 
     loop = SimpleNamespace(trainer=SimpleNamespace(total=100), last_ckpt_total=40, ckpt_dir=Path("/data/ck"),
                            saves=SimpleNamespace(error="ENOSPC No space left on device"))

@@ -10,9 +10,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from common.demos import load_demos
-from deploy.cli import build_parser, main
+from khgrl.common.tasks.demos import load_demos
+from khgrl.deploy.cli import build_parser, main
 
 VENV_KHGRL = Path(sys.executable).with_name("khgrl")
 
@@ -37,12 +36,13 @@ def test_expected_commands_exist():
 
 def test_process_commands_run_the_process_modules():
     """khgrl router/learner/actor/human run the process modules' main (the launcher's children's contract)."""
-    from deploy.cli import PROCESS_COMMANDS
+    from khgrl.deploy.cli import PROCESS_COMMANDS
 
     assert {k: v[:2] for k, v in PROCESS_COMMANDS.items()} == {
-        "up": ("deploy.launcher", "main"), "router": ("deploy.router", "main"), "learner": ("learner.main", "main"),
-        "actor": ("actor.main", "main"), "human": ("human_bridge.main", "main"),
-        "experiment": ("deploy.experiment", "main"), "report": ("deploy.report", "main")}
+        "up": ("khgrl.deploy.launcher", "main"), "router": ("khgrl.deploy.router", "main"),
+        "learner": ("khgrl.learner.main", "main"),
+        "actor": ("khgrl.actor.main", "main"), "human": ("khgrl.human_bridge.main", "main"),
+        "experiment": ("khgrl.deploy.experiment", "main"), "report": ("khgrl.deploy.report", "main")}
 
 
 def _leaf_parsers(parser: argparse.ArgumentParser, prefix=()):
@@ -60,7 +60,7 @@ def _parsers_of(command: str):
     a process command: its module's build_parser)."""
     import importlib
 
-    from deploy.cli import PROCESS_COMMANDS
+    from khgrl.deploy.cli import PROCESS_COMMANDS
 
     if command == "khgrl":
         return [(c, p) for c, p in _leaf_parsers(build_parser()) if c and c[0] not in PROCESS_COMMANDS]
@@ -81,7 +81,7 @@ def test_help_shows_every_default(command):
 
 def test_up_help_lists_every_run_setting(capsys):
     """khgrl up takes every RunConfig field as a flag, plus --config, --resume, --overwrite, --progress."""
-    from common.config import _flag_fields
+    from khgrl.common.config.settings import _flag_fields
 
     with pytest.raises(SystemExit):
         main(["up", "--help"])
@@ -186,7 +186,7 @@ def test_bad_choice_is_usage_error(capsys):
 def test_report_on_committed_reference_runs(tmp_path):
     from pathlib import Path
 
-    from deploy.cli import main
+    from khgrl.deploy.cli import main
 
     docs = Path(__file__).resolve().parents[2] / "docs" / "reference_runs"
     out = tmp_path / "rep.png"
@@ -197,7 +197,7 @@ def test_report_on_committed_reference_runs(tmp_path):
 
 
 def test_report_missing_run_dir(tmp_path, capsys):
-    from deploy.cli import main
+    from khgrl.deploy.cli import main
 
     assert main(["report", str(tmp_path / "nope")]) == 2
     assert "not a directory" in capsys.readouterr().err

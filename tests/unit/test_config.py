@@ -1,4 +1,4 @@
-"""common/config.py: the one source of settings -- defaults < file < flags, files that read back to the same
+"""common/config/settings.py: the one source of settings -- defaults < file < flags, files that read back to the same
 configuration, and clear errors for bad settings."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ import json
 import re
 
 import pytest
-
-from common.config import (
+from khgrl.common.config.process import add_process_flags, resolve_process
+from khgrl.common.config.settings import (
     PAPER_EPISODES,
     RunConfig,
     StreamSettings,
@@ -20,7 +20,6 @@ from common.config import (
     to_toml,
     write_run_config,
 )
-from common.process_config import add_process_flags, resolve_process
 
 
 def _parser(process: bool = False) -> argparse.ArgumentParser:
@@ -128,9 +127,8 @@ def test_settings_are_frozen_and_json_serialisable():
 
 def test_learner_device_auto_is_cpu_without_a_gpu_and_cuda_is_refused_clearly(monkeypatch):
     import torch
-
-    from common.config import TQCSettings
-    from learner.trainer import build_model, torch_device
+    from khgrl.common.config.settings import TQCSettings
+    from khgrl.learner.trainer import build_model, torch_device
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert TQCSettings().device == "auto" and torch_device("auto") == "cpu" and torch_device("cpu") == "cpu"

@@ -1,4 +1,4 @@
-"""Demonstration files (common/demos.py): NPZ and CSV round trips and clear errors."""
+"""Demonstration files (common/tasks/demos.py): NPZ and CSV round trips and clear errors."""
 
 from __future__ import annotations
 
@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-
-from common.demos import DemoFormatError, load_demos, save_demos, validate_demos
-from common.scenarios import make_demos
+from khgrl.common.tasks.demos import DemoFormatError, load_demos, save_demos, validate_demos
+from khgrl.common.tasks.passage.scenarios import make_demos
 
 HYP = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 

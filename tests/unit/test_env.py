@@ -1,4 +1,4 @@
-"""The passage world as a Gymnasium environment (common/env.py): API, rewards (eqs. 7-11), episode end,
+"""The passage world as a Gymnasium environment (common/tasks/passage/env.py): API, rewards (eqs. 7-11), episode end,
 wall physics and the human-intervention path (eq. 6)."""
 
 from __future__ import annotations
@@ -11,14 +11,13 @@ os.environ["SDL_AUDIODRIVER"] = "dummy"
 import warnings  # noqa: E402
 
 import gymnasium as gym  # noqa: E402
+import khgrl.common.tasks.passage.env  # noqa: E402,F401  (registers khgrl/Passage-v0)
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from gymnasium.utils.env_checker import check_env  # noqa: E402
-
-import common.env  # noqa: E402,F401  (registers khgrl/Passage-v0)
-from common.env import ENV_ID, PassageEnv, build_world  # noqa: E402
-from common.kgrl import KGRLMapping  # noqa: E402
-from common.scale import ScaleModel  # noqa: E402
+from khgrl.common.kmp.mapping import KGRLMapping  # noqa: E402
+from khgrl.common.kmp.scale import ScaleModel  # noqa: E402
+from khgrl.common.tasks.passage.env import ENV_ID, PassageEnv, build_world  # noqa: E402
 
 SCENARIOS = ("high_cov", "low_cov")
 

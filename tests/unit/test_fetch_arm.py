@@ -1,4 +1,4 @@
-"""The Fetch arm adapter (common/fetch_arm.py) on the real gymnasium-robotics MuJoCo environment: the gripper
+"""The Fetch arm adapter (common/tasks/fetch/arm.py) on the real gymnasium-robotics MuJoCo environment: the gripper
 tracks the commanded desired position when unobstructed, the gripper follows its phase schedule, the object and
 goal are placed as asked, and the environment passes Gymnasium's checker behind the KGRL mapping."""
 
@@ -11,7 +11,7 @@ import pytest
 
 pytest.importorskip("gymnasium_robotics", reason="gymnasium-robotics is a project dependency: pip install -e .")
 
-from common.fetch_arm import MAX_STEP, FetchPosition, GripperSchedule, fetch_command  # noqa: E402
+from khgrl.common.tasks.fetch.arm import MAX_STEP, FetchPosition, GripperSchedule, fetch_command  # noqa: E402
 
 
 @pytest.fixture()
@@ -67,9 +67,8 @@ def test_gripper_schedule_and_placement() -> None:
 
 def test_fetch_behind_the_kgrl_mapping_is_a_clean_gym_env() -> None:
     from gymnasium.utils.env_checker import check_env
-
-    from common.kgrl_env import KGRLEnv
-    from common.task import Task
+    from khgrl.common.tasks.api import Task
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
 
     e = FetchPosition(horizon=40)
     e.reset(seed=0)
@@ -95,7 +94,8 @@ def test_camera_frame_renders_the_arm_offscreen():
     import sys
     from pathlib import Path
 
-    code = ("import numpy as np; from common.fetch_task import make_task; env = make_task('moved').make_env(0); "
+    code = ("import numpy as np; from khgrl.common.tasks.fetch.task import make_task; "
+            "env = make_task('moved').make_env(0); "
             "env.reset(seed=0); a = env.camera_frame(96); env.step(np.array([1.2, 0.75, 0.6])); "
             "b = env.camera_frame(96); "
             "print(a.shape, a.dtype, int(a.std() > 10), int(np.abs(a.astype(int) - b).sum() > 0))")

@@ -1,4 +1,4 @@
-"""The Fetch pick-and-place task (common/fetch_task.py): the scripted teacher's demonstrations succeed in the
+"""The Fetch pick-and-place task (common/tasks/fetch/task.py): the scripted teacher's demonstrations succeed in the
 real MuJoCo environment where they were recorded and fail when the object was moved, and the "moved" scenario is
 structurally out of KGRL's reach: at the grasp, the deviation the default L allows is far below the 12 cm
 needed, while a human correction there maps to an action far outside [-1, 1] (so KhGRL's GPR raises L)."""
@@ -10,9 +10,9 @@ import pytest
 
 pytest.importorskip("gymnasium_robotics", reason="gymnasium-robotics is a project dependency: pip install -e .")
 
-from common.fetch_task import GRASP_PHASE, MOVE, make_task  # noqa: E402
-from common.kgrl_env import KGRLEnv  # noqa: E402
-from common.task import load_task  # noqa: E402
+from khgrl.common.tasks.api import load_task  # noqa: E402
+from khgrl.common.tasks.fetch.task import GRASP_PHASE, MOVE, make_task  # noqa: E402
+from khgrl.common.tasks.kgrl_env import KGRLEnv  # noqa: E402
 
 
 def _replay(task, demo: np.ndarray, seed: int) -> tuple[bool, np.ndarray]:

@@ -9,17 +9,17 @@ import time
 
 import numpy as np
 import pytest
+from khgrl.common.delivery.ingest import FairInbox
+from khgrl.common.delivery.outbox import Outbox
+from khgrl.common.delivery.stream import MAX_RESEND_AFTER_S, TransitionStream
+from khgrl.common.delivery.transport import Inbox
+from khgrl.common.process import StopFlag
+from khgrl.common.wire.checks import RejectCounter
+from khgrl.common.wire.protocol import Ack, Control, Transitions, decode, encode
+from khgrl.learner.loop import LearnerLoop
+from khgrl.learner.replay import SIDE_ARRAYS
+from khgrl.learner.resume import open_learner
 
-from actor.outbox import Outbox
-from actor.stream import MAX_RESEND_AFTER_S, TransitionStream
-from common.process import StopFlag
-from common.protocol import Ack, Control, Transitions, decode, encode
-from common.transport import Inbox
-from common.wire import RejectCounter
-from learner.ingest import FairInbox
-from learner.loop import LearnerLoop
-from learner.replay import SIDE_ARRAYS
-from learner.resume import open_learner
 from test_actor_parts import Clock, collect
 from test_learner_parts import RUN, SMALL, Collect, batch
 
@@ -156,7 +156,7 @@ def test_ingest_never_waits_for_a_gradient_step(tmp_path):
 def test_add_batch_fills_the_buffer_exactly_as_transition_by_transition_adds(tmp_path):
     """The vectorised store (ingest speed) gives the same slots, values, flags and provenance as SB3's add, also
     when it wraps around a full buffer; and the same due iterations."""
-    from common.config import TQCSettings
+    from khgrl.common.config.settings import TQCSettings
 
     tqc = TQCSettings(learning_starts=5, buffer_size=50, net_arch=(8,), batch_size=4)
     a, _ = open_learner(tqc, 1, tmp_path / "a", resume=False, logger_formats=("csv",))

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from common.gmr import fit_gmm, gmr, reference_distribution, time_inputs
+from khgrl.common.kmp.gmr import fit_gmm, gmr, reference_distribution, time_inputs
 
 
 def _two_component_model():

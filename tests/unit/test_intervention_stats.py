@@ -3,8 +3,8 @@ the learner's status read through its typed info."""
 
 from __future__ import annotations
 
-from common.messages import ActorInfo, LearnerInfo
-from common.protocol import EpisodeReport, Status, decode, encode
+from khgrl.common.wire.messages import ActorInfo, LearnerInfo
+from khgrl.common.wire.protocol import EpisodeReport, Status, decode, encode
 
 
 def _episode(actor, episode, **stats) -> EpisodeReport:
@@ -13,9 +13,8 @@ def _episode(actor, episode, **stats) -> EpisodeReport:
 
 
 def test_progress_view_counts_interventions_clipping_and_xi(capsys):
+    from khgrl.deploy.progress import ProgressView
     from rich.console import Console
-
-    from deploy.progress import ProgressView
 
     view = ProgressView(["a0"], 3, enabled=False)
     view.episode(_episode("a0", 1, ret=-10.0, success=False, interventions=0, intervention_steps=0, clipped_steps=0,
@@ -40,7 +39,7 @@ def test_progress_view_counts_interventions_clipping_and_xi(capsys):
 
 
 def test_progress_view_survives_odd_but_valid_stats(capsys):
-    from deploy.progress import ProgressView
+    from khgrl.deploy.progress import ProgressView
 
     view = ProgressView([], 2, enabled=False)
     view.episode(_episode("x", 1))  # only the episode number
@@ -50,7 +49,7 @@ def test_progress_view_survives_odd_but_valid_stats(capsys):
 
 
 def test_progress_view_reads_the_learner_status_through_its_typed_info():
-    from deploy.progress import ProgressView
+    from khgrl.deploy.progress import ProgressView
 
     view = ProgressView(["a0"], 2, enabled=False)
     assert view.caption() == "learner: waiting"

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from khgrl.common.kmp.kernels import RBF, evaluate_kernel, kernel_diag
+from khgrl.common.kmp.lcnskmp import LCNSKMP
 
-from common.kernels import RBF, evaluate_kernel, kernel_diag
-from common.kmp import LCNSKMP
 from kmp_problems import BETA, LAM
 
 

@@ -1,4 +1,4 @@
-"""The KGRL mapping (eq. 5) and its inverse (eq. 6) on the passage worlds' LC-NS-KMP (common/kgrl.py)."""
+"""The KGRL mapping (eq. 5) and its inverse (eq. 6) on the passage worlds' LC-NS-KMP (common/kmp/mapping.py)."""
 
 from __future__ import annotations
 
@@ -6,10 +6,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from common.env import build_world
-from common.kgrl import KGRLMapping, scale, unscale
-from common.scale import ScaleConfig, ScaleModel
+from khgrl.common.kmp.mapping import KGRLMapping, scale, unscale
+from khgrl.common.kmp.scale import ScaleConfig, ScaleModel
+from khgrl.common.tasks.passage.env import build_world
 
 HYP = settings(max_examples=40, deadline=None)
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)

@@ -1,4 +1,4 @@
-"""LC-NS-KMP (common.kmp): every check of math.md §7, plus input validation.
+"""LC-NS-KMP (khgrl.common.kmp.lcnskmp): every check of math.md §7, plus input validation.
 
 Reference computations here are deliberately independent of the implementation: the primal problem
 (paper eq. 2) is solved in weight space with cvxpy for a kernel that *is* a finite feature map, and the
@@ -16,10 +16,10 @@ import pytest
 import scipy.linalg
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from khgrl.common.kmp.kernels import RBF
+from khgrl.common.kmp.lcnskmp import LCNSKMP, InfeasibleConstraintsError
+from khgrl.common.kmp.qp import lcp_residual
 
-from common.kernels import RBF
-from common.kmp import LCNSKMP, InfeasibleConstraintsError
-from common.qp import lcp_residual
 from kmp_problems import BETA, BOX_C, BOX_G, LAM, PRECISION, Reference, dense_A, make_reference
 
 GAMMA = LAM + BETA

@@ -1,4 +1,4 @@
-"""The learner's parts without Zenoh: stream ordering (learner/ingest.py), the replay buffer with per-slot
+"""The learner's parts without Zenoh: stream ordering (common/delivery/ingest.py), the replay buffer with per-slot
 flags and provenance (learner/replay.py), checkpoints (learner/checkpoint.py) and the main loop
 (learner/loop.py) driven with messages, collecting what it publishes. The process itself (learner/main.py)
 is run for what needs no router: its command-line errors."""
@@ -12,16 +12,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from common.config import TQCSettings
-from common.messages import LearnerInfo
-from common.process import StopFlag
-from common.protocol import Ack, Control, Keys, Status, Transitions, Weights, decode, encode
-from common.transport import Inbox
-from learner.checkpoint import CheckpointError, checkpoint_dir, find_checkpoint, load_checkpoint_arrays, save_checkpoint
-from learner.ingest import StreamTable
-from learner.loop import LearnerLoop, open_learner
-from learner.replay import SIDE_ARRAYS, StreamReplayBuffer
+from khgrl.common.config.settings import TQCSettings
+from khgrl.common.delivery.ingest import StreamTable
+from khgrl.common.delivery.transport import Inbox
+from khgrl.common.process import StopFlag
+from khgrl.common.wire.messages import LearnerInfo
+from khgrl.common.wire.protocol import Ack, Control, Keys, Status, Transitions, Weights, decode, encode
+from khgrl.learner.checkpoint import (
+    CheckpointError,
+    checkpoint_dir,
+    find_checkpoint,
+    load_checkpoint_arrays,
+    save_checkpoint,
+)
+from khgrl.learner.loop import LearnerLoop, open_learner
+from khgrl.learner.replay import SIDE_ARRAYS, StreamReplayBuffer
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL = TQCSettings(learning_starts=16, buffer_size=1000, net_arch=(32, 32), batch_size=32)
@@ -111,7 +116,7 @@ def test_stream_table_state_round_trip():
 
 # ------------------------------------------------------------------------------------ replay buffer
 def test_replay_buffer_side_arrays_follow_the_slots():
-    from common.spaces import action_space, observation_space
+    from khgrl.common.tasks.spaces import action_space, observation_space
 
     rb = StreamReplayBuffer(4, observation_space(), action_space(), device="cpu")
     for i in range(6):  # wraps: slots 0 and 1 are overwritten by transitions 4 and 5
@@ -129,10 +134,9 @@ def test_replay_buffer_side_arrays_follow_the_slots():
 
 def test_replay_buffer_class_changes_no_random_draw():
     """TQC with our buffer class is seeded exactly as with SB3's own buffer (same initial networks)."""
+    from khgrl.common.tasks.spaces import SpacesEnv
+    from khgrl.learner.trainer import build_model
     from sb3_contrib import TQC
-
-    from common.spaces import SpacesEnv
-    from learner.trainer import build_model
 
     ours = build_model(SMALL, 1)
     plain = TQC("MlpPolicy", SpacesEnv(), **SMALL.sb3_kwargs(1))
@@ -305,7 +309,7 @@ def test_loop_status_rate(tmp_path):
 
 # ------------------------------------------------------------------------------------ the process
 def _learner(*args: str) -> subprocess.CompletedProcess:
-    code = "from learner.main import main; import sys; sys.exit(main(sys.argv[1:]))"
+    code = "from khgrl.learner.main import main; import sys; sys.exit(main(sys.argv[1:]))"
     return subprocess.run([sys.executable, "-c", code, *args], cwd=REPO, capture_output=True, text=True, timeout=120)
 
 
@@ -325,7 +329,7 @@ def test_bad_settings_are_an_error(tmp_path):
 
 
 def test_help_lists_the_learner_settings_with_defaults():
-    from learner.main import build_parser
+    from khgrl.learner.main import build_parser
 
     text = build_parser().format_help()
     for flag in ("--learning-starts", "--checkpoint-every", "--learner-threads", "--learner-nice", "--buffer-size",

@@ -10,16 +10,16 @@ import json
 
 import numpy as np
 import pytest
+from khgrl.actor.record import CorrectionRecord, trim_partial_line
+from khgrl.common.delivery.ingest import PENDING_IDS, FairInbox, StreamTable
+from khgrl.common.delivery.outbox import Outbox
+from khgrl.common.delivery.restart import AlreadyRunning, StreamRecord, lock_actor_dir, open_stream
+from khgrl.common.delivery.stream import LEARNER_APPEARED_RESEND_S, TransitionStream
+from khgrl.common.delivery.transport import Inbox
+from khgrl.common.wire.checks import RejectCounter
+from khgrl.common.wire.messages import Ack, Transitions
+from khgrl.common.wire.protocol import Keys, decode, encode
 
-from actor.outbox import Outbox
-from actor.record import CorrectionRecord, trim_partial_line
-from actor.restart import AlreadyRunning, StreamRecord, lock_actor_dir, open_stream
-from actor.stream import LEARNER_APPEARED_RESEND_S, TransitionStream
-from common.messages import Ack, Transitions
-from common.protocol import Keys, decode, encode
-from common.transport import Inbox
-from common.wire import RejectCounter
-from learner.ingest import PENDING_IDS, FairInbox, StreamTable
 from test_actor_parts import collect
 
 RUN = Keys("unit")
@@ -34,7 +34,7 @@ class Clock:
 
 
 def make_stream(out_dir, start=None, memory: int = 2):
-    """A stream as actor.main wires it, on the outbox and record in ``out_dir`` (``start``: open_stream's)."""
+    """A stream as khgrl.actor.main wires it, on the outbox and record in ``out_dir`` (``start``: open_stream's)."""
     start = start or open_stream(out_dir, memory, "a0", resume=False)
     rec, sent, clock = start.record, [], Clock()
     stream = TransitionStream("a0", rec.stream, start.outbox, sent.append, RejectCounter("actor/a0"), clock=clock,
@@ -213,9 +213,9 @@ def test_fair_inbox_admits_new_ids_at_a_bounded_rate_and_keeps_control_in_place(
 
 
 def test_learner_tells_a_superseded_stream_at_once(tmp_path):
-    from common.config import TQCSettings
-    from common.process import StopFlag
-    from learner.loop import LearnerLoop, open_learner
+    from khgrl.common.config.settings import TQCSettings
+    from khgrl.common.process import StopFlag
+    from khgrl.learner.loop import LearnerLoop, open_learner
 
     class Collect:
         queries = 0

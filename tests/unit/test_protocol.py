@@ -1,4 +1,5 @@
-"""The typed wire protocol (common/protocol.py, common/messages.py, common/wire.py): every message class
+"""The typed wire protocol (common/wire/protocol.py, common/wire/messages.py, common/wire/checks.py): every message
+class
 round-trips, a sender cannot encode what receivers refuse, and every kind of bad message is rejected with a
 reason (never an unexpected exception). Hostile payloads are built with msgpack directly, as a stranger on the
 router would."""
@@ -12,9 +13,9 @@ from pathlib import Path
 import msgpack
 import numpy as np
 import pytest
-
-from common.messages import ActorInfo, Dims, HumanInfo, LearnerInfo, TaskInfo
-from common.protocol import (
+from khgrl.common.tasks.spaces import ACT_DIM, OBS_DIM
+from khgrl.common.wire.messages import ActorInfo, Dims, HumanInfo, LearnerInfo, TaskInfo
+from khgrl.common.wire.protocol import (
     KINDS,
     SCHEMA_VERSION,
     Ack,
@@ -36,7 +37,6 @@ from common.protocol import (
     pack_array,
     with_base_seq,
 )
-from common.spaces import ACT_DIM, OBS_DIM
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -120,7 +120,7 @@ def _samples() -> list[Message]:
 
 
 def _descriptor():
-    from common.env import PassageEnv
+    from khgrl.common.tasks.passage.env import PassageEnv
 
     return PassageEnv("high_cov").descriptor("passage:high_cov")
 
@@ -472,16 +472,16 @@ def _imports_msgpack(path: Path) -> bool:
     return False
 
 
-def test_nothing_but_common_protocol_imports_msgpack() -> None:
+def test_nothing_but_the_wire_protocol_imports_msgpack() -> None:
     offenders = []
     for pkg in PACKAGES:
         for path in sorted((REPO / pkg).rglob("*.py")):
-            if THIRD_PARTY in path.parents or path == REPO / "common" / "protocol.py":
+            if THIRD_PARTY in path.parents or path == REPO / "common" / "wire" / "protocol.py":
                 continue
             if _imports_msgpack(path):
                 offenders.append(str(path.relative_to(REPO)))
-    assert offenders == [], f"msgpack imported outside common/protocol.py: {offenders}"
-    assert _imports_msgpack(REPO / "common" / "protocol.py")
+    assert offenders == [], f"msgpack imported outside common/wire/protocol.py: {offenders}"
+    assert _imports_msgpack(REPO / "common" / "wire" / "protocol.py")
 
 
 # ------------------------------------------------------------------------------------ sizes from the task

@@ -10,8 +10,7 @@ from __future__ import annotations
 import cvxpy as cp
 import numpy as np
 import pytest
-
-from common.qp import QPError, lcp_residual, solve_dual_qp, solve_least_distance_interior
+from khgrl.common.kmp.qp import QPError, lcp_residual, solve_dual_qp, solve_least_distance_interior
 
 
 def _random_problem(m: int, r: int, seed: int, scale: float = 1.0):

@@ -32,8 +32,9 @@ import pytest
 
 lc_ns_kmp = pytest.importorskip("lc_ns_kmp")
 
-from common.kernels import RBF  # noqa: E402
-from common.kmp import LCNSKMP  # noqa: E402
+from khgrl.common.kmp.kernels import RBF  # noqa: E402
+from khgrl.common.kmp.lcnskmp import LCNSKMP  # noqa: E402
+
 from kmp_problems import BETA, BOX_C, BOX_G, LAM, LOOSE_C, PRECISION  # noqa: E402
 
 INACTIVE_G = np.array([[1.0, 0.0]])

@@ -1,4 +1,4 @@
-"""Headless tests of the pygame scene renderer (common/render.py)."""
+"""Headless tests of the pygame scene renderer (common/tasks/passage/render.py)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 import pytest  # noqa: E402
-
-from common.render import FrameState, HumanWindow, SceneRenderer  # noqa: E402
-from common.scenarios import get_scenario, make_demos  # noqa: E402
+from khgrl.common.tasks.passage.render import FrameState, HumanWindow, SceneRenderer  # noqa: E402
+from khgrl.common.tasks.passage.scenarios import get_scenario, make_demos  # noqa: E402
 
 SIZE = 600
 STRIP = 80

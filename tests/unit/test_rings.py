@@ -1,4 +1,5 @@
-"""common.transport.Rings with real Zenoh sessions on loopback: a flood leaves only the newest ``capacity`` samples
+"""khgrl.common.delivery.transport.Rings with real Zenoh sessions on loopback: a flood leaves only the newest
+``capacity`` samples
 (nothing runs per sample in Python), polling takes keys in turn and is bounded, oversize payloads are skipped and
 counted."""
 
@@ -7,8 +8,7 @@ from __future__ import annotations
 import time
 
 import pytest
-
-from common.transport import Rings, free_port, open_client, open_router
+from khgrl.common.delivery.transport import Rings, free_port, open_client, open_router
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The learned exploration scale L (common/scale.py, math.md §5)."""
+"""The learned exploration scale L (common/kmp/scale.py, math.md §5)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from common.scale import ScaleConfig, ScaleModel
+from khgrl.common.kmp.scale import ScaleConfig, ScaleModel
 
 HYP = settings(max_examples=30, deadline=None)
 GRID = np.linspace(0.0, 1.0, 400)

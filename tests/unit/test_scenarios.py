@@ -1,6 +1,6 @@
-"""The passage-world scenario design (common/scenarios.py), proven from the fitted model itself.
+"""The passage-world scenario design (common/tasks/passage/scenarios.py), proven from the fitted model itself.
 
-Everything is computed from ``common.env.build_world(name)``: the LC-NS-KMP's grid mean eta0_n and
+Everything is computed from ``khgrl.common.tasks.passage.env.build_world(name)``: the LC-NS-KMP's grid mean eta0_n and
 projector N_n, and the scenario's geometry. The reachable deviation with exploration scale L at grid
 point n is max over the corners a of [-1, 1]^2 of ||N_n (L (.) a)|| (the policy action is bounded by 1
 per dimension; the maximum of a convex function over the box is at a corner).
@@ -17,10 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from common.env import PassageEnv, build_world
-from common.scenarios import SCENARIOS, get_scenario, make_demos
-from human_bridge.scripted import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
+from khgrl.common.tasks.passage.env import PassageEnv, build_world
+from khgrl.common.tasks.passage.scenarios import SCENARIOS, get_scenario, make_demos
+from khgrl.human_bridge.scripted import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 
 CORNERS = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
 

@@ -6,11 +6,11 @@ import dataclasses
 
 import numpy as np
 import pytest
+from khgrl.common.tasks.passage.env import PassageEnv
+from khgrl.common.tasks.passage.scenarios import SCENARIOS, get_scenario
+from khgrl.human_bridge.scripted import PAPER_EPISODES, HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 
-from common.env import PassageEnv
-from common.scenarios import SCENARIOS, get_scenario
 from helpers import RecordingPublisher
-from human_bridge.scripted import PAPER_EPISODES, HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 
 
 # ------------------------------------------------------------------------------------ the human alone
@@ -207,7 +207,7 @@ def test_wrapper_without_callback():
 
 # ------------------------------------------------------------------------------------ the scripted client's answers
 def _frames(name: str, episode: int, steps: int):
-    from common.protocol import Frame
+    from khgrl.common.wire.protocol import Frame
 
     env = PassageEnv(name)
     m = env.mapping
@@ -218,7 +218,7 @@ def _frames(name: str, episode: int, steps: int):
 
 
 def test_scripted_answers_are_step_addressed_and_announce_the_next_help_episode():
-    from human_bridge.scripted import ScriptedAnswers
+    from khgrl.human_bridge.scripted import ScriptedAnswers
 
     name = "low_cov"
     human = ScriptedHuman(name, ScriptedHumanConfig(episodes=(2,)))

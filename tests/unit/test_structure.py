@@ -1,4 +1,5 @@
-"""The code's shape, checked: no import cycles between first-party modules, no module over 400 lines."""
+"""The code's shape, checked: one installed package (``khgrl``) whose subpackages are the top-level folders, no
+import cycles between first-party modules nor between packages, no module over 400 lines."""
 
 from __future__ import annotations
 
@@ -8,22 +9,33 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-PACKAGES = ("common", "actor", "learner", "human_bridge", "deploy", "benchmarks")
+PACKAGES = ("common", "actor", "learner", "human_bridge", "deploy", "benchmarks")  # mapped to khgrl.<folder>
 MAX_LINES = 400
 
 
-def _modules() -> dict[str, Path]:
-    out = {}
+def _modules(examples: bool = False) -> dict[str, Path]:
+    """Every first-party module by its installed name (``khgrl.common.kmp.lcnskmp``) and its file."""
+    out = {"khgrl": REPO / "khgrl" / "__init__.py"}
+    out.update({f"khgrl.{p.stem}": p for p in (REPO / "khgrl").glob("*.py") if p.stem != "__init__"})
     for pkg in PACKAGES:
         for path in (REPO / pkg).rglob("*.py"):
-            if "examples" in path.parts:
+            if "examples" in path.parts and not examples:
                 continue
             rel = path.relative_to(REPO).with_suffix("")
             parts = list(rel.parts)
             if parts[-1] == "__init__":
                 parts = parts[:-1]
-            out[".".join(parts)] = path
+            out["khgrl." + ".".join(parts)] = path
     return out
+
+
+def _package(module: str) -> str:
+    """The package a module belongs to for the package-level cycle check: ``khgrl.<folder>``, and one level
+    deeper inside common/ (``khgrl.common.kmp``, ``khgrl.common.wire``, ...), whose parts are packages of
+    their own."""
+    parts = module.split(".")
+    depth = 3 if parts[1:2] == ["common"] and len(parts) > 3 else 2
+    return ".".join(parts[:depth])
 
 
 def _imports(path: Path, name: str, known: set[str]) -> set[str]:
@@ -77,6 +89,51 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
             if found:
                 return found
     return None
+
+
+def _package_graph() -> dict[str, set[str]]:
+    out: dict[str, set[str]] = {}
+    for mod, deps in _graph().items():
+        a = _package(mod)
+        out.setdefault(a, set()).update(b for b in map(_package, deps) if b != a)
+    return out
+
+
+def test_no_import_cycles_between_packages():
+    cycle = _cycle(_package_graph())
+    assert cycle is None, "import cycle between packages: " + " -> ".join(cycle)
+
+
+def test_the_package_cycle_check_finds_a_cycle_of_modules_in_two_packages():
+    graph = {"khgrl.deploy.a": {"khgrl.benchmarks.b"}, "khgrl.benchmarks.b": {"khgrl.deploy.c"},
+             "khgrl.deploy.c": set()}
+    packages: dict[str, set[str]] = {}
+    for mod, deps in graph.items():
+        packages.setdefault(_package(mod), set()).update(_package(d) for d in deps if _package(d) != _package(mod))
+    assert _cycle(graph) is None and _cycle(packages) == ["khgrl.benchmarks", "khgrl.deploy", "khgrl.benchmarks"]
+
+
+def test_every_package_folder_is_installed():
+    """pyproject.toml lists the packages by hand (the folders are mapped into khgrl): a new folder must be listed."""
+    import tomllib
+
+    listed = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {"khgrl"} | {"khgrl." + ".".join(p.parent.relative_to(REPO).parts)
+                           for pkg in PACKAGES for p in (REPO / pkg).rglob("__init__.py")}
+    assert listed == folders
+
+
+def test_nothing_imports_the_folders_as_top_level_packages():
+    """Every import says ``khgrl.``: from the repository root ``import common`` would work (the folder is on
+    sys.path) but not in an installed copy."""
+    bad = []
+    files = list(_modules(examples=True).values()) + list((REPO / "tests").rglob("*.py"))
+    for path in files:
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module] if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 else [])
+            bad += [f"{path.relative_to(REPO)}: {n}" for n in names if n.split(".")[0] in PACKAGES]
+    assert not bad, bad
 
 
 def test_no_import_cycles():

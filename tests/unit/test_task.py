@@ -1,4 +1,5 @@
-"""The task API (common.task, common.task_world, common.kgrl_env, common.descriptor): a task of any O runs
+"""The task API (khgrl.common.tasks.api, khgrl.common.tasks.world, khgrl.common.tasks.kgrl_env,
+khgrl.common.wire.descriptor): a task of any O runs
 through the generic KGRL environment, its descriptor survives the wire, and each kind of bad task definition
 is one TaskError that names the task and what is wrong."""
 
@@ -12,14 +13,13 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
-
-from common.descriptor import TaskDescriptor
-from common.kgrl_env import KGRLEnv
-from common.messages import TaskInfo
-from common.protocol import ProtocolError, decode, encode
-from common.task import Box, Sphere, Task, TaskError, View, load_task
-from common.task_world import build_task_world
-from deploy.examples.own_task import make_task as own_task
+from khgrl.common.tasks.api import Cuboid, Sphere, Task, TaskError, View, load_task
+from khgrl.common.tasks.kgrl_env import KGRLEnv
+from khgrl.common.tasks.world import build_task_world
+from khgrl.common.wire.descriptor import TaskDescriptor
+from khgrl.common.wire.messages import TaskInfo
+from khgrl.common.wire.protocol import ProtocolError, decode, encode
+from khgrl.deploy.examples.own_task import make_task as own_task
 
 
 def _task(**over) -> Task:
@@ -65,11 +65,11 @@ def test_a_correction_in_3d_is_eq_6_with_projection(own_env) -> None:
 
 
 def test_descriptor_round_trip_and_digest(own_env) -> None:
-    d = own_env.descriptor("deploy.examples.own_task:make_task")
+    d = own_env.descriptor("khgrl.deploy.examples.own_task:make_task")
     assert (d.out_dim, d.obs_dim, d.horizon, d.third) == (3, 7, 200, 2)
     back = decode(TaskInfo, encode(TaskInfo(sender_id="a0", descriptor=d), "a0", 0)).descriptor
     assert back.digest == d.digest and np.array_equal(back.mean, d.mean) and back.shapes[0]["kind"] == "box"
-    other = KGRLEnv(_task(default_scale=6.0)).descriptor("deploy.examples.own_task:make_task")
+    other = KGRLEnv(_task(default_scale=6.0)).descriptor("khgrl.deploy.examples.own_task:make_task")
     assert other.digest != d.digest  # another L0 is another task
 
 
@@ -96,7 +96,7 @@ BAD = [
     (dict(default_scale=-1.0), "default_scale must be > 0"),
     (dict(view=View(axes=(0, 5))), "view axes"),
     (dict(view=View(shapes=(Sphere("ball", (0.5, 0.5), 0.1),))), "shape 'ball' center needs 3 values"),
-    (dict(view=View(shapes=(Box("b", (0, 0, 0), (1, 1, np.inf)),))), "not finite"),
+    (dict(view=View(shapes=(Cuboid("b", (0, 0, 0), (1, 1, np.inf)),))), "not finite"),
 ]
 
 
@@ -121,14 +121,15 @@ def test_an_env_whose_action_is_not_the_command_is_refused() -> None:
 
 def test_load_task_specs(tmp_path, monkeypatch) -> None:
     assert load_task("passage:low_cov").name == "passage-low_cov"
-    assert load_task("deploy.examples.own_task:make_task").name == "point-3d"
+    assert load_task("khgrl.deploy.examples.own_task:make_task").name == "point-3d"
     for spec, reason in [("nonsense", "expected"), ("no_such_module_x:make", "cannot import"),
-                         ("deploy.examples.own_task:nothing", "no callable"), ("passage:mars", "unknown scenario")]:
+                         ("khgrl.deploy.examples.own_task:nothing", "no callable"),
+                         ("passage:mars", "unknown scenario")]:
         with pytest.raises(TaskError, match=reason):
             load_task(spec)
     # a module in the current directory is found without PYTHONPATH; a factory that raises is named
     (tmp_path / "my_tasks_mod.py").write_text(textwrap.dedent("""
-        from deploy.examples.own_task import make_task
+        from khgrl.deploy.examples.own_task import make_task
         def broken():
             raise KeyError("gripper")
         def wrong():
@@ -144,9 +145,9 @@ def test_load_task_specs(tmp_path, monkeypatch) -> None:
 
 
 def test_demos_file_replaces_the_task_demos(tmp_path) -> None:
-    from common.demos import save_demos
+    from khgrl.common.tasks.demos import save_demos
 
     demos = own_task().demos[:3, ::2]  # 3 demos of 100 steps
     path = save_demos(tmp_path / "d.npz", demos)
-    env = KGRLEnv(load_task("deploy.examples.own_task:make_task", demos=path))
+    env = KGRLEnv(load_task("khgrl.deploy.examples.own_task:make_task", demos=path))
     assert env.horizon == 100 and env.world.demos.shape == (3, 100, 3)

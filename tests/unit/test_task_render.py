@@ -1,4 +1,4 @@
-"""Headless tests of the task renderer (common/task_render.py) and the KMP plot for O >= 3 (common/plots.py)."""
+"""Headless tests of the task renderer (common/tasks/render.py) and the KMP plot for O >= 3 (common/kmp/plots.py)."""
 
 from __future__ import annotations
 
@@ -14,14 +14,13 @@ import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 import pytest  # noqa: E402
 from gymnasium import spaces  # noqa: E402
-
-from common.descriptor import TaskDescriptor  # noqa: E402
-from common.env import PassageEnv  # noqa: E402
-from common.kgrl_env import KGRLEnv  # noqa: E402
-from common.model import KMPConfig, fit_model  # noqa: E402
-from common.plots import plot_kmp  # noqa: E402
-from common.task import Box, Point, Sphere, Task, View  # noqa: E402
-from common.task_render import TaskFrame, TaskRenderer, frame_from_env, nice_ticks, view_extent  # noqa: E402
+from khgrl.common.kmp.fit import KMPConfig, fit_model  # noqa: E402
+from khgrl.common.kmp.plots import plot_kmp  # noqa: E402
+from khgrl.common.tasks.api import Cuboid, Point, Sphere, Task, View  # noqa: E402
+from khgrl.common.tasks.kgrl_env import KGRLEnv  # noqa: E402
+from khgrl.common.tasks.passage.env import PassageEnv  # noqa: E402
+from khgrl.common.tasks.render import TaskFrame, TaskRenderer, frame_from_env, nice_ticks, view_extent  # noqa: E402
+from khgrl.common.wire.descriptor import TaskDescriptor  # noqa: E402
 
 N = 60
 
@@ -59,7 +58,7 @@ def _demos3() -> np.ndarray:
 
 def _task3() -> Task:
     view = View(axes=(0, 1), third=2, names=("x", "y", "z"),
-                shapes=(Box("keep-out", (0.4, 0.4, 0.0), (0.6, 0.6, 0.3)), Sphere("ball", (0.2, 0.7, 0.5), 0.08),
+                shapes=(Cuboid("keep-out", (0.4, 0.4, 0.0), (0.6, 0.6, 0.3)), Sphere("ball", (0.2, 0.7, 0.5), 0.08),
                         Point("start", (0.1, 0.1, 0.1)), Point("goal", (0.9, 0.9, 0.5))))
     return Task(name="point3d", make_env=lambda seed: PointRobot3D(), demos=_demos3(),
                 workspace=((0.0, 0.0, 0.0), (1.0, 1.0, 1.0)), kmp=KMPConfig(n_components=4), default_scale=0.5,
@@ -236,8 +235,8 @@ def test_plot_kmp_o1_without_reference(tmp_path) -> None:
 
 
 def test_cli_kmp_fit_o3(tmp_path, capsys) -> None:
-    from common.demos import save_demos
-    from deploy.cli import main
+    from khgrl.common.tasks.demos import save_demos
+    from khgrl.deploy.cli import main
 
     src = tmp_path / "d3.npz"
     save_demos(src, _demos3())
@@ -250,7 +249,7 @@ def test_cli_kmp_fit_o3(tmp_path, capsys) -> None:
 def test_a_table_under_the_task_does_not_hide_the_object_seen_from_above() -> None:
     """Fetch's table (below every demonstration in z) is drawn faintly in the top view, where the moved object
     lies on it; in the side view it is the solid obstacle it is."""
-    from common.fetch_task import DEMO_OBJECT, MOVE, make_task
+    from khgrl.common.tasks.fetch.task import DEMO_OBJECT, MOVE, make_task
 
     env = KGRLEnv(make_task("moved"))
     r = TaskRenderer(env.descriptor("fetch:moved"), size=(800, 420))

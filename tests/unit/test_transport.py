@@ -1,4 +1,4 @@
-"""common/transport.py: the bounded inbox and its overflow policies, reaching (or not) a router, and a session
+"""common/delivery/transport.py: the bounded inbox and its overflow policies, reaching (or not) a router, and a session
 open that gives up on time or on a stop request instead of hanging."""
 
 from __future__ import annotations
@@ -8,8 +8,7 @@ import threading
 import time
 
 import pytest
-
-from common.transport import Inbox, endpoint_host_port, free_port, open_client, wait_reachable
+from khgrl.common.delivery.transport import Inbox, endpoint_host_port, free_port, open_client, wait_reachable
 
 
 def _fill(inbox: Inbox, n: int) -> list[int]:

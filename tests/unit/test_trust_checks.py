@@ -11,15 +11,15 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from khgrl.actor.arbiter import CorrectionArbiter
+from khgrl.actor.inbound import Inbound
+from khgrl.actor.weights import PolicyWeights, WeightsReceiver, WeightsUpdate
+from khgrl.common.delivery.trust import HOLD_S, MAX_VERSIONS_PER_S, VERSION_SLACK, WeightsGate, learner_of
+from khgrl.common.process import StopFlag
+from khgrl.common.wire.checks import ProtocolError, RejectCounter
+from khgrl.common.wire.messages import Ack, Control, Dims, Weights
+from khgrl.common.wire.protocol import Keys, encode
 
-from actor.arbiter import CorrectionArbiter
-from actor.inbound import Inbound
-from actor.trust import HOLD_S, MAX_VERSIONS_PER_S, VERSION_SLACK, WeightsGate, learner_of
-from actor.weights import PolicyWeights, WeightsReceiver, WeightsUpdate
-from common.messages import Ack, Control, Dims, Weights
-from common.process import StopFlag
-from common.protocol import Keys, encode
-from common.wire import ProtocolError, RejectCounter
 from test_actor_parts import Clock, collect, make_stream
 from test_learner_parts import make_loop
 

@@ -6,10 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from common.descriptor import TaskDescriptor
-from common.messages import Frame
-from human_bridge.velocity import (
+from khgrl.common.wire.descriptor import TaskDescriptor
+from khgrl.common.wire.messages import Frame
+from khgrl.human_bridge.velocity import (
     DEAD_ZONE,
     KEEPALIVE_S,
     MAX_DT,
@@ -21,7 +20,7 @@ from human_bridge.velocity import (
     velocity,
 )
 
-FETCH_BOX = ((1.05, 0.4, 0.42), (1.55, 1.1, 0.9))  # common/fetch_task.py's workspace
+FETCH_BOX = ((1.05, 0.4, 0.42), (1.55, 1.1, 0.9))  # common/tasks/fetch/task.py's workspace
 
 
 def _desc(low=FETCH_BOX[0], high=FETCH_BOX[1], axes=(0, 1), third=2) -> TaskDescriptor:

@@ -11,10 +11,9 @@ import re
 from pathlib import Path
 
 import pytest
-
-from common.acl import Identity, access_control
-from common.process_config import add_process_flags, resolve_process
-from common.zenoh_config import ENV, ZenohConfigError, build_config, config_file, identity
+from khgrl.common.config.process import add_process_flags, resolve_process
+from khgrl.common.delivery.acl import Identity, access_control
+from khgrl.common.delivery.zenoh_config import ENV, ZenohConfigError, build_config, config_file, identity
 
 REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / "deploy" / "zenoh"

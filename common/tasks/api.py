@@ -1,0 +1,274 @@
+"""The task API: what a user supplies to run KhGRL on their own robot or simulator (README, "Bring your own task").
+
+A :class:`Task` holds
+
+* ``make_env`` -- a factory of a Gymnasium environment whose action is the *desired position* P_t in R^O
+  (the command the KGRL mapping produces, eq. 5), or any environment plus ``command``, an adapter from P_t to
+  that environment's own action (e.g. a delta end-effector action);
+* ``demos`` -- demonstrations (M, N, O) as an array or a .npz/.csv file (:mod:`khgrl.common.tasks.demos`), the KMP
+settings
+  (:class:`~khgrl.common.kmp.fit.KMPConfig`), the workspace box (always a hard constraint) and optional further hard
+  linear constraints ``G P >= c`` (math.md §3);
+* the default exploration scale L0 and whether KhGRL learns it from the human (paper Section III-C);
+* optionally: ``position`` (where the robot is, in command coordinates, from the environment's observation;
+  default: the command last sent), ``scripted_human`` (P_h or None for the step whose KMP mean is given),
+  and drawing hints (:class:`View`).
+
+The policy observes the environment's observation, the phase s and the robot's deviation from the KMP mean
+(clipped to [-1, 1]); the reward is the environment's plus the action cost r_a = -``action_cost`` |P_t - eta0_t|^2
+(eq. 7). :func:`load_task` turns a spec (``passage:high_cov`` or ``my_package.my_module:make_task``) into a
+checked task; every mistake in a task definition is one :class:`TaskError` naming what is wrong.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+from khgrl.common.kmp.fit import KMPConfig
+
+__all__ = ["Task", "View", "Cuboid", "Sphere", "Point", "TaskError", "load_task", "BUILTIN_TASKS",
+           "MAX_DIM"]
+
+MAX_DIM = 64  # command (O) and observation sizes a task may have (also the wire's bound)
+
+
+class TaskError(ValueError):
+    """A task definition that cannot run; the text names the task and what is wrong."""
+
+
+@dataclass(frozen=True)
+class Cuboid:
+    """An axis-aligned box in command coordinates (a keep-out zone, a table, a target region)."""
+
+    name: str
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    kind: str = "box"
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """A ball (a circle in a 2-D view) in command coordinates."""
+
+    name: str
+    center: tuple[float, ...]
+    radius: float
+    kind: str = "sphere"
+
+
+@dataclass(frozen=True)
+class Point:
+    """A marked point (start, goal) in command coordinates."""
+
+    name: str
+    at: tuple[float, ...]
+    kind: str = "point"
+
+
+Shape = Cuboid | Sphere | Point
+
+
+@dataclass(frozen=True)
+class View:
+    """Drawing hints for the GUI, monitors and ``khgrl eval --gif``.
+
+    :param axes: the two command axes of the main 2-D view (horizontal, vertical).
+    :param third: a third axis shown in a second view against the first (None: no second view).
+    :param names: a name per command axis (default x, y, z, y3, ...).
+    :param shapes: named objects drawn in the views.
+    """
+
+    axes: tuple[int, int] = (0, 1)
+    third: int | None = None
+    names: tuple[str, ...] = ()
+    shapes: tuple[Shape, ...] = ()
+
+
+@dataclass(frozen=True)
+class Task:
+    """One task: the environment, the demonstrations and the KGRL settings. See the module docstring.
+
+    :param name: a short name (shown in logs, frames and plots).
+    :param make_env: ``make_env(seed) -> gymnasium.Env`` (called once per actor, with the actor's seed).
+    :param demos: (M, N, O) demonstrations or a path to a .npz/.csv file.
+    :param workspace: (low, high) of the box P_t must stay in (a hard constraint; corrections are projected
+        onto it).
+    :param kmp: GMM/GMR and LC-NS-KMP settings.
+    :param constraints: optional further hard constraints (G (K, O), c (K,)) with G P >= c.
+    :param default_scale: L0 (a number or one per output).
+    :param learn_scale: KhGRL refits L from the human's corrections.
+    :param action_cost: weight of r_a = -action_cost |P_t - eta0_t|^2 (eq. 7).
+    :param command: adapter ``command(env, p_t) -> env action`` (None: the action is P_t itself).
+    :param position: ``position(obs) -> (O,)`` the robot in command coordinates (None: the command last sent).
+    :param scripted_human: ``scripted_human(mean) -> P_h or None`` for the step whose KMP mean is ``mean``.
+    :param view: drawing hints.
+    :param success_key: the ``info`` key that marks a successful episode end.
+    """
+
+    name: str
+    make_env: Callable[[int], Any]
+    demos: Any
+    workspace: tuple[Sequence[float], Sequence[float]]
+    kmp: KMPConfig = KMPConfig()
+    constraints: tuple[Any, Any] | None = None
+    default_scale: float | Sequence[float] = 10.0
+    learn_scale: bool = True
+    action_cost: float = 10.0
+    command: Callable[[Any, np.ndarray], Any] | None = None
+    position: Callable[[np.ndarray], np.ndarray] | None = None
+    scripted_human: Callable[[np.ndarray], np.ndarray | None] | None = None
+    view: View = field(default_factory=View)
+    success_key: str = "success"
+
+    def with_demos(self, demos: Any) -> "Task":
+        """This task with other demonstrations (``--demos FILE``)."""
+        return replace(self, demos=demos)
+
+
+# ------------------------------------------------------------------------------------ loading
+BUILTIN_TASKS = {"passage": "khgrl.common.tasks.passage.task:make_task",
+                 "fetch": "khgrl.common.tasks.fetch.task:make_task"}
+
+
+def _import_factory(spec: str) -> tuple[Callable, list[str]]:
+    """``module:callable`` (or ``builtin:arg``) -> the callable and its positional string arguments."""
+    head, sep, tail = spec.partition(":")
+    if head in BUILTIN_TASKS:
+        module, _, attr = BUILTIN_TASKS[head].partition(":")
+        args = [tail] if tail else []
+    elif sep and tail:
+        module, attr, args = head, tail, []
+    else:
+        raise TaskError(f"task {spec!r}: expected 'passage:SCENARIO' or 'package.module:callable'")
+    try:
+        mod = _import(module)
+    except Exception as exc:  # noqa: BLE001 - a user module can fail to import in any way
+        hint = (" (run khgrl from the directory that holds it, or put that directory on PYTHONPATH)"
+                if isinstance(exc, ModuleNotFoundError) else "")
+        raise TaskError(f"task {spec!r}: cannot import {module!r}: {type(exc).__name__}: {exc}{hint}") from None
+    fn = getattr(mod, attr, None)
+    if not callable(fn):
+        raise TaskError(f"task {spec!r}: {module!r} has no callable {attr!r}")
+    return fn, args
+
+
+def _import(module: str):
+    """Import ``module``; a module in the current directory is found without PYTHONPATH (as ``python -m``)."""
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as exc:
+        if exc.name != module.split(".")[0] or os.getcwd() in sys.path:
+            raise
+        sys.path.append(os.getcwd())
+        return importlib.import_module(module)
+
+
+def load_task(spec: str, demos: str | Path | None = None) -> Task:
+    """The checked task of ``spec``, with ``demos`` (a file) in place of its own demonstrations if given.
+
+    :param spec: ``passage:high_cov``, ``passage:low_cov`` or ``package.module:callable`` (a callable returning
+        a :class:`Task`, or a :class:`Task` itself).
+    :param demos: a .npz/.csv demonstration file that replaces the task's.
+    :raises TaskError: naming what is wrong.
+    """
+    fn, args = _import_factory(spec)
+    if isinstance(fn, Task):
+        task = fn
+    else:
+        try:
+            task = fn(*args)
+        except TaskError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the user's factory
+            raise TaskError(f"task {spec!r}: the factory raised {type(exc).__name__}: {exc}") from None
+    if not isinstance(task, Task):
+        raise TaskError(f"task {spec!r}: the factory returned {type(task).__name__}, not a khgrl.task.Task")
+    if demos:
+        task = task.with_demos(Path(demos))
+    return task
+
+
+# ------------------------------------------------------------------------------------ checks
+def vector(task: Task, what: str, value: Any, dim: int | None = None) -> np.ndarray:
+    """``value`` as a finite float64 vector (of ``dim`` entries, if given), or a :class:`TaskError`."""
+    try:
+        arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise TaskError(f"task {task.name!r}: {what} is not numeric ({exc})") from None
+    if dim is not None and arr.size == 1 and dim > 1 and np.ndim(value) == 0:
+        arr = np.full(dim, float(arr[0]))
+    if dim is not None and arr.shape != (dim,):
+        raise TaskError(f"task {task.name!r}: {what} needs {dim} values (one per output), got {arr.size}")
+    if not np.all(np.isfinite(arr)):
+        raise TaskError(f"task {task.name!r}: {what} is not finite: {arr}")
+    return arr
+
+
+def task_demos(task: Task) -> np.ndarray:
+    """The task's demonstrations as checked float64 (M, N, O)."""
+    from khgrl.common.tasks.demos import DemoFormatError, load_demos, validate_demos
+
+    try:
+        if isinstance(task.demos, (str, Path)):
+            demos = load_demos(task.demos)
+        else:
+            demos = validate_demos(task.demos, "demos")
+    except DemoFormatError as exc:
+        raise TaskError(f"task {task.name!r}: {exc}") from None
+    m, n, o = demos.shape
+    if m < 2 or n < 10 or o > MAX_DIM:
+        raise TaskError(f"task {task.name!r}: need M >= 2 demonstrations of N >= 10 steps and O <= {MAX_DIM} "
+                        f"outputs, got (M, N, O) = {demos.shape}")
+    return demos
+
+
+def task_constraints(task: Task, o: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(low, high, G, c): the workspace box and all hard constraints as G P >= c (box rows first)."""
+    from khgrl.common.kmp.fit import box_constraints
+
+    if not (isinstance(task.workspace, (tuple, list)) and len(task.workspace) == 2):
+        raise TaskError(f"task {task.name!r}: workspace must be (low, high)")
+    low = vector(task, "workspace low", task.workspace[0], o)
+    high = vector(task, "workspace high", task.workspace[1], o)
+    if np.any(low >= high):
+        raise TaskError(f"task {task.name!r}: workspace needs low < high in every output, got {low} and {high}")
+    G, c = box_constraints(low, high)
+    if task.constraints is not None:
+        try:
+            G2 = np.asarray(task.constraints[0], dtype=np.float64)
+            c2 = np.asarray(task.constraints[1], dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError, IndexError) as exc:
+            raise TaskError(f"task {task.name!r}: constraints must be (G, c) arrays ({exc})") from None
+        if G2.ndim != 2 or G2.shape[1] != o or c2.shape != (G2.shape[0],):
+            raise TaskError(f"task {task.name!r}: constraints need G of shape (K, {o}) and c of shape (K,), got "
+                            f"{G2.shape} and {c2.shape}")
+        if not (np.all(np.isfinite(G2)) and np.all(np.isfinite(c2))):
+            raise TaskError(f"task {task.name!r}: constraints are not finite")
+        G, c = np.concatenate([G, G2]), np.concatenate([c, c2])
+    return low, high, G, c
+
+
+def check_view(task: Task, o: int) -> View:
+    """The task's drawing hints checked against O (axes in range, shapes of O coordinates)."""
+    v = task.view
+    axes = tuple(v.axes)
+    if len(axes) != 2 or any(not (0 <= a < o) for a in axes) or (o > 1 and axes[0] == axes[1]):
+        raise TaskError(f"task {task.name!r}: view axes {axes} must be two different outputs in 0..{o - 1}")
+    if v.third is not None and not (0 <= v.third < o):
+        raise TaskError(f"task {task.name!r}: view third axis {v.third} is not an output in 0..{o - 1}")
+    names = tuple(v.names) or tuple(("x", "y", "z")[k] if k < 3 else f"y{k}" for k in range(o))
+    if len(names) != o:
+        raise TaskError(f"task {task.name!r}: view names {names} need one name per output ({o})")
+    for s in v.shapes:
+        coords = {"box": ("low", "high"), "sphere": ("center",), "point": ("at",)}.get(getattr(s, "kind", None))
+        if coords is None:
+            raise TaskError(f"task {task.name!r}: view shape {s!r} is not a Cuboid, Sphere or Point")
+        for c in coords:
+            vector(task, f"shape {s.name!r} {c}", getattr(s, c), o)
+    return replace(v, axes=axes, names=names)

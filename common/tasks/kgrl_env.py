@@ -1,0 +1,238 @@
+"""Any task behind the KGRL mapping, as one Gymnasium environment the actor (or single-process SB3) steps.
+
+``KGRLEnv(task)`` wraps the task's environment (:mod:`khgrl.common.tasks.api`). One step at time index t (phase
+s = t / (N - 1), N the KMP grid):
+
+1. L_t, the exploration scale in force, is read from the scale model;
+2. KGRL (no correction pending): the policy action a in [-1, 1]^O is unscaled, xi = L_t (.) a, and the
+   LC-NS-KMP gives the desired position P_t inside the hard constraints (eq. 5);
+   KhGRL (a correction P_h pending, :meth:`KGRLEnv.set_correction`): P_h is projected onto the workspace box
+   (counted), P_t = P_h, and the stored action is a_h = clip(N_t^-1 (P_h - eta0_t) (/) L_t) (eq. 6);
+3. the task's environment is stepped with P_t (or with ``task.command(env, P_t)``);
+4. reward r = r_a + the environment's reward, r_a = -``action_cost`` dp^T dp with dp = P_t - eta0_t (eq. 7).
+
+Episode end: the task environment's termination; truncation by the environment or after N steps.
+
+Observation (float32): the environment's observation, the phase s, and the robot's deviation from the KMP
+mean at this phase clipped to [-1, 1]^O (the robot: ``task.position(obs)``, or the command last sent).
+
+Action: a in [-1, 1]^O (float32), the null-space action of eq. 5.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from khgrl.common.kmp.mapping import KGRLMapping
+from khgrl.common.kmp.scale import ScaleModel
+from khgrl.common.tasks.api import Task, TaskError
+from khgrl.common.tasks.world import TaskWorld, build_task_world
+
+__all__ = ["KGRLEnv", "make_inner_env"]
+
+
+def make_inner_env(task: Task, seed: int) -> gym.Env:
+    """The task's own environment, checked: a 1-D Box observation; a (O,) Box action unless ``command`` adapts."""
+    try:
+        env = task.make_env(seed)
+    except TaskError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the user's factory
+        raise TaskError(f"task {task.name!r}: make_env raised {type(exc).__name__}: {exc}") from None
+    if not isinstance(env, gym.Env):
+        raise TaskError(f"task {task.name!r}: make_env returned {type(env).__name__}, not a gymnasium.Env")
+    obs = env.observation_space
+    if not isinstance(obs, spaces.Box) or len(obs.shape) != 1:
+        raise TaskError(f"task {task.name!r}: the environment's observation space must be a 1-D Box, got {obs}")
+    return env
+
+
+class KGRLEnv(gym.Env):
+    """A task's environment driven through the KGRL mapping (see the module docstring).
+
+    :param task: the task (or ``world``, an already built :class:`~khgrl.common.tasks.world.TaskWorld`).
+    :param seed: seed passed to ``task.make_env`` and to the environment's first reset.
+    :param scale_model: the exploration scale L (default: constant L0, i.e. KGRL).
+    :param render_mode: None or "rgb_array" (the task's views, :mod:`khgrl.common.tasks.render`).
+    :param world: a built world (skips fitting; e.g. cached).
+    :param inner: the task's environment (default: ``task.make_env(seed)``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+
+    def __init__(self, task: Task | None = None, *, seed: int = 0, scale_model: ScaleModel | None = None,
+                 render_mode: str | None = None, world: TaskWorld | None = None, inner: gym.Env | None = None) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
+        self.world = world if world is not None else build_task_world(task)
+        self.task = self.world.task
+        o = self.world.out_dim
+        self.inner = inner if inner is not None else make_inner_env(self.task, seed)
+        self._check_command_space(o)
+        sm = scale_model if scale_model is not None else ScaleModel(self.world.default_scale, dim=o)
+        self.mapping = KGRLMapping(self.world.model, sm)
+        self.horizon = self.mapping.horizon
+        self.render_mode = render_mode
+        self.action_space = spaces.Box(-1.0, 1.0, shape=(o,), dtype=np.float32)
+        ob = self.inner.observation_space
+        self.observation_space = spaces.Box(
+            low=np.concatenate([ob.low.astype(np.float64), [0.0], -np.ones(o)]).astype(np.float32),
+            high=np.concatenate([ob.high.astype(np.float64), [1.0], np.ones(o)]).astype(np.float32),
+            dtype=np.float32)
+        self._inner_seed: int | None = int(seed)
+        self._correction: np.ndarray | None = None
+        self._renderer = None
+        self._reset_state(np.asarray(self.mapping.mean(0), dtype=np.float64).copy(), None)
+
+    def _check_command_space(self, o: int) -> None:
+        if self.task.command is not None:
+            return
+        act = self.inner.action_space
+        if not isinstance(act, spaces.Box) or act.shape != (o,):
+            raise TaskError(f"task {self.task.name!r}: the environment's action must be the desired position, a Box "
+                            f"of shape ({o},) like the demonstrations, got {act}; or give the task a command adapter")
+
+    # ------------------------------------------------------------------ state
+    def _reset_state(self, position: np.ndarray, inner_obs: np.ndarray | None) -> None:
+        self.t = 0
+        self.position = position
+        self.desired = position.copy()
+        self.trail = [position.copy()]
+        self._inner_obs = inner_obs
+        self._done = False
+
+    def _locate(self, inner_obs: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+        if self.task.position is None:
+            return np.asarray(fallback, dtype=np.float64).copy()
+        p = np.asarray(self.task.position(inner_obs), dtype=np.float64).reshape(-1)
+        if p.shape != (self.world.out_dim,) or not np.all(np.isfinite(p)):
+            raise TaskError(f"task {self.task.name!r}: position(obs) must give {self.world.out_dim} finite values, "
+                            f"got {p}")
+        return p
+
+    def _obs(self) -> np.ndarray:
+        t = min(self.t, self.horizon - 1)
+        dev = np.clip(self.position - self.mapping.mean(t), -1.0, 1.0)
+        inner = np.asarray(self._inner_obs, dtype=np.float64).reshape(-1)
+        return np.concatenate([inner, [self.mapping.phases[t]], dev]).astype(np.float32)
+
+    @property
+    def phase(self) -> float:
+        return float(self.mapping.phases[min(self.t, self.horizon - 1)])
+
+    # ------------------------------------------------------------- human input
+    def set_correction(self, p_h: np.ndarray | None) -> None:
+        """Hold the desired position at ``p_h`` from the next step on (an intervention); None releases it."""
+        if p_h is None:
+            self._correction = None
+            return
+        p_h = np.asarray(p_h, dtype=np.float64).reshape(-1)
+        if p_h.shape != (self.world.out_dim,) or not np.all(np.isfinite(p_h)):
+            raise ValueError(f"a correction is a finite ({self.world.out_dim},) position, got {p_h!r}")
+        self._correction = p_h
+
+    @property
+    def intervening(self) -> bool:
+        return self._correction is not None
+
+    @property
+    def correction(self) -> np.ndarray | None:
+        """The correction P_h held now (None: the policy drives)."""
+        return None if self._correction is None else self._correction.copy()
+
+    # ---------------------------------------------------------------- gym API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        inner_seed = seed if seed is not None else self._inner_seed
+        self._inner_seed = None
+        inner_obs, info = self.inner.reset(seed=inner_seed, options=options)
+        start = np.asarray(self.mapping.mean(0), dtype=np.float64)
+        self._reset_state(self._locate(inner_obs, start), inner_obs)
+        self._correction = None
+        return self._obs(), {**info, "phase": 0.0}
+
+    def _command(self, t: int, a: np.ndarray, L: np.ndarray, info: dict):
+        """Eq. 5 (policy) or eq. 6 (correction): (P_t, xi, the action the transition stores)."""
+        if self._correction is not None:
+            p_h = np.clip(self._correction, self.world.low, self.world.high)
+            info["projected"] = bool(np.any(p_h != self._correction))
+            iv = self.mapping.intervene(t, p_h, L)
+            info.update(intervened=True, clipped=iv.clipped, xi_h=iv.xi, raw_action=iv.raw_action)
+            return p_h, iv.xi, iv.action
+        desired, xi = self.mapping.act(t, a, L)
+        return desired, xi, a
+
+    def step(self, action):
+        if self._done:
+            raise RuntimeError("step() called after the episode ended: call reset()")
+        t, o = self.t, self.world.out_dim
+        a = np.asarray(action, dtype=np.float64).reshape(-1)
+        if a.shape != (o,) or not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be a finite ({o},) array, got {action!r}")
+        a = np.clip(a, -1.0, 1.0)
+        L = self.mapping.scale_at(t, self.position)
+        mean = self.mapping.mean(t)
+        info: dict = {"intervened": False, "clipped": False, "projected": False}
+        desired, xi, stored = self._command(t, a, L, info)
+        dp = desired - mean
+        r_a = -self.task.action_cost * float(dp @ dp)
+        env_action = desired if self.task.command is None else self.task.command(self.inner, desired)
+        inner_obs, r_env, term, trunc, inner_info = self.inner.step(env_action)
+        self._inner_obs = inner_obs
+        self.position = self._locate(inner_obs, desired)
+        self.desired = desired
+        self.trail.append(self.position.copy())
+        self.t += 1
+        terminated = bool(term)
+        truncated = (not terminated) and (bool(trunc) or self.t >= self.horizon)
+        self._done = terminated or truncated
+        info = {**inner_info, **info}
+        info.update(r_a=r_a, success=bool(inner_info.get(self.task.success_key, False)),
+                    action=np.asarray(stored, dtype=np.float32), xi=xi, scale=L, desired=desired,
+                    phase=float(self.mapping.phases[t]), t=t,
+                    constraints_active=self.mapping.model.step_info.active_rows if not info["intervened"] else 0)
+        return self._obs(), r_a + float(r_env), terminated, truncated, info
+
+    # --------------------------------------------------------------- descriptor and drawing
+    def descriptor(self, spec: str = ""):
+        """This run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (what the actor announces)."""
+        from khgrl.common.wire.descriptor import TaskDescriptor
+
+        w, ob = self.world, self.observation_space
+        big = 1e30
+        return TaskDescriptor(
+            name=self.task.name[:64] or "task", spec=(spec or self.task.name)[:200], out_dim=w.out_dim,
+            obs_dim=int(ob.shape[0]), obs_low=tuple(np.clip(ob.low.astype(float), -big, big).tolist()),
+            obs_high=tuple(np.clip(ob.high.astype(float), -big, big).tolist()), horizon=self.horizon,
+            workspace_low=tuple(w.low.tolist()), workspace_high=tuple(w.high.tolist()),
+            G=tuple(tuple(r) for r in w.G.tolist()), c=tuple(w.c.tolist()),
+            default_scale=tuple(w.default_scale.tolist()), learn_scale=bool(self.task.learn_scale),
+            axis_names=tuple(w.view.names), view_axes=tuple(w.view.axes),
+            view_third=-1 if w.view.third is None else int(w.view.third),
+            shapes=tuple(_shape_dict(s) for s in w.view.shapes), mean=np.asarray(w.model.grid_mean, np.float64),
+            demos=np.asarray(w.demos, np.float64), projector=np.asarray(w.model.grid_projector, np.float64))
+
+    def render(self):
+        """An RGB image of the task views (:class:`~khgrl.common.tasks.render.TaskRenderer`), or None without a mode."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode")
+            return None
+        from khgrl.common.tasks.render import TaskRenderer, frame_from_env
+
+        if self._renderer is None:
+            self._renderer = TaskRenderer(self.descriptor())
+        return self._renderer.render_rgb(frame_from_env(self))
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def _shape_dict(s) -> dict:
+    d = {"kind": s.kind, "name": s.name}
+    for k in ("low", "high", "center", "at"):
+        if hasattr(s, k):
+            d[k] = tuple(float(v) for v in np.asarray(getattr(s, k), dtype=np.float64).reshape(-1))
+    if s.kind == "sphere":
+        d["radius"] = float(s.radius)
+    return d

@@ -1,0 +1,183 @@
+"""The task descriptor: what every process needs to know of a run's task without importing its code.
+
+An actor builds its task (:mod:`khgrl.common.tasks.world`) and announces the descriptor on
+``khgrl/<run>/task/actor/<id>`` (a put at start and a queryable); the learner builds its spaces from it, the GUI
+and monitors draw from it, a third-party client reads sizes from it. It is plain data (numbers, strings,
+lists and two arrays), checked on receipt like every message (docs/protocol.md, ``task``).
+
+``digest`` identifies the task: it hashes everything a learner and an actor must agree on (names, sizes,
+bounds, constraints, horizon, L0, the demonstrations) but not the fitted KMP (mean and projector), which a
+different BLAS may round differently. A learner and an actor whose digests differ refuse each other.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, fields
+from functools import cached_property
+
+import numpy as np
+from khgrl.common.wire.checks import ProtocolError, pack_array, typ, unpack_array
+
+__all__ = ["TaskDescriptor", "MAX_DIM"]
+
+MAX_DIM = 64
+MAX_CONSTRAINTS = 1024
+MAX_HORIZON = 100_000
+
+
+@dataclass(frozen=True, eq=False)
+class TaskDescriptor:
+    """A run's task as data.
+
+    :param name: the task's name.
+    :param spec: how it was selected (``passage:high_cov``, ``pkg.mod:make_task``).
+    :param out_dim: O, the command (desired position) size = the policy's action size.
+    :param obs_dim: the policy's observation size.
+    :param obs_low: lower bounds of the policy's observation (-inf allowed as -1e30).
+    :param obs_high: upper bounds.
+    :param horizon: N, steps per episode (the KMP grid).
+    :param workspace_low: the workspace box.
+    :param workspace_high:
+    :param G: hard constraints G P >= c (box rows first), (K, O).
+    :param c: (K,).
+    :param default_scale: L0 per output.
+    :param learn_scale: KhGRL refits L from the human.
+    :param axis_names: a name per output.
+    :param view_axes: the two outputs of the main 2-D view.
+    :param view_third: the output of the second view (-1: none).
+    :param shapes: named objects to draw: {"kind": box|sphere|point, "name", and low/high, center/radius or at}.
+    :param mean: (N, O) the KMP mean eta0 over the grid.
+    :param demos: (M, N, O) the demonstrations.
+    :param projector: (N, O, O) the KMP's null-space projector N_t on the grid (the exploration band a viewer
+        draws is eta0 +- |N_t| L_t).
+    """
+
+    name: str
+    spec: str
+    out_dim: int
+    obs_dim: int
+    obs_low: tuple[float, ...]
+    obs_high: tuple[float, ...]
+    horizon: int
+    workspace_low: tuple[float, ...]
+    workspace_high: tuple[float, ...]
+    G: tuple[tuple[float, ...], ...]
+    c: tuple[float, ...]
+    default_scale: tuple[float, ...]
+    learn_scale: bool
+    axis_names: tuple[str, ...]
+    view_axes: tuple[int, int]
+    view_third: int
+    shapes: tuple[dict, ...]
+    mean: np.ndarray
+    demos: np.ndarray
+    projector: np.ndarray
+
+    @cached_property
+    def digest(self) -> str:
+        """16 hex characters identifying the task (see the module docstring); computed once (the learner checks it
+        on every batch)."""
+        d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("mean", "demos", "projector")}
+        text = json.dumps(d, sort_keys=True, default=list)
+        h = hashlib.sha256(text.encode())
+        h.update(np.ascontiguousarray(self.demos, dtype="<f8").tobytes())
+        return h.hexdigest()[:16]
+
+    @property
+    def third(self) -> int | None:
+        return None if self.view_third < 0 else self.view_third
+
+    def to_wire(self) -> dict:
+        """The descriptor as a map for msgpack (arrays as array maps)."""
+        arrays = ("mean", "demos", "projector")
+        d = {k: _lists(v) for k, v in asdict(self).items() if k not in arrays}
+        d.update({k: pack_array(np.asarray(getattr(self, k), "<f8")) for k in arrays})
+        return d
+
+    @classmethod
+    def from_wire(cls, m: dict) -> "TaskDescriptor":
+        """Check a received map; raises :class:`ProtocolError` saying what is wrong."""
+        m = typ("task", m, dict)
+        o = typ("out_dim", m.get("out_dim"), int, low=1, high=MAX_DIM)
+        n_obs = typ("obs_dim", m.get("obs_dim"), int, low=1, high=4 * MAX_DIM)
+        n = typ("horizon", m.get("horizon"), int, low=2, high=MAX_HORIZON)
+        g = _rows("G", m.get("G"), o)
+        names = typ("axis_names", m.get("axis_names"), list)
+        if len(names) != o or not all(isinstance(s, str) and 0 < len(s) <= 32 for s in names):
+            raise ProtocolError(f"axis_names: expected {o} short strings")
+        axes = _ints("view_axes", m.get("view_axes"), 2, o)
+        third = typ("view_third", m.get("view_third"), int, low=-1, high=o - 1)
+        shapes = typ("shapes", m.get("shapes"), list)
+        if len(shapes) > 64:
+            raise ProtocolError("shapes: at most 64")
+        return cls(name=_text("name", m.get("name")), spec=_text("spec", m.get("spec"), 200), out_dim=o,
+                   obs_dim=n_obs, obs_low=_floats("obs_low", m.get("obs_low"), n_obs, finite=False),
+                   obs_high=_floats("obs_high", m.get("obs_high"), n_obs, finite=False), horizon=n,
+                   workspace_low=_floats("workspace_low", m.get("workspace_low"), o),
+                   workspace_high=_floats("workspace_high", m.get("workspace_high"), o), G=g,
+                   c=_floats("c", m.get("c"), len(g)),
+                   default_scale=_floats("default_scale", m.get("default_scale"), o),
+                   learn_scale=typ("learn_scale", m.get("learn_scale"), bool), axis_names=tuple(names),
+                   view_axes=(axes[0], axes[1]), view_third=third,
+                   shapes=tuple(_shape(s, o) for s in shapes),
+                   mean=unpack_array(m.get("mean"), "mean", dtype="<f8", shape=(n, o)),
+                   demos=unpack_array(m.get("demos"), "demos", dtype="<f8", shape=(None, n, o)),
+                   projector=unpack_array(m.get("projector"), "projector", dtype="<f8", shape=(n, o, o)))
+
+
+def _lists(v):
+    """Tuples as lists, recursively (what msgpack gives a receiver)."""
+    if isinstance(v, (tuple, list)):
+        return [_lists(x) for x in v]
+    if isinstance(v, dict):
+        return {k: _lists(x) for k, x in v.items()}
+    return v
+
+
+def _text(name: str, v, limit: int = 64) -> str:
+    v = typ(name, v, str)
+    if not 0 < len(v) <= limit:
+        raise ProtocolError(f"{name}: 1..{limit} characters")
+    return v
+
+
+def _floats(name: str, v, n: int, finite: bool = True) -> tuple[float, ...]:
+    if not isinstance(v, list) or len(v) != n:
+        raise ProtocolError(f"{name}: expected a list of {n} numbers")
+    out = []
+    for i, x in enumerate(v):
+        if isinstance(x, bool) or not isinstance(x, (int, float)) or np.isnan(x) or (finite and not np.isfinite(x)):
+            raise ProtocolError(f"{name}[{i}]: expected a {'finite ' if finite else ''}number")
+        out.append(float(x))
+    return tuple(out)
+
+
+def _ints(name: str, v, n: int, bound: int) -> tuple[int, ...]:
+    if not isinstance(v, list) or len(v) != n:
+        raise ProtocolError(f"{name}: expected a list of {n} integers")
+    return tuple(typ(f"{name}[{i}]", x, int, low=0, high=bound - 1) for i, x in enumerate(v))
+
+
+def _rows(name: str, v, o: int) -> tuple[tuple[float, ...], ...]:
+    if not isinstance(v, list) or len(v) > MAX_CONSTRAINTS:
+        raise ProtocolError(f"{name}: expected a list of at most {MAX_CONSTRAINTS} rows")
+    return tuple(_floats(f"{name}[{k}]", row, o) for k, row in enumerate(v))
+
+
+def _shape(s, o: int) -> dict:
+    s = typ("shape", s, dict)
+    kind = typ("shape.kind", s.get("kind"), str)
+    coords = {"box": ("low", "high"), "sphere": ("center",), "point": ("at",)}.get(kind)
+    if coords is None:
+        raise ProtocolError(f"shape.kind {kind!r} not box, sphere or point")
+    out: dict = {"kind": kind, "name": _text("shape.name", s.get("name"))}
+    for c in coords:
+        out[c] = _floats(f"shape.{c}", s.get(c), o)
+    if kind == "sphere":
+        out["radius"] = float(typ("shape.radius", s.get("radius"), (int, float), low=0.0))
+    extra = set(s) - set(out)
+    if extra:
+        raise ProtocolError(f"shape: unknown fields {sorted(extra)}")
+    return out

@@ -1,0 +1,322 @@
+"""One class per message kind of the wire protocol (docs/protocol.md). Each knows its kind, its size limit
+and how to check a received map (``from_wire``); :mod:`khgrl.common.wire.protocol` does the envelope and msgpack.
+
+Optional fields are ``None`` when absent (and are then left out of the payload).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+from khgrl.common.wire.checks import ProtocolError, ident, opt, typ, unpack_array, vec
+from khgrl.common.wire.descriptor import MAX_DIM, TaskDescriptor
+from khgrl.common.wire.status import _INFO, ActorInfo, HumanInfo, LearnerInfo, check_info
+
+__all__ = ["Dims", "ANY_DIMS", "Message", "TaskInfo", "Transitions", "Ack", "Weights", "Correction", "Frame", "Scale",
+           "EpisodeReport", "Status", "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS"]
+
+MAX_BATCH = 4096  # transitions per batch message
+COMMANDS = ("pause", "resume", "stop", "checkpoint")
+
+
+@dataclass(frozen=True)
+class Dims:
+    """The sizes a receiver expects (from the run's task descriptor): the policy's observation and the command
+    O (= the policy's action). None: any size up to the protocol's bound, consistent within the message."""
+
+    obs: int | None = None
+    out: int | None = None
+
+
+ANY_DIMS = Dims()
+
+
+def _vec(name: str, value: Any, n: int | None) -> np.ndarray:
+    """A vector of ``n`` numbers, or (n None) of 1..MAX_DIM numbers."""
+    if n is None:
+        n = len(value) if isinstance(value, (list, tuple)) and 1 <= len(value) <= MAX_DIM else -1
+    return vec(name, value, n)
+
+
+@dataclass(frozen=True)
+class Message:
+    KIND: ClassVar[str] = ""
+    MAX_BYTES: ClassVar[int] = 4096
+    VECTORS: ClassVar[tuple[str, ...]] = ()  # fields sent as lists of numbers (the others' arrays as array maps)
+    envelope: Any = field(default=None, kw_only=True, compare=False, repr=False)
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS):
+        raise NotImplementedError
+
+
+_FLAG_FIELDS = ("terminated", "truncated", "intervened", "clipped")
+
+
+@dataclass(frozen=True, eq=False)
+class Transitions(Message):
+    """A batch of one actor's transitions, in order; ``seq`` (envelope) numbers the actor's batches."""
+
+    KIND: ClassVar[str] = "transitions"
+    MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
+    actor: str
+    first_step: int  # the actor's running index of the first transition
+    obs: np.ndarray  # (n, obs size) float32
+    next_obs: np.ndarray
+    action: np.ndarray  # (n, O) float32 in [-1, 1] (the human's a_h on intervened steps)
+    reward: np.ndarray  # (n,) float32
+    terminated: np.ndarray  # (n,) uint8 0/1
+    truncated: np.ndarray
+    intervened: np.ndarray
+    clipped: np.ndarray
+    base_seq: int | None = None  # the oldest batch the actor still holds
+    stream: str | None = None  # random id of the actor incarnation
+    task: str | None = None  # the digest of the actor's task descriptor
+
+    @property
+    def n(self) -> int:
+        return int(self.reward.shape[0])
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Transitions":
+        spec = {"obs": ("<f4", (None, dims.obs)), "next_obs": ("<f4", (None, dims.obs)),
+                "action": ("<f4", (None, dims.out)), "reward": ("<f4", (None,))}
+        spec.update({f: ("|u1", (None,)) for f in _FLAG_FIELDS})
+        arrays = {name: unpack_array(m.get(name), name, dtype=dt, shape=shape) for name, (dt, shape) in spec.items()}
+        n = arrays["reward"].shape[0]
+        for name, arr in arrays.items():
+            if arr.shape[0] != n:
+                raise ProtocolError(f"{name}: {arr.shape[0]} rows, expected {n}")
+        if arrays["obs"].shape[1] != arrays["next_obs"].shape[1] or not 1 <= arrays["obs"].shape[1] <= 4 * MAX_DIM:
+            raise ProtocolError(f"obs/next_obs widths {arrays['obs'].shape[1]}/{arrays['next_obs'].shape[1]}")
+        if not 1 <= arrays["action"].shape[1] <= MAX_DIM:
+            raise ProtocolError(f"action width {arrays['action'].shape[1]} outside [1, {MAX_DIM}]")
+        if not 1 <= n <= MAX_BATCH:
+            raise ProtocolError(f"batch of {n} transitions outside [1, {MAX_BATCH}]")
+        if np.any(np.abs(arrays["action"]) > 1.0 + 1e-6):
+            raise ProtocolError("actions outside [-1, 1]")
+        for flag in _FLAG_FIELDS:
+            if np.any(arrays[flag] > 1):
+                raise ProtocolError(f"{flag}: flags must be 0/1")
+        base = opt(m, "base_seq", typ, int, low=0)
+        if base is not None and base > m.get("seq", 0):
+            raise ProtocolError(f"base_seq {base} > seq {m.get('seq')}")
+        return cls(actor=ident("actor", m.get("actor")), first_step=typ("first_step", m.get("first_step"), int, low=0),
+                   base_seq=base, stream=opt(m, "stream", ident), task=opt(m, "task", ident), **arrays)
+
+
+@dataclass(frozen=True)
+class Ack(Message):
+    """What the learner holds of one actor's stream (docs/protocol.md, ``ack``)."""
+
+    KIND: ClassVar[str] = "ack"
+    actor: str
+    received: int  # highest batch seq received without a gap (-1: none)
+    durable: int  # highest seq held in a learner checkpoint
+    trained: int  # this actor's transitions covered by the latest weights
+    version: int  # latest weights version
+    epoch: str  # random per learner incarnation
+    stream: str | None = None  # the actor stream the ack is about
+    task: str | None = None  # the digest of the learner's task descriptor
+    superseded: bool | None = None  # true: the learner took another stream of this actor id; it refuses this one
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Ack":
+        return cls(actor=ident("actor", m.get("actor")), received=typ("received", m.get("received"), int, low=-1),
+                   durable=typ("durable", m.get("durable"), int, low=-1),
+                   trained=typ("trained", m.get("trained"), int, low=0),
+                   version=typ("version", m.get("version"), int, low=0), epoch=typ("epoch", m.get("epoch"), str),
+                   stream=opt(m, "stream", ident), task=opt(m, "task", ident),
+                   superseded=opt(m, "superseded", typ, bool))
+
+
+@dataclass(frozen=True, eq=False)
+class Weights(Message):
+    """The TQC actor network's ``state_dict`` by version."""
+
+    KIND: ClassVar[str] = "weights"
+    MAX_BYTES: ClassVar[int] = 64 * 1024 * 1024
+    version: int
+    trained: dict  # {actor id: transitions covered}
+    tensors: dict  # {name: float32 array}
+    epoch: str | None = None
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Weights":
+        trained = typ("trained", m.get("trained"), dict)
+        for k, v in trained.items():
+            ident("trained key", k)
+            typ(f"trained[{k}]", v, int, low=0)
+        tensors = typ("tensors", m.get("tensors"), dict)
+        if not tensors or len(tensors) > 256:
+            raise ProtocolError("tensors: expected 1..256 named arrays")
+        out = {}
+        for name, arr in tensors.items():
+            typ("tensor name", name, str)
+            ndim = len(arr.get("shape", [])) if isinstance(arr, dict) and isinstance(arr.get("shape"), list) else 0
+            out[name] = unpack_array(arr, f"tensors[{name}]", dtype="<f4", shape=(None,) * ndim)
+        return cls(version=typ("version", m.get("version"), int, low=0), trained=dict(trained), tensors=out,
+                   epoch=opt(m, "epoch", ident))
+
+
+@dataclass(frozen=True, eq=False)
+class Correction(Message):
+    """A human-input client's word for an actor: drag to ``p_h`` (active) or release."""
+
+    KIND: ClassVar[str] = "correction"
+    VECTORS: ClassVar[tuple[str, ...]] = ("p_h",)
+    client: str
+    actor: str
+    active: bool
+    p_h: np.ndarray | None = None  # (O,) command coordinates; required when active
+    episode: int | None = None  # the frame reacted to (for the record)
+    t: int | None = None
+    step: int | None = None  # step-addressed: for this step of ``episode`` (lock-step)
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Correction":
+        active = typ("active", m.get("active"), bool)
+        step = opt(m, "step", typ, int, low=0)
+        if step is not None and m.get("episode") is None:
+            raise ProtocolError("step: a step-addressed correction needs its episode")
+        return cls(client=ident("client", m.get("client")), actor=ident("actor", m.get("actor")), active=active,
+                   p_h=_vec("p_h", m.get("p_h"), dims.out) if active else None,
+                   episode=opt(m, "episode", typ, int, low=0), t=opt(m, "t", typ, int, low=0), step=step)
+
+
+@dataclass(frozen=True, eq=False)
+class Frame(Message):
+    """What an actor shows after each step (viewers and human-input clients draw and react to it)."""
+
+    KIND: ClassVar[str] = "frame"
+    VECTORS: ClassVar[tuple[str, ...]] = ("robot", "desired", "mean", "scale", "next_mean")
+    MAX_BYTES: ClassVar[int] = 64 * 1024
+    actor: str
+    episode: int  # 1-based, counted over the whole run (a resumed run continues)
+    t: int  # the step just taken, 0-based
+    phase: float
+    robot: np.ndarray
+    desired: np.ndarray
+    mean: np.ndarray
+    scale: np.ndarray
+    intervening: bool
+    task: str  # the task's name
+    ret: float | None = None
+    next_mean: np.ndarray | None = None  # KMP mean at step t + 1; absent after the horizon's last step
+    last: bool | None = None  # true on the episode's last frame (terminated or truncated)
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Frame":
+        o = dims.out if dims.out is not None else len(_vec("robot", m.get("robot"), None))
+        vecs = {f: vec(f, m.get(f), o) for f in ("robot", "desired", "mean", "scale")}
+        return cls(actor=ident("actor", m.get("actor")), episode=typ("episode", m.get("episode"), int, low=0),
+                   t=typ("t", m.get("t"), int, low=0),
+                   phase=float(typ("phase", m.get("phase"), (int, float), low=0.0, high=1.0)),
+                   intervening=typ("intervening", m.get("intervening"), bool),
+                   task=typ("task", m.get("task"), str), ret=opt(m, "ret", typ, (int, float)),
+                   next_mean=opt(m, "next_mean", vec, o), last=opt(m, "last", typ, bool), **vecs)
+
+
+@dataclass(frozen=True, eq=False)
+class Scale(Message):
+    """An actor's exploration-scale model after a refit, and its table of L over the KMP grid."""
+
+    KIND: ClassVar[str] = "scale"
+    MAX_BYTES: ClassVar[int] = 1024 * 1024
+    actor: str
+    model: dict  # ScaleModel.to_dict()
+    table: np.ndarray | None = None  # (N, O) float64
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Scale":
+        table = m.get("table")
+        if table is not None:
+            table = unpack_array(table, "table", dtype="<f8", shape=(None, dims.out))
+            if not 1 <= table.shape[1] <= MAX_DIM:
+                raise ProtocolError(f"table: {table.shape[1]} columns outside [1, {MAX_DIM}]")
+        return cls(actor=ident("actor", m.get("actor")), model=typ("model", m.get("model"), dict),
+                   table=table)
+
+
+@dataclass(frozen=True, eq=False)
+class TaskInfo(Message):
+    """An actor's task descriptor (``task/actor/<id>``; the learner answers its own on ``task/learner/<id>``)."""
+
+    KIND: ClassVar[str] = "task"
+    MAX_BYTES: ClassVar[int] = 16 * 1024 * 1024
+    sender_id: str
+    descriptor: TaskDescriptor
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "TaskInfo":
+        return cls(sender_id=ident("sender_id", m.get("sender_id")),
+                   descriptor=TaskDescriptor.from_wire(m.get("descriptor")))
+
+
+_STAT_NUMBERS = ("steps", "ret", "action_cost", "obstacle_cost", "passage_cost", "obstacle_steps", "interventions",
+                 "intervention_steps", "clipped_steps", "projected_steps", "mean_abs_xi_h", "wall_time")
+
+
+@dataclass(frozen=True)
+class EpisodeReport(Message):
+    """One finished episode's statistics (khgrl.common.metrics.EpisodeStats as a map)."""
+
+    KIND: ClassVar[str] = "episode"
+    MAX_BYTES: ClassVar[int] = 16 * 1024
+    actor: str
+    stats: dict
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "EpisodeReport":
+        stats = typ("stats", m.get("stats"), dict)
+        typ("stats.episode", stats.get("episode"), int, low=1)
+        for f in _STAT_NUMBERS:
+            opt(stats, f, lambda n, v: typ(f"stats.{n}", v, (int, float)))
+        for f in ("success", "failure"):
+            opt(stats, f, lambda n, v: typ(f"stats.{n}", v, bool))
+        scale_max = stats.get("scale_max")
+        if scale_max is not None:
+            vec("stats.scale_max", scale_max, len(scale_max) if isinstance(scale_max, list) else -1)
+        return cls(actor=ident("actor", m.get("actor")), stats=dict(stats))
+
+
+@dataclass(frozen=True)
+class Status(Message):
+    """About once a second from every process: ``role`` and an ``info`` of that role's schema."""
+
+    KIND: ClassVar[str] = "status"
+    MAX_BYTES: ClassVar[int] = 16 * 1024
+    role: str
+    info: ActorInfo | LearnerInfo | HumanInfo
+
+    def __post_init__(self) -> None:
+        if self.role not in _INFO or not isinstance(self.info, _INFO[self.role]):
+            raise ProtocolError(f"status of role {self.role!r} needs a {_INFO.get(self.role, ActorInfo).__name__}")
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Status":
+        role = typ("role", m.get("role"), str)
+        if role not in _INFO:
+            raise ProtocolError(f"role {role!r} not one of {sorted(_INFO)}")
+        return cls(role=role, info=check_info(_INFO[role], m.get("info"), "info"))
+
+
+@dataclass(frozen=True)
+class Control(Message):
+    """``control/<target>``: pause, resume, stop or checkpoint."""
+
+    KIND: ClassVar[str] = "control"
+    command: str
+
+    @classmethod
+    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Control":
+        command = typ("command", m.get("command"), str)
+        if command not in COMMANDS:
+            raise ProtocolError(f"unknown command {command!r}")
+        return cls(command=command)

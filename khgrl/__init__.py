@@ -1,0 +1,10 @@
+"""KhGRL: Kernelized human-Guided Reinforcement Learning as separate actor, learner and human-input processes
+that exchange transitions, policy weights and human corrections over Eclipse Zenoh.
+
+The installed package is ``khgrl`` alone; the repository's top-level folders are its subpackages
+(``actor/`` is :mod:`khgrl.actor`, ``learner/`` is :mod:`khgrl.learner`, and so on; pyproject.toml maps them).
+Task authors need only :mod:`khgrl.task`. Importing ``khgrl`` itself loads nothing else, so every process
+starts quickly.
+"""
+
+__version__ = "0.1.0"
