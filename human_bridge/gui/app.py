@@ -117,7 +117,7 @@ class GuiApp:
         views = 1 if task.third is None else 2
         self.width, self.height = window_size(self.size, self.strip_height, views)
         self.layout = TaskRenderer(task, size=(self.width, self.size + self.strip_height),
-                                   strip_height=self.strip_height)
+                                   strip_height=self.strip_height, legend=True)
         self.task = task
         for v in self.actors.values():
             if v.frame is not None and len(v.frame.robot) != task.out_dim:
