@@ -266,3 +266,10 @@ def test_reference_defaults_and_flags_come_from_the_run_settings():
     assert ReferenceConfig.from_run(resolve(args=args)) == ReferenceConfig(
         scenario="low_cov", episodes=3, human_episodes=(2,), tqc=TQCSettings(learning_rate=0.01))
     assert ReferenceConfig.from_run(resolve(args=build_parser().parse_args(["reference"]))) == ref
+
+
+def test_bench_runs_through_khgrl_by_module_name(capsys):
+    """khgrl bench is dispatched by name to khgrl.benchmarks.cli (deploy does not import benchmarks); a bad
+    setting is one line and exit 2."""
+    assert main(["bench", "kmp", "--repeats", "5"]) == 2
+    assert "khgrl bench: error: repeats must be >= 20" in capsys.readouterr().err
