@@ -9,11 +9,11 @@
 Every field has its default, its help text and its roles here, once: the commands whose flags it is (``up``
 takes every setting; ``learner``, ``actor``, ``human`` and ``reference`` those whose roles name them).
 :func:`add_config_flags` turns the fields of a role into command-line flags (``learning_starts`` ->
-``--learning-starts``) whose help shows the default;
-:func:`resolve` merges defaults < a config file < flags and validates the result. ``khgrl up`` writes the
-resolved configuration into the run directory (``config.toml``, and ``config.json`` with the run's runtime
-facts: run id, router endpoint, actor ids); every child process reads that file instead of a hand-built argv,
-and ``khgrl up --config RUN_DIR/config.toml`` runs the same configuration again.
+``--learning-starts``) whose help shows the default; :func:`resolve` merges defaults < a config file < flags
+and validates the result. ``khgrl up`` writes the resolved configuration into the run directory (``config.toml``,
+and ``config.json`` with the run's runtime facts: run id, router endpoint, actor ids); every child process reads
+that file instead of a hand-built argv, and ``khgrl up --config RUN_DIR/config.toml`` runs the same configuration
+again.
 """
 
 from __future__ import annotations
