@@ -48,13 +48,6 @@ __all__ = ["main", "build_parser", "run"]
 
 log = logging.getLogger("khgrl.actor")
 
-# the run settings an actor uses (its flags; every other setting comes from --config)
-ACTOR_SETTINGS = {"task", "scenario", "demos", "method", "episodes", "seed", "run_dir", "run", "connect", "rate",
-                  "actor_rt_priority",
-                  "tensorboard", "learning_starts", "train_freq", "net_arch", "batch", "max_lead", "outbox_memory",
-                  "resend_after_s", "flush_timeout", "correction_timeout", "learner_wait", "lease_ms", "window", "mode"}
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="khgrl actor",
                                 description="Actor: steps the run's task with the current policy, applies human "
@@ -64,7 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="continue this actor's part of the run in RUN_DIR/actor-ID: its transition stream, episode "
                         "numbering, episodes.csv, corrections.csv and TensorBoard carry on (default: start afresh, "
                         "unless the earlier process was killed or left transitions the learner has not confirmed)")
-    add_process_flags(p, only=ACTOR_SETTINGS)
+    add_process_flags(p, "actor")  # the settings whose roles name the actor
     return p
 
 

@@ -48,6 +48,8 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
     from rich.console import Console
     from rich.table import Table
 
+    if repeats < 20:  # the cold and direct cases time at least 20 calls from the same tables
+        raise ValueError(f"repeats must be >= 20, got {repeats}")
     console = Console()
     rng = np.random.default_rng(seed)
     demos = make_demos("high_cov", seed=seed)

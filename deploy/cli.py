@@ -7,8 +7,8 @@ import json
 import sys
 from pathlib import Path
 
-from khgrl.common.config.settings import METHODS, SCENARIOS
 from khgrl.common.process import die_with_parent
+from khgrl.common.tasks.passage.scenarios import SCENARIOS
 
 __all__ = ["main", "build_parser"]
 
@@ -62,31 +62,12 @@ def _cmd_kmp_fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_bench_kmp(args: argparse.Namespace) -> int:
-    from khgrl.benchmarks.kmp import run_kmp_benchmark
-
-    run_kmp_benchmark(repeats=args.repeats, seed=args.seed, out=args.out)
-    return 0
-
-
-def _cmd_bench_runtime(args: argparse.Namespace) -> int:
-    from khgrl.benchmarks.runtime import run_runtime_benchmark
-
-    run_runtime_benchmark(quick=args.quick, out=args.out, episodes=args.episodes, actor_episodes=args.actor_episodes,
-                          ingest_transitions=args.ingest_transitions,
-                          ingest_checkpoint_transitions=args.ingest_checkpoint_transitions, batch=args.batch,
-                          inflight=args.inflight, train_seconds=args.train_seconds, rate=args.rate,
-                          scenario=args.scenario, loss_check=args.loss_check, seed=args.seed, keep=args.keep,
-                          rt_priority=args.rt_priority)
-    return 0
-
-
 def _cmd_reference(args: argparse.Namespace) -> int:
+    from khgrl.common.config.settings import resolve
     from khgrl.learner.baseline import ReferenceConfig, run_reference
 
-    config = ReferenceConfig(scenario=args.scenario, method=args.method, episodes=args.episodes, seed=args.seed,
-                             human_noise=args.human_noise)
-    run_dir = Path(args.run_dir or f"runs/reference/{args.scenario}-{args.method}-seed{args.seed}")
+    config = ReferenceConfig.from_run(resolve(args=args))  # RunConfig's defaults < the flags
+    run_dir = Path(args.run_dir or f"runs/reference/{config.scenario}-{config.method}-seed{config.seed}")
     episodes = run_reference(config, run_dir, progress=not args.quiet)
     ok = [e.episode for e in episodes if e.success]
     print(f"{len(ok)}/{len(episodes)} successful episodes; first success: {ok[0] if ok else 'none'}; "
@@ -104,6 +85,8 @@ PROCESS_COMMANDS = {
     "human": ("khgrl.human_bridge.main", "main", "a human-input process (scripted, gui, keyboard, gamepad or replay)"),
     "experiment": ("khgrl.deploy.experiment", "main", "methods x scenarios x seeds through the real system, resumable"),
     "report": ("khgrl.deploy.report", "main", "per-episode results of runs: figure and markdown table"),
+    # by name: the benchmarks drive the deployment tools (benchmarks imports deploy, not the other way round)
+    "bench": ("khgrl.benchmarks.cli", "main", "benchmarks that print numbers (khgrl bench --help)"),
 }
 # the processes a supervisor starts: they die with it, from before their (slow) imports on
 SUPERVISED = ("router", "learner", "actor", "human")
@@ -145,144 +128,14 @@ def _add_kmp(sub) -> None:
 
 
 def _add_reference(sub) -> None:
+    from khgrl.common.config.settings import add_config_flags
+
     p = sub.add_parser("reference", help="single-process SB3 TQC baseline on the passage world (no Zenoh)")
-    p.add_argument("--scenario", default="high_cov", choices=SCENARIOS, help="scenario (default: %(default)s)")
-    p.add_argument("--method", default="khgrl", choices=METHODS,
-                   help="khgrl: scripted human at the paper's episodes (default: %(default)s)")
-    p.add_argument("--episodes", type=int, default=60, help="episodes (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    p.add_argument("--human-noise", type=float, default=0.0,
-                   help="std of the scripted human's hand noise (default: %(default)s)")
+    add_config_flags(p, "reference")  # scenario, method, episodes, seed, human and TQC settings: RunConfig's
     p.add_argument("--run-dir", default=None,
                    help="output directory (default: runs/reference/SCENARIO-METHOD-seedN)")
     p.add_argument("--quiet", action="store_true", help="no progress bar (default: off)")
     p.set_defaults(func=_cmd_reference)
-
-
-def _cmd_bench_learner(args: argparse.Namespace) -> int:
-    from khgrl.benchmarks.learner_step import run_learner_benchmark
-
-    run_learner_benchmark(devices=tuple(args.devices), seconds=args.seconds, threads=args.threads, seed=args.seed,
-                          out=args.out)
-    return 0
-
-
-def _cmd_bench_scale(args: argparse.Namespace) -> int:
-    from khgrl.benchmarks.scale import run_scale_benchmark
-
-    run_scale_benchmark(actors=tuple(args.actors), rates=tuple(args.rates), modes=tuple(args.modes),
-                        seconds=args.seconds, seed=args.seed, work=args.work, out=args.out)
-    return 0
-
-
-def _cmd_bench_ingest(args: argparse.Namespace) -> int:
-    from khgrl.benchmarks.ingest_many import run_ingest_benchmark
-
-    run_ingest_benchmark(senders=args.senders, transitions=args.transitions, batch=args.batch, window=args.window,
-                         seed=args.seed, out=args.out)
-    return 0
-
-
-def _cmd_bench_flood(args: argparse.Namespace) -> int:
-    from khgrl.benchmarks.flood import run_flood_benchmark
-
-    run_flood_benchmark(messages=args.messages, rate=args.rate, quiet_s=args.quiet_s, seed=args.seed,
-                        rt_priority=args.rt_priority, out=args.out)
-    return 0
-
-
-def _cmd_bench_secure(args: argparse.Namespace) -> int:
-    from khgrl.benchmarks.secure import run_secure_benchmark
-
-    run_secure_benchmark(senders=args.senders, transitions=args.transitions, actors=args.actors, rate=args.rate,
-                         seconds=args.seconds, repeats=args.repeats, seed=args.seed, out=args.out)
-    return 0
-
-
-def _add_bench(sub) -> None:
-    bench = sub.add_parser("bench", help="benchmarks that print numbers").add_subparsers(dest="action", required=True,
-                                                                                         metavar="ACTION")
-    p = bench.add_parser("kmp", help="per-step LC-NS-KMP cost: tables vs direct formula vs lc-ns-kmp (N=400, O=2, F=4)")
-    p.add_argument("--repeats", type=int, default=2000,
-                   help="timed calls per case (median reported; default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
-    p.set_defaults(func=_cmd_bench_kmp)
-    p = bench.add_parser("runtime", help="distributed runtime: ingest rate, weights latency, actor loop period vs "
-                                         "single-process SB3, learner gradient steps/s vs standalone TQC")
-    p.add_argument("--quick", action="store_true", help="small sizes for a smoke run (< 3 min; default: off)")
-    p.add_argument("--episodes", type=int, default=None,
-                   help="single-process reference episodes (default: 2; quick 1)")
-    p.add_argument("--actor-episodes", type=int, default=None,
-                   help="episodes of the 50 Hz actor (default: 10; quick 2)")
-    p.add_argument("--ingest-transitions", type=int, default=None,
-                   help="transitions published for the ingest rate (default: 200000; quick 50000)")
-    p.add_argument("--ingest-checkpoint-transitions", type=int, default=None,
-                   help="the same with checkpoints every 2000 (default: 100000; quick 20000)")
-    p.add_argument("--batch", type=int, default=256, help="transitions per published batch (default: %(default)s)")
-    p.add_argument("--inflight", type=int, default=8, help="unacknowledged batches at most (default: %(default)s)")
-    p.add_argument("--train-seconds", type=float, default=None,
-                   help="learner and standalone train() time, each, in alternating slices "
-                        "(default: 30 s in 3 rounds; quick 10 s in 2)")
-    p.add_argument("--rate", type=float, default=50.0, help="actor control rate in Hz (default: %(default)s)")
-    p.add_argument("--scenario", default="high_cov", choices=SCENARIOS, help="scenario (default: %(default)s)")
-    p.add_argument("--loss-check", action=argparse.BooleanOptionalAction, default=None,
-                   help="learner SIGKILL + resume, count lost/duplicated transitions (default: on, off with --quick)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    p.add_argument("--rt-priority", type=int, default=20,
-                   help="also measure the 50 Hz actor with its control loop under SCHED_FIFO at this priority "
-                        "(needs root; 0: skip; default: %(default)s)")
-    p.add_argument("--keep", action="store_true", help="keep the work directory (logs, run dirs; default: off)")
-    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
-    p.set_defaults(func=_cmd_bench_runtime)
-    p = bench.add_parser("learner", help="gradient steps/s of the learner's TQC next to a raw-torch TQC step of the "
-                                         "same networks, per device (cpu, cuda)")
-    p.add_argument("--devices", nargs="+", default=["cpu"], choices=["cpu", "cuda"],
-                   help="devices to measure (default: cpu; cuda where torch sees a GPU)")
-    p.add_argument("--seconds", type=float, default=20.0, help="time per side and device (default: %(default)s)")
-    p.add_argument("--threads", type=int, default=1, help="torch threads (default: %(default)s, the learner's)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
-    p.set_defaults(func=_cmd_bench_learner)
-    p = bench.add_parser("scale", help="N actors into one learner through khgrl up: ingest/s, learner memory, inbox "
-                                       "depth, weights latency, loop period, exactly once after Ctrl-C")
-    p.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4, 8], help="actor counts (default: 1 2 4 8)")
-    p.add_argument("--rates", type=float, nargs="+", default=[0.0, 50.0],
-                   help="actor rates in Hz, 0 = as fast as possible (default: 0 50)")
-    p.add_argument("--modes", nargs="+", default=["simulation", "robot"], choices=["simulation", "robot"],
-                   help="flow-control modes (default: simulation robot)")
-    p.add_argument("--seconds", type=float, default=60.0, help="length of each case (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    p.add_argument("--work", default="runs/bench-scale", help="run directories (default: %(default)s)")
-    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
-    p.set_defaults(func=_cmd_bench_scale)
-    p = bench.add_parser("ingest", help="S sender processes into one learner: transitions/s acknowledged")
-    p.add_argument("--senders", type=int, default=8, help="sender processes (default: %(default)s)")
-    p.add_argument("--transitions", type=int, default=400_000, help="transitions in all (default: %(default)s)")
-    p.add_argument("--batch", type=int, default=256, help="transitions per batch (default: %(default)s)")
-    p.add_argument("--window", type=int, default=16, help="unacknowledged batches per sender (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    p.add_argument("--out", default=None, help="also write the result as JSON here (default: none)")
-    p.set_defaults(func=_cmd_bench_ingest)
-    p = bench.add_parser("secure", help="mutual TLS + access control vs plain TCP: ingest/s and weights latency")
-    p.add_argument("--senders", type=int, default=8, help="senders of the ingest measurement (default: %(default)s)")
-    p.add_argument("--transitions", type=int, default=200_000, help="transitions per ingest (default: %(default)s)")
-    p.add_argument("--actors", type=int, default=2, help="actors of the khgrl up measurement (default: %(default)s)")
-    p.add_argument("--rate", type=float, default=50.0, help="their rate in Hz (default: %(default)s)")
-    p.add_argument("--seconds", type=float, default=60.0, help="length of each khgrl up (default: %(default)s)")
-    p.add_argument("--repeats", type=int, default=2, help="pairs of each measurement (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
-    p.set_defaults(func=_cmd_bench_secure)
-    p = bench.add_parser("flood", help="the actor's control-loop period before, during and after a message flood")
-    p.add_argument("--messages", type=int, default=100_000, help="garbage messages (default: %(default)s)")
-    p.add_argument("--rate", type=float, default=50.0, help="the actor's rate in Hz (default: %(default)s)")
-    p.add_argument("--quiet-s", type=float, default=15.0, help="seconds before and after (default: %(default)s)")
-    p.add_argument("--rt-priority", type=int, default=0,
-                   help="actor loop under SCHED_FIFO at this priority, 0: normal scheduling (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default: %(default)s)")
-    p.add_argument("--out", default=None, help="also write the results as JSON here (default: none)")
-    p.set_defaults(func=_cmd_bench_flood)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -297,7 +150,6 @@ def build_parser() -> argparse.ArgumentParser:
     from khgrl.deploy.evaluate import add_parser as _add_eval
 
     _add_eval(sub)
-    _add_bench(sub)
     from khgrl.deploy.certs import add_parser as _add_certs
     from khgrl.deploy.secure import add_configs_parser
 

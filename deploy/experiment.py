@@ -35,7 +35,8 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from khgrl.common.config.settings import METHODS, PAPER_EPISODES, SCENARIOS, TQCSettings
+from khgrl.common.config.settings import METHODS, PAPER_EPISODES, TQCSettings, read_table
+from khgrl.common.tasks.passage.scenarios import SCENARIOS
 
 __all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main",
            "build_parser"]
@@ -63,7 +64,7 @@ class ExperimentConfig:
     def validate(self) -> "ExperimentConfig":
         bad = [s for s in self.scenarios if s not in SCENARIOS] + [m for m in self.methods if m not in METHODS]
         if bad:
-            raise ValueError(f"unknown scenario/method {bad}; choose from {SCENARIOS} and {METHODS}")
+            raise ValueError(f"unknown scenario/method {bad}; choose from {tuple(SCENARIOS)} and {METHODS}")
         bad_tasks = [t for t in self.tasks if not isinstance(t, str) or ":" not in t]
         if bad_tasks:
             raise ValueError(f"tasks {bad_tasks}: expected 'passage:SCENARIO', 'fetch:SCENARIO' or "
@@ -89,16 +90,7 @@ def load_config(path: str | Path | None, overrides: dict) -> ExperimentConfig:
     """The config file's values (TOML or JSON), then every non-None override on top."""
     values: dict = {}
     if path is not None:
-        path = Path(path)
-        text = path.read_text()
-        if path.suffix == ".toml":
-            try:
-                import tomllib
-            except ModuleNotFoundError as exc:  # Python 3.10
-                raise ValueError(f"{path}: TOML configs need Python >= 3.11; use a .json config") from exc
-            values = tomllib.loads(text)
-        else:
-            values = json.loads(text)
+        values = read_table(path)  # the one reader of settings files (TOML or JSON)
         known = set(ExperimentConfig.__dataclass_fields__)
         unknown = sorted(set(values) - known)
         if unknown:

@@ -14,7 +14,7 @@ import csv
 import sys
 from pathlib import Path
 
-from khgrl.common.config.settings import SCENARIOS
+from khgrl.common.tasks.passage.scenarios import SCENARIOS
 
 __all__ = ["main", "load_series", "summarize"]
 

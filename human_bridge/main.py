@@ -26,11 +26,7 @@ from khgrl.common.process import die_with_parent
 from khgrl.human_bridge import gamepad, keyboard, replay, scripted
 from khgrl.human_bridge.gui import main as gui
 
-__all__ = ["main", "build_parser", "SETTINGS"]
-
-# the run settings a human-input client uses (each a flag that overrides --config)
-SETTINGS = {"run", "connect", "run_dir", "task", "scenario", "demos", "seed", "human_episodes", "human_noise",
-            "lease_ms"}
+__all__ = ["main", "build_parser", "CLIENTS"]
 
 # each client module has add_arguments(parser) and run(args, proc)
 CLIENTS = {
@@ -49,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, (module, help_text) in CLIENTS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         module.add_arguments(p)
-        add_process_flags(p, only=SETTINGS)
+        add_process_flags(p, "human")  # the settings whose roles name the human clients
     return parser
 
 

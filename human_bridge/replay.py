@@ -110,7 +110,9 @@ class ReplayAnswers:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The replay client's own flags."""
-    parser.add_argument("file", help="RUN_DIR/actor-ID/corrections.csv of the recorded run (or .jsonl)")
+    parser.add_argument("file", nargs="?", default=None,
+                        help="RUN_DIR/actor-ID/corrections.csv of the recorded run (or .jsonl; default: the run "
+                             "setting replay, as khgrl up --human replay --replay FILE starts it)")
     parser.add_argument("--from-actor", default=None, help="which recorded actor's rows to replay (default: the first)")
     parser.add_argument("--actor", default=None, help="actor to drive (default: the recorded actor's id)")
     parser.add_argument("--id", default="replay", help="client id (default: %(default)s)")
@@ -124,6 +126,10 @@ def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
     :param args: the parsed command line (:func:`add_arguments`).
     :param proc: the resolved run settings (run id, endpoint, scenario, seed, human_episodes, human_noise).
     """
+    args.file = args.file or proc.cfg.replay
+    if not args.file:
+        print("khgrl human replay: error: no record to replay: give FILE or --replay FILE", file=sys.stderr, flush=True)
+        return 2
     try:
         plan = ReplayPlan(load_record(args.file), args.from_actor)
     except (OSError, ValueError, KeyError) as exc:

@@ -9,7 +9,8 @@ scenario's ``human_waypoints`` -- and, over the part of the task where help is n
 ``human_window``, in workspace x), sets P_h on that path at the point the KMP mean has reached in x.
 
 Its output is a correction P_h or ``None`` (released) per step: exactly what a person's drag produces.
-In one process it is applied with ``PassageEnv.set_correction`` (:class:`HumanCorrectionWrapper`); in the
+The decision (:class:`ScriptedHuman`) and its single-process use (:class:`HumanCorrectionWrapper`, applied with
+``set_correction``) are in :mod:`khgrl.common.tasks.scripted_human`, shared with the single-process reference; in the
 distributed system ``khgrl human scripted`` (:func:`run`, :class:`ScriptedAnswers`) publishes it as
 step-addressed correction messages that the actor applies the same way.
 """
@@ -18,106 +19,18 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass
-from typing import Callable
 
-import gymnasium as gym
 import numpy as np
 from khgrl.common.config.process import ProcessConfig
 from khgrl.common.config.settings import PAPER_EPISODES
 from khgrl.common.process import StopFlag, install_stop_handlers
 from khgrl.common.tasks.api import TaskError, load_task
-from khgrl.common.tasks.passage.scenarios import Scenario, get_scenario
-from khgrl.common.tasks.passage.task import PassageGuide
+from khgrl.common.tasks.scripted_human import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 from khgrl.common.wire.protocol import Frame
 from khgrl.human_bridge.client import CorrectionPublisher, connected
 
 __all__ = ["PAPER_EPISODES", "ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper", "ScriptedAnswers",
            "add_arguments", "run"]
-
-
-@dataclass(frozen=True)
-class ScriptedHumanConfig:
-    episodes: tuple[int, ...] = PAPER_EPISODES  # 1-based episode numbers in which the human helps
-    window: tuple[float, float] | None = None  # passage world: x-range where it helps (default: the scenario's)
-    noise: float = 0.0  # std of Gaussian noise on P_h (workspace units)
-    seed: int = 0
-
-
-class ScriptedHuman:
-    """Decides P_h (or None) from what a person watching the screen sees: episode, robot and KMP mean.
-
-    :param guide: the task's ``scripted_human`` (mean -> P_h or None), or a passage scenario (its name).
-    :param config: episodes, noise and seed (``window``: the passage world's only).
-    """
-
-    def __init__(self, guide: Callable[[np.ndarray], np.ndarray | None] | Scenario | str,
-                 config: ScriptedHumanConfig = ScriptedHumanConfig()) -> None:
-        if isinstance(guide, (str, Scenario)):
-            guide = PassageGuide(get_scenario(guide) if isinstance(guide, str) else guide, config.window)
-        self.guide = guide
-        self.config = config
-        self._rng = np.random.default_rng(config.seed)
-
-    def path_y(self, x: float) -> float:
-        """The passage world's safe path at workspace x."""
-        return self.guide.path_y(x)
-
-    def active_in(self, episode: int) -> bool:
-        return episode in self.config.episodes
-
-    def correction(self, episode: int, mean: np.ndarray) -> np.ndarray | None:
-        """P_h for this step, or None. ``mean`` is the KMP mean eta0_t at the current step (the red line)."""
-        if not self.active_in(episode):
-            return None
-        p_h = self.guide(np.asarray(mean, dtype=np.float64))
-        if p_h is None:
-            return None
-        p_h = np.asarray(p_h, dtype=np.float64).reshape(-1)
-        if p_h.shape != np.shape(mean) or not np.all(np.isfinite(p_h)):
-            raise ValueError(f"the task's scripted human gave {p_h}, expected {np.size(mean)} finite values")
-        if self.config.noise > 0:
-            p_h = p_h + self._rng.normal(0.0, self.config.noise, size=p_h.size)
-        return p_h
-
-
-class HumanCorrectionWrapper(gym.Wrapper):
-    """Single-process use: asks a human (scripted) for P_h before every step and applies it to the env.
-
-    Counts episodes from 1 (the paper's numbering). ``on_release`` is called with the intervention's
-    steps when a correction stream ends, e.g. to refit the exploration scale.
-    """
-
-    def __init__(self, env: gym.Env, human: ScriptedHuman, on_release=None) -> None:
-        super().__init__(env)
-        self.human = human
-        self.episode = 0
-        self.on_release = on_release
-        self._segment: list[dict] = []
-
-    def reset(self, **kwargs):
-        self._flush()
-        self.episode += 1
-        return self.env.reset(**kwargs)
-
-    def step(self, action):
-        base = self.env.unwrapped
-        p_h = self.human.correction(self.episode, base.mapping.mean(min(base.t, base.horizon - 1)))
-        base.set_correction(p_h)
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        if info.get("intervened"):
-            self._segment.append({"xi_h": info["xi_h"], "phase": info["phase"], "position": info["desired"]})
-        elif self._segment:
-            self._flush()
-        if terminated or truncated:
-            base.set_correction(None)
-            self._flush()
-        return obs, reward, terminated, truncated, info
-
-    def _flush(self) -> None:
-        if self._segment and self.on_release is not None:
-            self.on_release(self._segment)
-        self._segment = []
 
 
 # ------------------------------------------------------------------------------------ the scripted client

@@ -1,13 +1,13 @@
 """Velocity control of P_h for people without a pointer: the logic the ``keyboard`` and ``gamepad`` clients share
-(:mod:`khgrl.human_bridge.keyboard`, :mod:`khgrl.human_bridge.gamepad`). No Zenoh, no pygame: a device turns its state
-into
-a :class:`Push`, and :class:`VelocityHold` turns pushes and the driven actor's frames into corrections.
+(:mod:`khgrl.human_bridge.keyboard`, :mod:`khgrl.human_bridge.gamepad`). No Zenoh, no pygame: a device turns its
+state into a :class:`Push`, and :class:`VelocityHold` turns pushes and the driven actor's frames into corrections.
 
 A hold (docs/protocol.md, ``correction``): when the device's hold input goes down, P_h starts at the ``desired``
 position of the driven actor's latest frame (projected onto the workspace box) and one ``active`` correction is
 sent at once; every tick P_h moves by the pushed velocity times the tick's length (clipped to the workspace
 box); while held, one ``active`` correction answers every frame of the driven actor (and one goes at least every
-:data:`KEEPALIVE_S` when no frame comes, e.g. the actor is paused). The hold ends with one release when the hold
+:data:`~khgrl.human_bridge.hold.KEEPALIVE_S` when no frame comes, e.g. the actor is paused: the hold every client
+shares, :mod:`khgrl.human_bridge.hold`). The hold ends with one release when the hold
 input goes up, on the episode's last frame (``last``; the hold input must then go up and down again to hold in
 the next episode, as a mouse button must in the GUI), or when the client quits.
 
@@ -26,13 +26,13 @@ from typing import Callable
 import numpy as np
 from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.messages import Frame
+from khgrl.human_bridge.hold import CorrectionHold
 
 __all__ = ["Push", "VelocityHold", "axes_of", "dead_zone", "axis_speeds", "velocity", "DEFAULT_SPEED_FRACTION",
-           "DEAD_ZONE", "KEEPALIVE_S", "MAX_DT"]
+           "DEAD_ZONE", "MAX_DT"]
 
 DEFAULT_SPEED_FRACTION = 0.1  # of each axis's workspace span per second, at full push
 DEAD_ZONE = 0.15  # a stick deflection below this is no push
-KEEPALIVE_S = 0.1  # while held, send at least this often even without frames
 MAX_DT = 0.25  # a tick longer than this (a stalled loop) moves P_h as far as one of this length
 
 
@@ -102,8 +102,9 @@ def velocity(task: TaskDescriptor, push: Push, speeds: np.ndarray) -> np.ndarray
     return out
 
 
-class VelocityHold:
-    """Holds one actor's desired position P_h and moves it at the pushed velocity (see the module docstring).
+class VelocityHold(CorrectionHold):
+    """Holds one actor's desired position P_h and moves it at the pushed velocity (see the module docstring); the
+    hold itself (answers, keepalive, release) is :class:`~khgrl.human_bridge.hold.CorrectionHold`.
 
     :param task: the run's task (its size, axes and workspace box).
     :param send: ``send(actor, p_h or None, episode, t)`` publishes one correction
@@ -115,39 +116,21 @@ class VelocityHold:
 
     def __init__(self, task: TaskDescriptor, send: Callable, actor: str = "a0", speed: float | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        self.task, self.send, self.actor, self.clock = task, send, actor, clock
+        super().__init__(send, actor, clock)
+        self.task = task
         self.low = np.asarray(task.workspace_low, np.float64)
         self.high = np.asarray(task.workspace_high, np.float64)
         self.speeds = axis_speeds(task, speed)
-        self.frame: Frame | None = None
-        self.p_h: np.ndarray | None = None
-        self.episode = 0  # the episode the current hold started in
         self.ended = False  # the last hold ended with its episode: the hold input must go up first
-        self.sent = 0
-        self.holds = 0
-        self.last_send = 0.0
 
-    @property
-    def holding(self) -> bool:
-        """Whether a hold is on (P_h is sent)."""
-        return self.p_h is not None
-
-    def offer(self, frame: Frame) -> None:
-        """A frame: remember the driven actor's latest; while holding, answer it (or release on the episode's
-        last frame, or on a frame of a later episode).
-
-        :param frame: a decoded frame (other actors' and frames of another size are ignored).
-        """
-        if frame.actor != self.actor or len(frame.desired) != self.task.out_dim:
-            return
-        self.frame = frame
-        if not self.holding:
-            return
-        if frame.last or frame.episode != self.episode:
-            self.release()
-            self.ended = True  # a live hold ends with its episode
-        else:
-            self._send(self.p_h)
+    def offer(self, frame: Frame) -> bool:
+        """A frame (see :meth:`CorrectionHold.offer`; frames of another size than the task's are ignored). A hold
+        that ends with its episode needs the hold input to go up and down again."""
+        if len(frame.desired) != self.task.out_dim:
+            return False
+        ended = super().offer(frame)
+        self.ended = self.ended or ended
+        return ended
 
     def update(self, push: Push, dt: float) -> None:
         """One tick of the device: start, move or end the hold.
@@ -160,37 +143,9 @@ class VelocityHold:
             self.release()
             return
         if not self.holding:
-            if not self.ended:
-                self.start()
+            if not self.ended and self.frame is not None:  # start where the robot is told to be
+                self.start(np.clip(np.asarray(self.frame.desired, np.float64), self.low, self.high))
             return
         step = velocity(self.task, push, self.speeds) * min(max(float(dt), 0.0), MAX_DT)
-        self.p_h = np.clip(self.p_h + step, self.low, self.high)
+        self.move(np.clip(self.p_h + step, self.low, self.high))
         self.keepalive()
-
-    def start(self) -> bool:
-        """Start a hold at the latest frame's desired position (sent at once); False without a frame."""
-        if self.frame is None:
-            return False
-        self.p_h = np.clip(np.asarray(self.frame.desired, np.float64), self.low, self.high)
-        self.episode = self.frame.episode
-        self.holds += 1
-        self._send(self.p_h)
-        return True
-
-    def release(self) -> None:
-        """End the hold with one release (nothing when not holding)."""
-        if self.holding:
-            self.p_h = None
-            self._send(None)
-
-    def keepalive(self) -> None:
-        """While held, re-send P_h if nothing was sent for :data:`KEEPALIVE_S`."""
-        if self.holding and self.clock() - self.last_send >= KEEPALIVE_S:
-            self._send(self.p_h)
-
-    def _send(self, p_h: np.ndarray | None) -> None:
-        f = self.frame
-        ep, t = (f.episode, f.t) if f is not None else (0, 0)
-        self.send(self.actor, None if p_h is None else p_h.copy(), ep, t)
-        self.sent += 1
-        self.last_send = self.clock()

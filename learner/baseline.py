@@ -3,10 +3,10 @@
 This is what a user would run instead of the distributed system (``khgrl reference``), and the baseline it
 must match in sample efficiency: TQC with the run's settings (:class:`khgrl.common.config.settings.TQCSettings`, the one
 source the learner uses too: the paper's 2 x 256, lr 1e-3, tau 0.02, gamma 0.99, train_freq 8,
-gradient_steps 8, automatic entropy coefficient); for KhGRL the scripted human (:mod:`khgrl.human_bridge.scripted`)
-corrects the desired position in the given episodes and the replay buffer stores the human's action a_h in
-place of the policy's (:class:`InterventionTQC`); in the low-covariance scenario the exploration scale L is
-refit from each intervention.
+gradient_steps 8, automatic entropy coefficient); for KhGRL the scripted human
+(:mod:`khgrl.common.tasks.scripted_human`) corrects the desired position in the given episodes and the replay
+buffer stores the human's action a_h in place of the policy's (:class:`InterventionTQC`); in the low-covariance
+scenario the exploration scale L is refit from each intervention.
 
 It also measures what the single-process loop does to the environment's timing: the gap between
 consecutive ``env.step`` calls, which includes the whole training iteration every ``train_freq`` steps.
@@ -23,11 +23,11 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 import torch
-from khgrl.common.config.settings import METHODS, PAPER_EPISODES, TQCSettings
+from khgrl.common.config.settings import METHODS, RunConfig, TQCSettings
 from khgrl.common.kmp.scale import ScaleModel
 from khgrl.common.metrics import EpisodeAccumulator, EpisodeStats, write_episodes
 from khgrl.common.tasks.passage.env import PassageEnv
-from khgrl.human_bridge.scripted import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
+from khgrl.common.tasks.scripted_human import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 from sb3_contrib import TQC
 from stable_baselines3.common.callbacks import StopTrainingOnMaxEpisodes
 
@@ -60,17 +60,27 @@ class InterventionTQC(TQC):
         self.gradient_steps_done += gradient_steps
 
 
+_RUN = RunConfig()  # the one source of the defaults
+
+
 @dataclass(frozen=True)
 class ReferenceConfig:
-    """One single-process run."""
+    """One single-process run: the settings of a :class:`~khgrl.common.config.settings.RunConfig` it uses (and
+    its defaults)."""
 
-    scenario: str = "high_cov"
-    method: str = "khgrl"  # "khgrl" (scripted human) or "kgrl" (no human)
-    episodes: int = 60
-    seed: int = 0
-    human_episodes: tuple[int, ...] = PAPER_EPISODES
-    human_noise: float = 0.0
+    scenario: str = _RUN.scenario
+    method: str = _RUN.method  # "khgrl" (scripted human) or "kgrl" (no human)
+    episodes: int = _RUN.episodes
+    seed: int = _RUN.seed
+    human_episodes: tuple[int, ...] = _RUN.human_episodes
+    human_noise: float = _RUN.human_noise
     tqc: TQCSettings = field(default_factory=TQCSettings)
+
+    @classmethod
+    def from_run(cls, cfg: RunConfig) -> "ReferenceConfig":
+        """The reference run of a run configuration (``khgrl reference``'s flags are RunConfig's)."""
+        return cls(**{f: getattr(cfg, f) for f in ("scenario", "method", "episodes", "seed", "human_episodes",
+                                                      "human_noise", "tqc")})
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

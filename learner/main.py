@@ -40,11 +40,6 @@ __all__ = ["main", "build_parser"]
 
 log = logging.getLogger("khgrl.learner")
 
-# The settings the learner uses (its --help lists these; --config may hold all of a run's settings).
-LEARNER_SETTINGS = {"run", "connect", "run_dir", "seed", "learning_rate", "tau", "gamma", "train_freq",
-                    "gradient_steps", "ent_coef", "net_arch", "learning_starts", "batch_size", "buffer_size",
-                    "checkpoint_every", "lease_ms", "learner_threads", "learner_nice", "tensorboard", "checkpoint_dir",
-                    "device", "mode"}
 # Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
 # batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
 INBOX_SIZE = 100_000
@@ -55,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     """``khgrl learner``'s flags: ``--config``, the learner's run settings, ``--id`` and ``--resume``."""
     p = argparse.ArgumentParser(
         prog="khgrl learner", description="TQC learner: trains from the actors' transition stream, publishes weights.")
-    add_process_flags(p, only=LEARNER_SETTINGS)
+    add_process_flags(p, "learner")  # the settings whose roles name the learner
     p.add_argument("--id", default="learner", help="learner id (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
                    help="continue from the checkpoint in RUN_DIR/learner (or --checkpoint-dir; an error if there is "

@@ -24,16 +24,17 @@ class ProcessConfig:
     zenoh_config: str | None = None  # a Zenoh JSON5 file (--zenoh-config, else $ZENOH_CONFIG), None: built-in
 
 
-def add_process_flags(parser: argparse.ArgumentParser, only: set[str] | None = None) -> None:
-    """``--config`` (a run's ``config.json`` written by ``khgrl up``, or a TOML file), ``--run``, ``--connect``
-    and the run-setting flags: how every process is started (by ``khgrl up``: ``--config RUN_DIR/config.json``
-    and its own id; by hand on another machine: flags)."""
+def add_process_flags(parser: argparse.ArgumentParser, role: str = "up") -> None:
+    """``--config`` (a run's ``config.json`` written by ``khgrl up``, or a TOML file), ``--zenoh-config`` and the
+    flags of the settings whose roles name ``role`` (``learner``, ``actor``, ``human``; ``--run``, ``--connect``
+    among them; default ``up``: every setting): how every process is started (by ``khgrl up``: ``--config
+    RUN_DIR/config.json`` and its own id; by hand on another machine: flags)."""
     parser.add_argument("--config", default=None, metavar="FILE",
                         help="run configuration: RUN_DIR/config.json of khgrl up, or a TOML file (default: none)")
     parser.add_argument("--zenoh-config", default=None, metavar="FILE",
                         help=f"Zenoh configuration (JSON5; certificates, access, buffers) merged under KhGRL's "
                              f"required settings; examples in deploy/zenoh/ (default: ${ENV} if set, else built-in)")
-    add_config_flags(parser, only)
+    add_config_flags(parser, role)
 
 
 def resolve_process(args: argparse.Namespace) -> ProcessConfig:

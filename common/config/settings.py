@@ -6,12 +6,14 @@
   timeouts, checkpoint interval).
 * :class:`RunConfig` -- a whole run: world, method, episodes, seed, processes, and the two above.
 
-Every field has its default and its help text here, once. :func:`add_config_flags` turns the fields into
-command-line flags (``learning_starts`` -> ``--learning-starts``) whose help shows the default;
-:func:`resolve` merges defaults < a config file < flags and validates the result. ``khgrl up`` writes the
-resolved configuration into the run directory (``config.toml``, and ``config.json`` with the run's runtime
-facts: run id, router endpoint, actor ids); every child process reads that file instead of a hand-built argv,
-and ``khgrl up --config RUN_DIR/config.toml`` runs the same configuration again.
+Every field has its default, its help text and its roles here, once: the commands whose flags it is (``up``
+takes every setting; ``learner``, ``actor``, ``human`` and ``reference`` those whose roles name them).
+:func:`add_config_flags` turns the fields of a role into command-line flags (``learning_starts`` ->
+``--learning-starts``) whose help shows the default; :func:`resolve` merges defaults < a config file < flags
+and validates the result. ``khgrl up`` writes the resolved configuration into the run directory (``config.toml``,
+and ``config.json`` with the run's runtime facts: run id, router endpoint, actor ids); every child process reads
+that file instead of a hand-built argv, and ``khgrl up --config RUN_DIR/config.toml`` runs the same configuration
+again.
 """
 
 from __future__ import annotations
@@ -19,30 +21,41 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import tomllib
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, get_type_hints
 
-from khgrl.common.tasks.passage.scenarios import SCENARIOS as _PASSAGE_SCENARIOS
+from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
 
-__all__ = ["SCENARIOS", "METHODS", "HUMANS", "PAPER_EPISODES", "TQCSettings", "StreamSettings", "RunConfig",
-           "add_config_flags", "resolve", "load_file", "write_run_config", "read_run_file", "to_toml"]
+__all__ = ["METHODS", "HUMANS", "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "RunConfig",
+           "add_config_flags", "role_fields", "resolve", "read_table", "load_file", "write_run_config",
+           "read_run_file", "to_toml"]
 
-SCENARIOS = tuple(_PASSAGE_SCENARIOS)  # the passage world's scenarios: "high_cov", "low_cov"
 METHODS = ("khgrl", "kgrl")
 DEVICES = ("auto", "cpu", "cuda")
 MODES = ("simulation", "robot")
-HUMANS = ("scripted", "gui", "keyboard", "gamepad", "none")
+HUMANS = ("scripted", "gui", "keyboard", "gamepad", "replay", "none")  # khgrl human's clients (test_config checks)
 PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)
 
+# The commands whose flags a setting is: ``khgrl up`` takes every setting (and writes them all into the run's
+# config file); each other command takes the settings whose roles name it.
+UP, LEARNER, ACTOR, HUMAN, REFERENCE = "up", "learner", "actor", "human", "reference"
+ROLES = (UP, LEARNER, ACTOR, HUMAN, REFERENCE)
+_LA, _LAH, _LR, _LAR = (LEARNER, ACTOR), (LEARNER, ACTOR, HUMAN), (LEARNER, REFERENCE), (LEARNER, ACTOR, REFERENCE)
 
-def _opt(default: Any, help: str, choices: tuple | None = None, flag: bool = True):  # noqa: A002
-    """A config field: its default, help text, allowed values, and whether it is a command-line flag."""
-    meta = {"help": help, "choices": choices, "flag": flag}
+
+def _opt(default: Any, help: str, choices: tuple | None = None, *, roles: tuple[str, ...],  # noqa: A002
+         shown: str | None = None):
+    """A config field: its default, help text, allowed values, ``roles`` (the commands besides ``khgrl up`` whose
+    flag it is; () : ``khgrl up`` only; every field must say, so a new setting cannot silently be no flag) and, where
+    the default needs words, what ``--help`` shows as the default (``shown``)."""
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for sequence defaults (frozen settings)")
-    return field(default=default, metadata=meta)
+    unknown = set(roles) - set(ROLES)
+    if unknown:
+        raise ValueError(f"unknown role(s) {sorted(unknown)}; roles are {ROLES}")
+    return field(default=default, metadata={"help": help, "choices": choices, "roles": frozenset((UP, *roles)),
+                                                   "shown": shown})
 
 
 @dataclass(frozen=True)
@@ -50,18 +63,19 @@ class TQCSettings:
     """sb3-contrib TQC as in the paper (Section IV): 2 x 256, lr 1e-3, tau 0.02, gamma 0.99, train_freq 8,
     gradient_steps 8, automatic entropy coefficient."""
 
-    learning_rate: float = _opt(1e-3, "TQC learning rate")
-    tau: float = _opt(0.02, "soft target update rate")
-    gamma: float = _opt(0.99, "discount factor")
-    train_freq: int = _opt(8, "transitions per training iteration")
-    gradient_steps: int = _opt(8, "gradient steps per training iteration")
-    ent_coef: str = _opt("auto", "entropy coefficient ('auto': learned)")
-    net_arch: tuple[int, ...] = _opt((256, 256), "hidden layer sizes of actor and critics")
-    learning_starts: int = _opt(100, "uniform random actions (and no training) for the first N transitions")
-    batch_size: int = _opt(256, "minibatch size of a gradient step")
-    buffer_size: int = _opt(200_000, "replay buffer capacity (transitions)")
+    learning_rate: float = _opt(1e-3, "TQC learning rate", roles=_LR)
+    tau: float = _opt(0.02, "soft target update rate", roles=_LR)
+    gamma: float = _opt(0.99, "discount factor", roles=_LR)
+    train_freq: int = _opt(8, "transitions per training iteration", roles=_LAR)
+    gradient_steps: int = _opt(8, "gradient steps per training iteration", roles=_LR)
+    ent_coef: str = _opt("auto", "entropy coefficient ('auto': learned)", roles=_LR)
+    net_arch: tuple[int, ...] = _opt((256, 256), "hidden layer sizes of actor and critics", roles=_LAR)
+    learning_starts: int = _opt(100, "uniform random actions (and no training) for the first N transitions",
+                                roles=_LAR)
+    batch_size: int = _opt(256, "minibatch size of a gradient step", roles=_LR)
+    buffer_size: int = _opt(200_000, "replay buffer capacity (transitions)", roles=_LR)
     device: str = _opt("auto", "where the learner trains: auto (cuda if torch sees a GPU, else cpu), cpu or cuda; "
-                               "weights always go to actors as CPU float32 arrays", DEVICES)
+                               "weights always go to actors as CPU float32 arrays", DEVICES, roles=_LR)
 
     def sb3_kwargs(self, seed: int) -> dict[str, Any]:
         """Keyword arguments of ``sb3_contrib.TQC("MlpPolicy", env, **kwargs)``."""
@@ -83,20 +97,26 @@ class TQCSettings:
 class StreamSettings:
     """The transition stream from actors to the learner (docs/protocol.md, "Flow control")."""
 
-    batch: int = _opt(8, "transitions per batch (cut at multiples of the actor's running index)")
+    batch: int = _opt(8, "transitions per batch (cut at multiples of the actor's running index)", roles=(ACTOR,))
     max_lead: int = _opt(8, "transitions an actor may run ahead of what the learner trained on "
-                            "(8 = the train frequency: step-for-step single-process SB3)")
-    window: int = _opt(64, "batches an actor has out beyond what the learner acknowledged (the rest wait)")
+                            "(8 = the train frequency: step-for-step single-process SB3)", roles=(ACTOR,))
+    window: int = _opt(64, "batches an actor has out beyond what the learner acknowledged (the rest wait)",
+                       roles=(ACTOR,))
     mode: str = _opt("simulation", "simulation: actors wait for the learner (max_lead, the paper's update-to-data "
-                                   "ratio); robot: actors never wait, the learner trains as fast as it can", MODES)
-    outbox_memory: int = _opt(1000, "batches an actor keeps in memory before spilling them to disk")
-    resend_after_s: float = _opt(2.0, "re-send un-acknowledged batches after this long without ack progress (s)")
-    flush_timeout: float = _opt(120.0, "at the end, an actor waits this long for the learner to confirm (s)")
-    correction_timeout: float = _opt(0.5, "a silent correction client loses the robot after this (s)")
+                                   "ratio); robot: actors never wait, the learner trains as fast as it can", MODES,
+                     roles=_LA)
+    outbox_memory: int = _opt(1000, "batches an actor keeps in memory before spilling them to disk", roles=(ACTOR,))
+    resend_after_s: float = _opt(2.0, "re-send un-acknowledged batches after this long without ack progress (s)",
+                                 roles=(ACTOR,))
+    flush_timeout: float = _opt(120.0, "at the end, an actor waits this long for the learner to confirm (s)",
+                                roles=(ACTOR,))
+    correction_timeout: float = _opt(0.5, "a silent correction client loses the robot after this (s)", roles=(ACTOR,))
     learner_wait: float = _opt(10.0, "at start, an actor waits this long for a learner before acting without one, "
-                                     "so processes started together are in lock-step from the first step (s)")
-    checkpoint_every: int = _opt(2000, "learner checkpoint every N ingested transitions (0: only at the end)")
-    lease_ms: int = _opt(3000, "Zenoh link lease: how fast a dead process is noticed (ms)")
+                                     "so processes started together are in lock-step from the first step (s)",
+                               roles=(ACTOR,))
+    checkpoint_every: int = _opt(2000, "learner checkpoint every N ingested transitions (0: only at the end)",
+                                 roles=(LEARNER,))
+    lease_ms: int = _opt(3000, "Zenoh link lease: how fast a dead process is noticed (ms)", roles=_LAH)
 
     def validate(self, train_freq: int) -> None:
         if self.batch < 1 or self.outbox_memory < 1 or self.window < 1:
@@ -114,31 +134,44 @@ class RunConfig:
     """One run of ``khgrl up``: every setting of every process. Field order is the order of ``--help``."""
 
     task: str = _opt("", "the task: passage:SCENARIO or package.module:callable returning a khgrl.task.Task "
-                         "(README, 'Bring your own task'; default: passage:<scenario>)")
-    scenario: str = _opt("high_cov", "passage-world scenario (shorthand for --task passage:SCENARIO)", SCENARIOS)
-    demos: str = _opt("", "demonstration file (.npz/.csv, M x N x O) replacing the task's demonstrations")
-    method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither", METHODS)
-    episodes: int = _opt(60, "episodes per actor (in the whole run: a resumed run continues up to this)")
-    seed: int = _opt(0, "seed of the learner and of actor 0 (actor i: seed + i) and the human client")
-    run_dir: str = _opt("runs/demo", "run directory (refused if it holds results, unless --resume/--overwrite)")
-    run: str = _opt("", "run id, the key prefix khgrl/<run>/ (default: derived from the run directory)")
-    actors: int = _opt(1, "number of actor processes")
+                         "(README, 'Bring your own task')", roles=(ACTOR, HUMAN), shown="passage:<scenario>")
+    scenario: str = _opt("high_cov", "passage-world scenario (shorthand for --task passage:SCENARIO)",
+                         roles=(ACTOR, HUMAN, REFERENCE))
+    demos: str = _opt("", "demonstration file (.npz/.csv, M x N x O) replacing the task's demonstrations",
+                      roles=(ACTOR, HUMAN))
+    method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither", METHODS,
+                       roles=(ACTOR, REFERENCE))
+    episodes: int = _opt(60, "episodes per actor (in the whole run: a resumed run continues up to this)",
+                         roles=(ACTOR, REFERENCE))
+    seed: int = _opt(0, "seed of the learner and of actor 0 (actor i: seed + i) and the human client",
+                     roles=(*_LAH, REFERENCE))
+    run_dir: str = _opt("runs/demo", "run directory (refused if it holds results, unless --resume/--overwrite)",
+                        roles=_LAH)
+    run: str = _opt("", "run id, the key prefix khgrl/<run>/", roles=_LAH, shown="derived from the run directory")
+    actors: int = _opt(1, "number of actor processes", roles=())
     human: str = _opt("scripted", "human-input client (khgrl only): scripted, gui (a window to drag the robot), "
-                                  "keyboard, gamepad (move the desired position with keys / a stick), none", HUMANS)
-    human_episodes: tuple[int, ...] = _opt(PAPER_EPISODES, "episodes with scripted corrections (the paper's)")
-    human_noise: float = _opt(0.0, "std of the scripted human's hand noise (workspace units)")
-    connect: str = _opt("", "join the router at this endpoint (tcp/HOST:PORT) instead of starting one")
-    port: int = _opt(0, "port of the router khgrl up starts on 127.0.0.1 (0: a free one)")
-    connect_timeout: float = _opt(15.0, "fail if the router cannot be reached within this many seconds")
-    rate: float = _opt(0.0, "actor control rate in Hz (0: as fast as flow control allows)")
+                                  "keyboard, gamepad (move the desired position with keys / a stick), replay (a "
+                                  "recorded session, --replay FILE), none", HUMANS, roles=())
+    human_episodes: tuple[int, ...] = _opt(PAPER_EPISODES, "episodes with scripted corrections (the paper's)",
+                                           roles=(HUMAN, REFERENCE))
+    human_noise: float = _opt(0.0, "std of the scripted human's hand noise (workspace units)",
+                              roles=(HUMAN, REFERENCE))
+    replay: str = _opt("", "with --human replay: the recorded RUN_DIR/actor-ID/corrections.csv to feed in",
+                       roles=(HUMAN,))
+    connect: str = _opt("", "join the router at this endpoint (tcp/HOST:PORT) instead of starting one", roles=_LAH)
+    port: int = _opt(0, "port of the router khgrl up starts on 127.0.0.1 (0: a free one)", roles=())
+    connect_timeout: float = _opt(15.0, "fail if the router cannot be reached within this many seconds", roles=())
+    rate: float = _opt(0.0, "actor control rate in Hz (0: as fast as flow control allows)", roles=(ACTOR,))
     actor_rt_priority: int = _opt(0, "actors' control loops under SCHED_FIFO at this priority "
-                                     "(1-99; needs --rate and root; 0: off)")
-    learner_nice: int = _opt(5, "learner nice level, so training yields the CPU to the actors' control loops")
-    learner_threads: int = _opt(1, "torch CPU threads of the learner")
-    checkpoint_dir: str = _opt("", "where the learner keeps its checkpoints, e.g. a data disk (none: RUN_DIR/learner)")
-    tensorboard: bool = _opt(True, "write TensorBoard scalars (learner/tb, actor-ID/tb)")
-    timeout: float = _opt(0.0, "fail the run after this many seconds (0: none)")
-    stop_timeout: float = _opt(60.0, "seconds the processes get to stop cleanly")
+                                     "(1-99; needs --rate and root; 0: off)", roles=(ACTOR,))
+    learner_nice: int = _opt(5, "learner nice level, so training yields the CPU to the actors' control loops",
+                             roles=(LEARNER,))
+    learner_threads: int = _opt(1, "torch CPU threads of the learner", roles=(LEARNER,))
+    checkpoint_dir: str = _opt("", "where the learner keeps its checkpoints, e.g. a data disk", roles=(LEARNER,),
+                               shown="RUN_DIR/learner")
+    tensorboard: bool = _opt(True, "write TensorBoard scalars (learner/tb, actor-ID/tb)", roles=_LA)
+    timeout: float = _opt(0.0, "fail the run after this many seconds (0: none)", roles=())
+    stop_timeout: float = _opt(60.0, "seconds the processes get to stop cleanly", roles=())
     tqc: TQCSettings = field(default_factory=TQCSettings)
     stream: StreamSettings = field(default_factory=StreamSettings)
 
@@ -153,6 +186,8 @@ class RunConfig:
             raise ValueError(f"task {self.task!r}: expected 'passage:SCENARIO' or 'package.module:callable'")
         if any(e < 1 for e in self.human_episodes):
             raise ValueError("human_episodes are counted from 1")
+        if self.human == "replay" and self.method == "khgrl" and not self.replay:
+            raise ValueError("human 'replay' needs replay: the corrections.csv of a recorded run (--replay FILE)")
         if self.connect_timeout <= 0 or self.rate < 0:
             raise ValueError("connect_timeout must be > 0 and rate >= 0")
         self.tqc.validate()
@@ -178,42 +213,50 @@ class RunConfig:
 
 # ------------------------------------------------------------------------------------ flags
 def _flag_fields(cls=RunConfig, prefix: tuple[str, ...] = ()):
-    """(path, field, type) of every flag field of ``cls``, nested settings flattened."""
+    """(path, field, type) of every setting of ``cls``, nested settings flattened."""
     hints = get_type_hints(cls)
     for f in fields(cls):
         typ = hints[f.name]
         if is_dataclass(typ):
             yield from _flag_fields(typ, (*prefix, f.name))
-        elif f.metadata.get("flag", True):
+        else:
             yield (*prefix, f.name), f, typ
 
 
-def _flag_name(path: tuple[str, ...]) -> str:
-    return "--" + path[-1].replace("_", "-")
+def role_fields(role: str) -> list[str]:
+    """The names of the settings that are flags of command ``role`` (one of :data:`ROLES`), in ``--help`` order."""
+    if role not in ROLES:
+        raise ValueError(f"unknown role {role!r}; roles are {ROLES}")
+    return [path[-1] for path, f, _ in _flag_fields() if role in f.metadata["roles"]]
 
 
-def add_config_flags(parser: argparse.ArgumentParser, only: set[str] | None = None) -> None:
-    """Add a flag for every field (or those in ``only``, by field name). A flag given on the command line
-    overrides the config file; the help text shows the default."""
+def _help(f) -> str:
+    """The help text and, once, the default (``shown`` where it needs words)."""
+    d = f.default
+    shown = f.metadata["shown"] or (" ".join(map(str, d)) if isinstance(d, tuple) else (d if d != "" else "none"))
+    return f"{f.metadata['help']} (default: {shown})"
+
+
+def add_config_flags(parser: argparse.ArgumentParser, role: str = UP) -> None:
+    """Add a flag for every setting of command ``role`` (:data:`ROLES`; ``up``: every setting). A flag given on the
+    command line overrides the config file; the help text shows the default."""
+    names = set(role_fields(role))
     group = parser.add_argument_group("run settings (override --config)")
     for path, f, typ in _flag_fields():
-        if only is not None and path[-1] not in only:
+        if path[-1] not in names:
             continue
-        kw: dict[str, Any] = {"dest": "cfg__" + "__".join(path), "default": argparse.SUPPRESS}
-        default = f.default
-        shown = " ".join(map(str, default)) if isinstance(default, tuple) else (default if default != "" else "none")
-        kw["help"] = f"{f.metadata['help']} (default: {shown!s})"
+        kw: dict[str, Any] = {"dest": "cfg__" + "__".join(path), "default": argparse.SUPPRESS, "help": _help(f)}
         if typ is bool:
             kw["action"] = argparse.BooleanOptionalAction
-        elif isinstance(default, tuple):
+        elif isinstance(f.default, tuple):
             kw.update(type=int, nargs="+")
         else:
             kw["type"] = typ if typ in (int, float, str) else str
-        if typ is not bool and not f.metadata.get("choices"):
-            kw["metavar"] = path[-1].upper()
         if f.metadata.get("choices"):
             kw["choices"] = f.metadata["choices"]
-        group.add_argument(_flag_name(path), **kw)
+        elif typ is not bool:
+            kw["metavar"] = path[-1].upper()
+        group.add_argument("--" + path[-1].replace("_", "-"), **kw)
 
 
 def _overrides(args: argparse.Namespace) -> dict:
@@ -229,25 +272,6 @@ def _overrides(args: argparse.Namespace) -> dict:
 
 
 # ------------------------------------------------------------------------------------ files
-def load_file(path: str | Path) -> dict:
-    """A run config file: TOML (``.toml``) or JSON (``.json``; ``runtime`` is kept apart, see read_run_file)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"config file {path} does not exist")
-    if path.suffix == ".json":
-        data = json.loads(path.read_text())
-    else:
-        with open(path, "rb") as fh:
-            try:
-                data = tomllib.load(fh)
-            except tomllib.TOMLDecodeError as exc:
-                raise ValueError(f"{path}: not valid TOML: {exc}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a table of settings")
-    data.pop("runtime", None)
-    return data
-
-
 def _merge(base: dict, over: dict) -> dict:
     out = dict(base)
     for k, v in over.items():
@@ -310,49 +334,6 @@ def resolve(config_file: str | Path | None = None, args: argparse.Namespace | No
     if overrides:
         data = _merge(data, overrides)
     return _build(RunConfig, data, "config").validate()
-
-
-# ------------------------------------------------------------------------------------ writing
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, float)):
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)  # a JSON string is a valid TOML basic string
-    return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-
-
-def to_toml(cfg: RunConfig) -> str:
-    """The configuration as TOML, each setting with its help as a comment (reads back to the same config)."""
-    lines = ["# KhGRL run configuration (khgrl up --config FILE); every flag of khgrl up overrides it.", ""]
-
-    def table(obj, name: str | None) -> None:
-        if name:
-            lines.extend(["", f"[{name}]"])
-        for f in fields(obj):
-            v = getattr(obj, f.name)
-            if is_dataclass(v):
-                continue
-            lines.append(f"# {f.metadata['help']}")
-            lines.append(f"{f.name} = {_toml_value(v)}")
-
-    table(cfg, None)
-    for f in fields(cfg):
-        if is_dataclass(getattr(cfg, f.name)):
-            table(getattr(cfg, f.name), f.name)
-    return "\n".join(lines) + "\n"
-
-
-def write_run_config(run_dir: str | Path, cfg: RunConfig, runtime: dict) -> Path:
-    """``RUN_DIR/config.toml`` (the resolved settings) and ``RUN_DIR/config.json`` (the same plus ``runtime``:
-    run id, endpoint, actor ids, command line, start time) -- the file every child process reads."""
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "config.toml").write_text(to_toml(cfg))
-    path = run_dir / "config.json"
-    path.write_text(json.dumps({**cfg.to_dict(), "runtime": runtime}, indent=2))
-    return path
 
 
 def read_run_file(path: str | Path) -> tuple[RunConfig, dict]:

@@ -24,9 +24,17 @@ from typing import Any
 
 import numpy as np
 import pygame
-from khgrl.common.tasks.passage.render import _surface_rgb
-from khgrl.common.tasks.passage.render_layers import SurfaceCache, band_key, band_layer
-from khgrl.common.tasks.passage.render_style import COLORS, get_font
+from khgrl.common.tasks.render_parts import (
+    COLORS,
+    SurfaceCache,
+    band_key,
+    band_layer,
+    draw_legend,
+    get_font,
+    nice_ticks,
+    surface_rgb,
+    view_extent,
+)
 from khgrl.common.wire.descriptor import TaskDescriptor
 
 __all__ = ["TaskFrame", "TaskRenderer", "frame_from_env", "view_extent", "nice_ticks"]
@@ -34,7 +42,7 @@ __all__ = ["TaskFrame", "TaskRenderer", "frame_from_env", "view_extent", "nice_t
 _CACHE_SIZE = 8
 _MARGIN = dict(left=46, right=12, top=10, bottom=32)  # plot rectangle inside a view's panel
 _PANEL = (246, 246, 249)
-_DEMO = (150, 150, 158, 170)
+_DEMO = COLORS["demo"] + (170,)
 _SHAPE = {"box": (70, 70, 78, 200), "box_aside": (70, 70, 78, 45), "sphere": COLORS["obstacle"] + (170,)}
 _POINTS = {"goal": COLORS["goal"], "start": COLORS["start"]}
 
@@ -65,41 +73,6 @@ class TaskFrame:
     text: list[str] = field(default_factory=list)
 
 
-def nice_ticks(lo: float, hi: float, target: int = 5) -> np.ndarray:
-    """Round tick values (steps 1, 2, 5 x 10^k) inside [lo, hi], about ``target`` of them."""
-    span = hi - lo
-    if not (np.isfinite(span) and span > 0):
-        return np.array([lo])
-    raw = span / max(1, target)
-    mag = 10.0 ** np.floor(np.log10(raw))
-    step = next(m * mag for m in (1.0, 2.0, 5.0, 10.0) if m * mag >= raw * 0.999)
-    start = np.ceil(lo / step - 1e-9) * step
-    return np.round(np.arange(start, hi + 1e-9 * span, step), 12)
-
-
-def view_extent(d: TaskDescriptor) -> tuple[np.ndarray, np.ndarray]:
-    """(low, high) per output drawn: the workspace widened to shapes, demos and mean (by at most a quarter
-    of the workspace on each side), plus 3 % padding."""
-    wlo, whi = np.asarray(d.workspace_low, np.float64), np.asarray(d.workspace_high, np.float64)
-    pts = [wlo[None], whi[None], np.asarray(d.mean, np.float64).reshape(-1, d.out_dim),
-           np.asarray(d.demos, np.float64).reshape(-1, d.out_dim)]
-    for s in d.shapes:
-        if s["kind"] == "box":
-            pts += [np.asarray(s["low"])[None], np.asarray(s["high"])[None]]
-        elif s["kind"] == "sphere":
-            c = np.asarray(s["center"], np.float64)
-            pts += [(c - s["radius"])[None], (c + s["radius"])[None]]
-        else:
-            pts.append(np.asarray(s["at"], np.float64)[None])
-    allp = np.concatenate(pts)
-    allp = np.where(np.isfinite(allp), allp, wlo)
-    span = whi - wlo
-    lo = np.maximum(allp.min(axis=0), wlo - 0.25 * span)
-    hi = np.minimum(allp.max(axis=0), whi + 0.25 * span)
-    pad = 0.03 * (hi - lo)
-    return lo - pad, hi + pad
-
-
 @dataclass(frozen=True, eq=False)
 class _View:
     axes: tuple[int, int]  # command axes shown horizontally and vertically
@@ -116,10 +89,12 @@ class TaskRenderer:
     :param size: (W, H) of the whole image in pixels (views and strip).
     :param strip_height: pixels of the text strip at the bottom (0: none).
     :param equal_aspect: equal units on both axes of a view when the spans allow it.
+    :param legend: a key (demonstrations, KMP mean, band, robot, P_t, P_h) in the top-left corner of view 0; the
+        task's shapes carry their names in the views.
     """
 
     def __init__(self, descriptor: TaskDescriptor, size: tuple[int, int] = (800, 520), *, strip_height: int = 60,
-                 equal_aspect: bool = True) -> None:
+                 equal_aspect: bool = True, legend: bool = False) -> None:
         w, h = (int(v) for v in size)
         n = 1 if descriptor.third is None else 2
         if w < 120 * n or h - strip_height < 100 or strip_height < 0:
@@ -138,6 +113,7 @@ class TaskRenderer:
         self._offscreen: pygame.Surface | None = None
         self._text: dict[tuple[int, str], pygame.Surface] = {}
         self._r = max(4, round(0.012 * min(v.rect.h for v in self.views)))
+        self.legend = bool(legend)
 
     @staticmethod
     def _layout(panel: pygame.Rect, axes: tuple[int, int], lo: np.ndarray, hi: np.ndarray, equal: bool) -> _View:
@@ -204,6 +180,13 @@ class TaskRenderer:
                 self._draw_axes(bg, v)
                 fg.set_clip(v.rect)
                 self._draw_content(fg, k, show_demos, show_mean)
+                fg.set_clip(None)
+            if self.legend:
+                entries = [("demo", "demonstrations")] * show_demos + [("mean", "KMP mean")] * show_mean + [
+                    ("band", "exploration band"), ("robot", "robot"), ("desired", "desired P_t"),
+                    ("correction", "human P_h")]
+                fg.set_clip(self.views[0].rect)
+                draw_legend(fg, (self.views[0].rect.left + 6, self.views[0].rect.top + 6), entries)
                 fg.set_clip(None)
             self._static[key] = (bg, fg)
         return self._static[key]
@@ -287,7 +270,7 @@ class TaskRenderer:
             pygame.draw.circle(fg, col, (x, y), 2)
             label_at = (round(x) + 8, round(y) - 16)
         if font is not None and label_at is not None and not s["name"].startswith("_"):
-            white = s["kind"] == "box" and not self._aside(v, s)
+            white = s["kind"] == "sphere" or (s["kind"] == "box" and not self._aside(v, s))  # on the fill
             fg.blit(font.render(s["name"], True, (255, 255, 255) if white else COLORS["text"]), label_at)
 
     def _composite(self, band: np.ndarray | None, show_demos: bool, show_mean: bool) -> pygame.Surface:
@@ -375,7 +358,7 @@ class TaskRenderer:
         if self._offscreen is None:
             self._offscreen = pygame.Surface((self.width, self.height))
         self.draw(self._offscreen, frame, **flags)
-        return _surface_rgb(self._offscreen)
+        return surface_rgb(self._offscreen)
 
 
 def frame_from_env(env: Any, text: list[str] | None = None) -> TaskFrame:

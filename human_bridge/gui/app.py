@@ -9,15 +9,15 @@ button goes down (so a 3-D task is corrected from its two views, one pair of axe
 
 A drag: pressing the left button in a view sets the desired position P_h there and sends an ``active``
 correction; while the button is held, one more for every frame of the driven actor (and at least every
-:data:`KEEPALIVE_S` when no frame comes, e.g. the actor is paused); releasing the button sends the release.
-A live hold ends with its episode: on the episode's last frame (``last``) the GUI releases, and the person
-presses again to correct the next episode. Keys: space pauses / resumes the actors, tab chooses the
+:data:`~khgrl.human_bridge.hold.KEEPALIVE_S` when no frame comes, e.g. the actor is paused); releasing the button
+sends the release. A live hold ends with its episode: on the episode's last frame (``last``) the GUI releases, and
+the person presses again to correct the next episode. The hold is :class:`~khgrl.human_bridge.hold.CorrectionHold`,
+the one every human client shares. Keys: space pauses / resumes the actors, tab chooses the
 actor to drive, o toggles the overlays, q or Esc quits (releasing first).
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -34,10 +34,10 @@ from khgrl.common.wire.protocol import (
     Status,
     TaskInfo,
 )
+from khgrl.human_bridge.hold import CorrectionHold
 
-__all__ = ["GuiApp", "ActorState", "window_size", "KEEPALIVE_S", "CURVE_HEIGHT", "HELP"]
+__all__ = ["GuiApp", "ActorState", "window_size", "CURVE_HEIGHT", "HELP"]
 
-KEEPALIVE_S = 0.1  # while dragging, send at least this often even without frames
 CURVE_HEIGHT = 90  # the L(s) curve below the text strip (pixels)
 HELP = "drag: P_h  space: pause  tab: actor  o: overlays  q: quit"
 TRAIL_MAX = 2000
@@ -83,7 +83,7 @@ class GuiApp:
                  run: str = "", rejects: RejectCounter | None = None) -> None:
         self.send = send
         self.control = control
-        self.current: str | None = None if actor in (None, "", "*") else actor
+        self.hold = CorrectionHold(send, None if actor in (None, "", "*") else actor)
         self.size = int(size)
         self.strip_height = int(strip_height)
         self.width, self.height = window_size(size, strip_height)
@@ -91,13 +91,9 @@ class GuiApp:
         self.run = run
         self.rejects = rejects if rejects is not None else RejectCounter(f"human/{client}")
         self.actors: dict[str, ActorState] = {}
-        self.dragging = False
-        self.p_h: np.ndarray | None = None
         self.paused = False
         self.overlays = True
         self.quit = False
-        self.sent = 0
-        self.last_send = 0.0
         self.task: TaskDescriptor | None = None
         self.layout = None  # the views' geometry (a TaskRenderer), with the task
         self.drag_view = 0  # the view the current drag started in
@@ -117,7 +113,7 @@ class GuiApp:
         views = 1 if task.third is None else 2
         self.width, self.height = window_size(self.size, self.strip_height, views)
         self.layout = TaskRenderer(task, size=(self.width, self.size + self.strip_height),
-                                   strip_height=self.strip_height)
+                                   strip_height=self.strip_height, legend=True)
         self.task = task
         for v in self.actors.values():
             if v.frame is not None and len(v.frame.robot) != task.out_dim:
@@ -132,6 +128,38 @@ class GuiApp:
             if self.current is None:
                 self.current = actor
         return v
+
+    # ------------------------------------------------------------------ the hold (one CorrectionHold)
+    @property
+    def current(self) -> str | None:
+        """The actor driven (its id), None before any."""
+        return self.hold.actor
+
+    @current.setter
+    def current(self, actor: str | None) -> None:
+        v = self.actors.get(actor) if actor else None
+        self.hold.drive(actor, None if v is None else v.frame)  # releases the one held before
+
+    @property
+    def dragging(self) -> bool:
+        """Whether the person holds the driven actor's P_h (button down)."""
+        return self.hold.holding
+
+    @property
+    def p_h(self) -> np.ndarray | None:
+        return self.hold.p_h
+
+    @property
+    def sent(self) -> int:
+        return self.hold.sent
+
+    @property
+    def last_send(self) -> float:
+        return self.hold.last_send
+
+    @last_send.setter
+    def last_send(self, value: float) -> None:
+        self.hold.last_send = value
 
     @property
     def driven(self) -> ActorState | None:
@@ -176,11 +204,7 @@ class GuiApp:
             del v.trail[:TRAIL_MAX // 2]
         v.frame = f
         v.frames += 1
-        if self.dragging and v.actor == self.current:
-            if f.last:
-                self.release()  # a live hold ends with its episode
-            else:
-                self._send(self.p_h)  # one correction per frame of the driven actor while held
+        self.hold.offer(f)  # while held, one correction per frame of the driven actor; released with its episode
 
     def on_scale(self, v: ActorState, msg: Scale) -> None:
         """A scale message: its L table (must be positive to be drawn), else its model for the view to tabulate."""
@@ -192,10 +216,10 @@ class GuiApp:
         v.scale_version += 1
 
     # ------------------------------------------------------------------ corrections out
-    def point_at(self, pos, view: int | None = None) -> np.ndarray | None:
+    def point_at(self, pos, view: int | None = None, held: bool = True) -> np.ndarray | None:
         """P_h for the pointer at ``pos``: in ``view`` (default: the view under it, None if there is none), the
-        view's two coordinates from the pointer, the others from the held P_h or the driven robot's desired
-        position (the KMP mean's start before any frame)."""
+        view's two coordinates from the pointer, the others from the held P_h (if ``held``) or the driven robot's
+        desired position (the KMP mean's start before any frame)."""
         if self.layout is None:
             return None
         if view is None:
@@ -203,18 +227,9 @@ class GuiApp:
             if view is None:
                 return None
         v = self.driven
-        base = self.p_h if self.p_h is not None else \
+        base = self.p_h if held and self.p_h is not None else \
             (v.frame.desired if v is not None and v.frame is not None else self.task.mean[0])
         return self.layout.point_at(view, pos, base)
-
-    def _send(self, p_h: np.ndarray | None) -> None:
-        v = self.driven
-        if self.current is None:
-            return
-        ep, t = (v.frame.episode, v.frame.t) if v is not None and v.frame is not None else (0, 0)
-        self.send(self.current, p_h, ep, t)
-        self.sent += 1
-        self.last_send = time.monotonic()
 
     def press(self, pos) -> None:
         """Left button down at ``pos``: start dragging (in a view only)."""
@@ -223,28 +238,21 @@ class GuiApp:
         view = self.layout.view_at(pos)
         if view is None:
             return
-        self.p_h = None
-        self.p_h = self.point_at(pos, view)
         self.drag_view = view
-        self.dragging = True
-        self._send(self.p_h)
+        self.hold.start(self.point_at(pos, view, held=False))
 
     def move(self, pos) -> None:
         """The pointer moved: P_h follows it while dragging (sent with the next frame or keepalive)."""
         if self.dragging:
-            self.p_h = self.point_at(pos, self.drag_view)
+            self.hold.move(self.point_at(pos, self.drag_view))
 
     def release(self) -> None:
         """Let go (button up, focus lost, actor switched, episode ended, quit)."""
-        if self.dragging:
-            self.dragging = False
-            self.p_h = None
-            self._send(None)
+        self.hold.release()
 
     def keepalive(self) -> None:
-        """While held, re-send if no frame triggered a correction for :data:`KEEPALIVE_S` (e.g. the actor paused)."""
-        if self.dragging and self.p_h is not None and time.monotonic() - self.last_send >= KEEPALIVE_S:
-            self._send(self.p_h)
+        """While held, re-send if no frame triggered a correction lately (e.g. the actor paused)."""
+        self.hold.keepalive()
 
     # ------------------------------------------------------------------ events
     def handle(self, event) -> None:
@@ -294,6 +302,5 @@ class GuiApp:
         ids = sorted(self.actors)
         if not ids:
             return
-        self.release()  # never keep dragging an actor we no longer watch
         i = ids.index(self.current) if self.current in ids else -1
-        self.current = ids[(i + 1) % len(ids)]
+        self.current = ids[(i + 1) % len(ids)]  # releases the one dragged: never keep dragging an actor not watched

@@ -182,8 +182,7 @@ def offline_screenshot(args: argparse.Namespace, spec: str, demos: str = "") -> 
     for f in frames:
         app.offer(f)
     if frames[-1].intervening:  # show the drag that produced the last frames
-        app.dragging = True
-        app.p_h = np.asarray(frames[-1].desired)
+        app.hold.start(np.asarray(frames[-1].desired))
     GuiView(app).save_png(args.screenshot)
     return 0
 

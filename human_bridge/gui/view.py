@@ -137,7 +137,7 @@ class GuiView:
     def draw(self, surface) -> None:
         """The whole window: the views and strip of the driven actor, and its L(s) curves."""
         import pygame
-        from khgrl.common.tasks.passage.render_style import COLORS, get_font
+        from khgrl.common.tasks.render_parts import COLORS, get_font
 
         app, v = self.app, self.app.driven
         if app.layout is None or v is None or v.frame is None:
@@ -154,7 +154,7 @@ class GuiView:
     def draw_curve(self, surface, rect, v: ActorState) -> None:
         """L_d(s) of every output d over the phase, with the current phase marked."""
         import pygame
-        from khgrl.common.tasks.passage.render_style import COLORS, get_font
+        from khgrl.common.tasks.render_parts import COLORS, get_font
 
         surface.fill((246, 246, 248), rect)
         pygame.draw.line(surface, COLORS["strip_line"], rect.topleft, (rect.right - 1, rect.top), 1)

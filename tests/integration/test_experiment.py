@@ -71,7 +71,8 @@ def test_run_argv_is_a_valid_khgrl_up_command(tmp_path):
             assert run.human == "none"
     ref = run_argv(RunSpec("low_cov", "kgrl", 2), ExperimentConfig(system="reference", episodes=4), tmp_path / "r")
     args = cli_parser().parse_args(ref[ref.index("reference"):])
-    assert (args.scenario, args.method, args.seed, args.episodes, args.quiet) == ("low_cov", "kgrl", 2, 4, True)
+    run = resolve(args=args)  # khgrl reference's flags are the run settings' (role "reference")
+    assert (run.scenario, run.method, run.seed, run.episodes, args.quiet) == ("low_cov", "kgrl", 2, 4, True)
 
 
 def test_tasks_replace_scenarios_in_the_plan_and_the_commands(tmp_path):

@@ -112,3 +112,26 @@ def test_replay_reproduces_the_recorded_interventions(tmp_path):
         for k in ("episode", "steps", "interventions", "intervention_steps", "clipped_steps", "success"):
             assert a[k] == b[k], (k, a, b)
         assert float(a["ret"]) == pytest.approx(float(b["ret"]), rel=1e-9)
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(240)
+def test_up_runs_the_replay_client_from_the_run_setting(tmp_path):
+    """khgrl up --human replay --replay FILE: every client of khgrl human is a choice of --human (the hand-kept list
+    lacked replay); the replay client started by khgrl up (--config only) reads the record from the run setting."""
+    import subprocess
+    import sys
+
+    record = tmp_path / "corrections.csv"
+    steps = range(100, 121)
+    record.write_text("run,actor,episode,step,time,client,p_h_x,p_h_y,projected,clipped\n" + "".join(
+        f"old,a0,1,{t},0.0,gui,0.35,0.55,0,0\n" for t in steps))
+    run_dir = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", "up", "--scenario", "low_cov", "--episodes", "1",
+                          "--human", "replay", "--replay", str(record), "--learning-starts", "100000",
+                          "--no-progress", "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=200)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    rows = _rows(run_dir / "actor-a0" / "corrections.csv")
+    assert {r["client"] for r in rows} == {"replay"}
+    assert [(int(r["episode"]), int(r["step"])) for r in rows] == [(1, t) for t in steps]
+    assert all((float(r["p_h_x"]), float(r["p_h_y"])) == (0.35, 0.55) for r in rows)

@@ -25,13 +25,36 @@ def _commands(parser: argparse.ArgumentParser, prefix=()):
                 yield from _commands(sub, prefix + (name,))
 
 
-ALL_COMMANDS = list(_commands(build_parser()))
+def _bench_commands():
+    from khgrl.benchmarks.cli import build_parser as bench_parser
+
+    return list(_commands(bench_parser(), ("bench",)))[1:]
+
+
+ALL_COMMANDS = list(_commands(build_parser())) + _bench_commands()
 
 
 def test_expected_commands_exist():
-    for cmd in [("demos", "make"), ("kmp", "fit"), ("reference",), ("bench", "kmp"), ("bench", "runtime"), ("up",),
-                ("router",), ("learner",), ("actor",), ("human",), ("experiment",), ("report",)]:
+    for cmd in [("demos", "make"), ("kmp", "fit"), ("reference",), ("bench", "kmp"), ("bench", "runtime"),
+                ("bench", "learner"), ("bench", "scale"), ("bench", "ingest"), ("bench", "secure"), ("bench", "flood"),
+                ("up",), ("router",), ("learner",), ("actor",), ("human",), ("experiment",), ("report",), ("bench",)]:
         assert cmd in ALL_COMMANDS
+
+
+def test_each_benchmark_is_declared_once_and_calls_its_function_with_its_flags():
+    """khgrl bench's table: every benchmark's flags are keyword arguments of its run function."""
+    import importlib
+    import inspect
+
+    from khgrl.benchmarks.cli import BENCHMARKS
+    from khgrl.benchmarks.cli import build_parser as bench_parser
+
+    subs = next(a for a in bench_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert set(subs) == set(BENCHMARKS)
+    for name, bench in BENCHMARKS.items():
+        params = inspect.signature(getattr(importlib.import_module(bench.module), bench.function)).parameters
+        dests = {a.dest for a in subs[name]._actions if not isinstance(a, argparse._HelpAction)}
+        assert dests <= set(params), (name, dests - set(params))
 
 
 def test_process_commands_run_the_process_modules():
@@ -42,7 +65,8 @@ def test_process_commands_run_the_process_modules():
         "up": ("khgrl.deploy.launcher", "main"), "router": ("khgrl.deploy.router", "main"),
         "learner": ("khgrl.learner.main", "main"),
         "actor": ("khgrl.actor.main", "main"), "human": ("khgrl.human_bridge.main", "main"),
-        "experiment": ("khgrl.deploy.experiment", "main"), "report": ("khgrl.deploy.report", "main")}
+        "experiment": ("khgrl.deploy.experiment", "main"), "report": ("khgrl.deploy.report", "main"),
+        "bench": ("khgrl.benchmarks.cli", "main")}
 
 
 def _leaf_parsers(parser: argparse.ArgumentParser, prefix=()):
@@ -64,12 +88,13 @@ def _parsers_of(command: str):
 
     if command == "khgrl":
         return [(c, p) for c, p in _leaf_parsers(build_parser()) if c and c[0] not in PROCESS_COMMANDS]
+
     mod = importlib.import_module(PROCESS_COMMANDS[command][0])
     assert hasattr(mod, "build_parser"), f"{mod.__name__} has no build_parser()"
     return list(_leaf_parsers(mod.build_parser(), (command,)))
 
 
-@pytest.mark.parametrize("command", ["khgrl", "up", "router", "learner", "actor", "human", "experiment"])
+@pytest.mark.parametrize("command", ["khgrl", "up", "router", "learner", "actor", "human", "experiment", "bench"])
 def test_help_shows_every_default(command):
     """--help states each option's default (a value, 'none', 'off', ...)."""
     missing = [(" ".join(cmd), a.option_strings[-1]) for cmd, parser in _parsers_of(command)
@@ -90,6 +115,27 @@ def test_up_help_lists_every_run_setting(capsys):
         assert "--" + path[-1].replace("_", "-") in out
     for flag in ("--config", "--resume", "--overwrite", "--no-progress"):
         assert flag in out
+
+
+@pytest.mark.parametrize("command", ["khgrl", "up", "router", "learner", "actor", "human", "experiment", "bench"])
+def test_no_option_states_its_default_twice(command):
+    """Newcomer defect 8: khgrl up --help said "(default: none) (default: none)". Every option of every command
+    states its default once."""
+    twice = [(" ".join(cmd), a.option_strings[-1], text) for cmd, parser in _parsers_of(command)
+             for a in parser._actions if a.option_strings and a.help and a.help != argparse.SUPPRESS
+             for text in [parser._get_formatter()._expand_help(a)] if text.lower().count("default") > 1]
+    assert not twice, f"options whose --help states the default twice: {twice}"
+
+
+def test_up_help_of_the_installed_command_states_each_default_once():
+    exe = VENV_KHGRL if VENV_KHGRL.exists() else None
+    if exe is None:
+        pytest.skip("khgrl console script not installed next to this interpreter")
+    res = subprocess.run([str(exe), "up", "--help"], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    text = " ".join(res.stdout.split())
+    assert "(default: none) (default: none)" not in text
+    assert "--run RUN run id, the key prefix khgrl/<run>/ (default: derived from the run directory)" in text
 
 
 @pytest.mark.parametrize("cmd", ALL_COMMANDS, ids=lambda c: " ".join(c) or "khgrl")
@@ -203,3 +249,27 @@ def test_report_missing_run_dir(tmp_path, capsys):
     assert "not a directory" in capsys.readouterr().err
     assert main(["report", str(tmp_path)]) == 2  # a directory with neither runs nor episode results
     assert "no episodes.csv" in capsys.readouterr().err
+
+
+def test_reference_defaults_and_flags_come_from_the_run_settings():
+    """One source of defaults: ReferenceConfig's are RunConfig's, and khgrl reference's flags are RunConfig's
+    (with the TQC settings, which the reference did not take before)."""
+    from dataclasses import fields
+
+    from khgrl.common.config.settings import RunConfig, TQCSettings, resolve
+    from khgrl.learner.baseline import ReferenceConfig
+
+    ref, run = ReferenceConfig(), RunConfig()
+    assert all(getattr(ref, f.name) == getattr(run, f.name) for f in fields(ref))
+    args = build_parser().parse_args(["reference", "--scenario", "low_cov", "--episodes", "3", "--learning-rate",
+                                      "0.01", "--human-episodes", "2"])
+    assert ReferenceConfig.from_run(resolve(args=args)) == ReferenceConfig(
+        scenario="low_cov", episodes=3, human_episodes=(2,), tqc=TQCSettings(learning_rate=0.01))
+    assert ReferenceConfig.from_run(resolve(args=build_parser().parse_args(["reference"]))) == ref
+
+
+def test_bench_runs_through_khgrl_by_module_name(capsys):
+    """khgrl bench is dispatched by name to khgrl.benchmarks.cli (deploy does not import benchmarks); a bad
+    setting is one line and exit 2."""
+    assert main(["bench", "kmp", "--repeats", "5"]) == 2
+    assert "khgrl bench: error: repeats must be >= 20" in capsys.readouterr().err

@@ -67,7 +67,8 @@ def test_toml_and_run_files_read_back_to_the_same_configuration(tmp_path):
     ('episodes = "ten"\n', "config.episodes: expected an integer"),
     ("episodes = true\n", "expected an integer"),
     ("tensorboard = 1\n", "expected true/false"),
-    ('scenario = "mars"\n', "not one of high_cov, low_cov"),
+    ('method = "mars"\n', "not one of khgrl, kgrl"),
+    ('human = "replay"\n', "needs replay"),
     ("episodes = 0\n", "episodes and actors must be >= 1"),
     ("[stream]\nmax_lead = 4\n", "max_lead must be >= the learner's train frequency"),
     ('run = "a/b"\n', "run id"),
@@ -139,3 +140,92 @@ def test_learner_device_auto_is_cpu_without_a_gpu_and_cuda_is_refused_clearly(mo
         build_model(TQCSettings(device="cuda"), 0)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert torch_device("auto") == "cuda" and torch_device("cpu") == "cpu"
+
+
+# ------------------------------------------------------------------------------------ roles: per-process flags
+def _flags(parser: argparse.ArgumentParser) -> set[str]:
+    """The setting names of a parser's run-setting flags (dest cfg__...)."""
+    return {a.dest.split("__")[-1] for a in parser._actions if a.dest.startswith("cfg__")}
+
+
+def _process_parsers() -> dict[str, list[argparse.ArgumentParser]]:
+    """Each command's real parser(s): khgrl up, learner, actor, every khgrl human client, reference."""
+    from khgrl.actor.main import build_parser as actor
+    from khgrl.deploy.cli import build_parser as khgrl
+    from khgrl.deploy.launcher import build_parser as up
+    from khgrl.human_bridge.main import build_parser as human
+    from khgrl.learner.main import build_parser as learner
+
+    def subs(parser):
+        return {name: p for a in parser._actions if isinstance(a, argparse._SubParsersAction)
+                for name, p in a.choices.items()}
+
+    return {"up": [up()], "learner": [learner()], "actor": [actor()], "human": list(subs(human()).values()),
+            "reference": [subs(khgrl())["reference"]]}
+
+
+def test_each_commands_flags_are_the_settings_whose_roles_name_it():
+    from dataclasses import fields as dc_fields
+
+    from khgrl.common.config.settings import ROLES, role_fields
+
+    every = [f for cls in (RunConfig, TQCSettings, StreamSettings) for f in dc_fields(cls)
+             if cls is not RunConfig or f.name not in ("tqc", "stream")]
+    for f in every:  # every setting says which commands take it, and khgrl up takes it
+        assert "up" in f.metadata["roles"] and f.metadata["roles"] <= set(ROLES), f.name
+    parsers = _process_parsers()
+    assert set(parsers) == set(ROLES)
+    for role, ps in parsers.items():
+        for p in ps:
+            assert _flags(p) == set(role_fields(role)), (role, p.prog)
+    assert _flags(parsers["up"][0]) == {f.name for f in every}  # every field is a flag (of up at least)
+    # the processes take what they use: the learner its TQC settings, the actor its stream settings
+    assert {"learning_rate", "batch_size", "checkpoint_every", "device"} <= set(role_fields("learner"))
+    assert {"max_lead", "window", "rate", "method"} <= set(role_fields("actor"))
+    assert "run_dir" not in role_fields("reference") and "learning_rate" in role_fields("reference")
+
+
+def test_a_new_setting_must_name_its_roles():
+    from khgrl.common.config import settings
+
+    with pytest.raises(TypeError, match="roles"):
+        settings._opt(1, "a setting without roles")  # type: ignore[call-arg]
+    with pytest.raises(ValueError, match="unknown role"):
+        settings._opt(1, "a setting of a command that does not exist", roles=("robot",))
+
+
+def test_every_human_client_is_a_choice_of_up_and_replay_runs_from_the_config(tmp_path):
+    """HUMANS (khgrl up --human) lists every client of khgrl human; --human replay takes --replay FILE, which the
+    replay client reads from the run's config.json (khgrl up starts it with --config only)."""
+    from khgrl.common.config.settings import HUMANS
+    from khgrl.deploy.launcher import build_parser as up
+    from khgrl.human_bridge.main import CLIENTS
+    from khgrl.human_bridge.main import build_parser as human
+
+    assert set(HUMANS) == set(CLIENTS) | {"none"}
+    with pytest.raises(ValueError, match="needs replay"):
+        resolve(args=up().parse_args(["--human", "replay"]))
+    cfg = resolve(args=up().parse_args(["--human", "replay", "--replay", "old/actor-a0/corrections.csv"]))
+    path = write_run_config(tmp_path, cfg, {"run": "r", "endpoint": "tcp/127.0.0.1:9"})
+    args = human().parse_args(["replay", "--config", str(path), "--id", "replay"])
+    assert args.file is None and resolve_process(args).cfg.replay == "old/actor-a0/corrections.csv"
+    assert "replay" in _flags(_process_parsers()["human"][0])
+
+
+def test_the_passage_scenario_is_checked_where_the_task_is_built():
+    """The shared settings do not know the passage world's scenarios; its task module refuses a wrong one."""
+    from khgrl.common.tasks.api import TaskError, load_task
+
+    cfg = resolve(overrides={"scenario": "mars"})
+    with pytest.raises(TaskError, match="unknown scenario 'mars'.*high_cov"):
+        load_task(cfg.task_spec)
+    import ast
+    import pathlib
+
+    import khgrl.common.config as config_package
+
+    for path in pathlib.Path(config_package.__file__).parent.glob("*.py"):  # no import of a task
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                names = [node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
+                assert not any("common.tasks" in n for n in names), (path.name, names)

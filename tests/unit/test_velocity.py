@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.messages import Frame
+from khgrl.human_bridge.hold import KEEPALIVE_S
 from khgrl.human_bridge.velocity import (
     DEAD_ZONE,
-    KEEPALIVE_S,
     MAX_DT,
     Push,
     VelocityHold,
@@ -175,3 +175,47 @@ def test_a_hold_ends_with_its_episode_and_needs_a_new_press():
     # a frame of a later episode (its last frame missed) ends the hold too
     h.offer(_frame([1.2, 0.75, 0.6], episode=5, t=3))
     assert not h.holding and h.ended and sink.last[1] is None
+
+
+def test_one_hold_for_every_client_with_one_keepalive():
+    """The GUI's drag and the keyboard's / gamepad's hold are the same CorrectionHold (one KEEPALIVE_S)."""
+    import pathlib
+
+    import khgrl.human_bridge as hb
+    from khgrl.human_bridge.gui.app import GuiApp
+    from khgrl.human_bridge.hold import CorrectionHold
+
+    assert isinstance(GuiApp(Sink(), actor="a0").hold, CorrectionHold)
+    assert issubclass(VelocityHold, CorrectionHold)
+    root = pathlib.Path(hb.__file__).parent
+    defining = [p.relative_to(root).as_posix() for p in root.rglob("*.py") if "\nKEEPALIVE_S =" in p.read_text()]
+    assert defining == ["hold.py"]
+
+
+def test_the_shared_hold_answers_frames_releases_with_the_episode_and_on_a_new_actor():
+    from khgrl.human_bridge.hold import CorrectionHold
+
+    sink, clock = Sink(), Clock()
+    h = CorrectionHold(sink, None, clock=clock)
+    assert not h.start(np.zeros(3)) and sink.sent == []  # no actor driven yet
+    h.drive("a0")
+    assert h.start(np.array([1.3, 0.7, 0.6])) and sink.last[0] == "a0" and sink.last[2:] == (0, 0)
+    assert not h.offer(_frame([1.0, 0.5, 0.5], episode=1, t=0))  # a hold started before any frame goes on
+    assert sink.last[2:] == (1, 0) and sink.last[1] is not None
+    h.offer(_frame([1.0, 0.5, 0.5], actor="a1", episode=1, t=1))  # another actor's frame: ignored
+    assert len(sink.sent) == 2
+    h.move(np.array([1.4, 0.7, 0.6]))
+    h.keepalive()
+    assert len(sink.sent) == 2  # moved, sent with the next frame or keepalive
+    clock.now += 2 * KEEPALIVE_S
+    h.keepalive()
+    np.testing.assert_allclose(sink.last[1], [1.4, 0.7, 0.6])
+    assert h.offer(_frame([1.0, 0.5, 0.5], episode=2, t=0)) is False  # started before frames: no episode end
+    h.release()
+    h.offer(_frame([1.0, 0.5, 0.5], episode=2, t=1))
+    h.start(np.array([1.3, 0.7, 0.6]))
+    assert h.offer(_frame([1.0, 0.5, 0.5], episode=3, t=0)) and not h.holding  # a later episode ends it
+    h.start(np.array([1.3, 0.7, 0.6]))
+    n = len(sink.sent)
+    h.drive("a1")  # another actor: one release to the one held
+    assert not h.holding and len(sink.sent) == n + 1 and sink.last[:2] == ("a0", None) and h.frame is None

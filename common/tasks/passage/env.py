@@ -79,7 +79,7 @@ class PassageEnv(KGRLEnv):
 
     Args:
         scenario: "high_cov" (A) or "low_cov" (B).
-        render_mode: None, "rgb_array" or "human" (pygame window).
+        render_mode: None or "rgb_array" (the task's view, :class:`khgrl.common.tasks.render.TaskRenderer`).
         demos: optional (M, N, 2) demonstrations to use instead of the scenario's generated ones.
         demo_seed: seed of the generated demonstrations.
         kmp_config: GMM/GMR + LC-NS-KMP hyperparameters.
@@ -89,19 +89,13 @@ class PassageEnv(KGRLEnv):
         start_noise: uniform noise on the start position (0: deterministic start).
     """
 
-    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 50}
-
     def __init__(self, scenario: str = "high_cov", render_mode: str | None = None, *,
                  demos: np.ndarray | None = None, demo_seed: int = 0, kmp_config: KMPConfig = KMPConfig(),
                  scale_model: ScaleModel | None = None, speed: float = 0.01, blocked_limit: int = 20,
                  start_noise: float = 0.0) -> None:
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         world = build_world(scenario, demos, demo_seed, kmp_config)
         inner = PassageRobot(world.scenario, speed, blocked_limit, start_noise)
-        super().__init__(world=world, inner=inner, scale_model=scale_model)
-        self.render_mode = render_mode
-        self._window = None
+        super().__init__(world=world, inner=inner, scale_model=scale_model, render_mode=render_mode)
         self.inner.reset()
         self._reset_state(self.inner.robot.copy(), self.inner.robot.copy())
 
@@ -129,57 +123,6 @@ class PassageEnv(KGRLEnv):
     @property
     def start_noise(self) -> float:
         return self.inner.start_noise
-
-    # --------------------------------------------------------------- rendering
-    def frame_state(self, text: list[str] | None = None):
-        from khgrl.common.tasks.passage.render import FrameState
-
-        return FrameState(
-            robot=self.robot.copy(),
-            desired=self.desired.copy(),
-            phase=self.phase,
-            trail=np.array(self.trail),
-            band=self.mapping.band() if self.mapping.scale_table is not None else None,
-            human_active=self._correction is not None,
-            correction=None if self._correction is None else self._correction.copy(),
-            text=text if text is not None else [
-                f"{self.scenario.name}  t={self.t:3d}/{self.horizon}  s={self.phase:.2f}",
-                "human: " + ("intervening" if self._correction is not None else "-"),
-            ],
-        )
-
-    def render(self):
-        if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode")
-            return None
-        from khgrl.common.tasks.passage.render import HumanWindow, SceneRenderer
-
-        if self._renderer is None:
-            self._renderer = SceneRenderer(self.scenario, self.world.demos, np.asarray(self.mapping.model.grid_mean))
-        state = self.frame_state()
-        if self.render_mode == "rgb_array":
-            return self._renderer.render_rgb(state)
-        if self._window is None:
-            self._window = HumanWindow(self._renderer)
-        self._window.show(state, fps=self.metadata["render_fps"])
-        return None
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        out = super().reset(seed=seed, options=options)
-        if self.render_mode == "human":
-            self.render()
-        return out
-
-    def step(self, action):
-        out = super().step(action)
-        if self.render_mode == "human":
-            self.render()
-        return out
-
-    def close(self) -> None:
-        if self._window is not None:
-            self._window.close()
-            self._window = None
 
 
 gym.register(id=ENV_ID, entry_point="khgrl.common.tasks.passage.env:PassageEnv", disable_env_checker=False)

@@ -1,0 +1,147 @@
+"""``khgrl bench BENCHMARK``: the benchmarks, declared once in :data:`BENCHMARKS` (module, function, help, flags).
+
+Each benchmark is a function ``run_*_benchmark(**flags)`` whose keyword arguments are its flags' names; this module
+builds the parser from the table and calls the function (lists become tuples). ``khgrl`` (:mod:`khgrl.deploy.cli`)
+starts it by module name, like its process commands: the benchmarks use the deployment tools (the supervisor,
+``khgrl up``'s task check, the secure set-up), so ``benchmarks`` imports ``deploy`` and not the other way round.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+from khgrl.common.tasks.passage.scenarios import SCENARIOS
+
+__all__ = ["Benchmark", "BENCHMARKS", "build_parser", "main"]
+
+
+def _flag(*names: str, **kw: Any) -> tuple[tuple[str, ...], dict[str, Any]]:
+    """One flag: ``add_argument``'s names and keywords."""
+    return names, kw
+
+
+SEED = _flag("--seed", type=int, default=0, help="seed (default: %(default)s)")
+OUT = _flag("--out", default=None, help="also write the results as JSON here (default: none)")
+RATE = _flag("--rate", type=float, default=50.0, help="the actors' control rate in Hz (default: %(default)s)")
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    """One ``khgrl bench`` command: ``module.function(**flags)``."""
+
+    module: str
+    function: str
+    help: str
+    flags: tuple[tuple[tuple[str, ...], dict[str, Any]], ...]
+
+
+BENCHMARKS: dict[str, Benchmark] = {
+    "kmp": Benchmark("khgrl.benchmarks.kmp", "run_kmp_benchmark",
+                     "per-step LC-NS-KMP cost: tables vs direct formula vs lc-ns-kmp (N=400, O=2, F=4)", (
+        _flag("--repeats", type=int, default=2000, help="timed calls per case (median reported; default: %(default)s)"),
+        SEED, OUT)),
+    "runtime": Benchmark("khgrl.benchmarks.runtime", "run_runtime_benchmark",
+                         "distributed runtime: ingest rate, weights latency, actor loop period vs single-process SB3, "
+                         "learner gradient steps/s vs standalone TQC", (
+        _flag("--quick", action="store_true", help="small sizes for a smoke run (< 3 min; default: off)"),
+        _flag("--episodes", type=int, default=None, help="single-process reference episodes (default: 2; quick 1)"),
+        _flag("--actor-episodes", type=int, default=None, help="episodes of the 50 Hz actor (default: 10; quick 2)"),
+        _flag("--ingest-transitions", type=int, default=None,
+              help="transitions published for the ingest rate (default: 200000; quick 50000)"),
+        _flag("--ingest-checkpoint-transitions", type=int, default=None,
+              help="the same with checkpoints every 2000 (default: 100000; quick 20000)"),
+        _flag("--batch", type=int, default=256, help="transitions per published batch (default: %(default)s)"),
+        _flag("--inflight", type=int, default=8, help="unacknowledged batches at most (default: %(default)s)"),
+        _flag("--train-seconds", type=float, default=None,
+              help="learner and standalone train() time, each, in alternating slices (default: 30 s in 3 rounds; "
+                   "quick 10 s in 2)"),
+        RATE,
+        _flag("--scenario", default="high_cov", choices=tuple(SCENARIOS), help="scenario (default: %(default)s)"),
+        _flag("--loss-check", action=argparse.BooleanOptionalAction, default=None,
+              help="learner SIGKILL + resume, count lost/duplicated transitions (default: on, off with --quick)"),
+        SEED,
+        _flag("--rt-priority", type=int, default=20,
+              help="also measure the 50 Hz actor with its control loop under SCHED_FIFO at this priority (needs "
+                   "root; 0: skip; default: %(default)s)"),
+        _flag("--keep", action="store_true", help="keep the work directory (logs, run dirs; default: off)"),
+        OUT)),
+    "learner": Benchmark("khgrl.benchmarks.learner_step", "run_learner_benchmark",
+                         "gradient steps/s of the learner's TQC next to a raw-torch TQC step of the same networks, per "
+                         "device (cpu, cuda)", (
+        _flag("--devices", nargs="+", default=["cpu"], choices=["cpu", "cuda"],
+              help="devices to measure (default: cpu; cuda where torch sees a GPU)"),
+        _flag("--seconds", type=float, default=20.0, help="time per side and device (default: %(default)s)"),
+        _flag("--threads", type=int, default=1, help="torch threads (default: %(default)s, the learner's)"),
+        SEED, OUT)),
+    "scale": Benchmark("khgrl.benchmarks.scale", "run_scale_benchmark",
+                       "N actors into one learner through khgrl up: ingest/s, learner memory, inbox depth, weights "
+                       "latency, loop period, exactly once after Ctrl-C", (
+        _flag("--actors", type=int, nargs="+", default=[1, 2, 4, 8], help="actor counts (default: 1 2 4 8)"),
+        _flag("--rates", type=float, nargs="+", default=[0.0, 50.0],
+              help="actor rates in Hz, 0 = as fast as possible (default: 0 50)"),
+        _flag("--modes", nargs="+", default=["simulation", "robot"], choices=["simulation", "robot"],
+              help="flow-control modes (default: simulation robot)"),
+        _flag("--seconds", type=float, default=60.0, help="length of each case (default: %(default)s)"),
+        SEED,
+        _flag("--work", default="runs/bench-scale", help="run directories (default: %(default)s)"),
+        OUT)),
+    "ingest": Benchmark("khgrl.benchmarks.ingest_many", "run_ingest_benchmark",
+                        "S sender processes into one learner: transitions/s acknowledged", (
+        _flag("--senders", type=int, default=8, help="sender processes (default: %(default)s)"),
+        _flag("--transitions", type=int, default=400_000, help="transitions in all (default: %(default)s)"),
+        _flag("--batch", type=int, default=256, help="transitions per batch (default: %(default)s)"),
+        _flag("--window", type=int, default=16, help="unacknowledged batches per sender (default: %(default)s)"),
+        SEED, OUT)),
+    "secure": Benchmark("khgrl.benchmarks.secure", "run_secure_benchmark",
+                        "mutual TLS + access control vs plain TCP: ingest/s and weights latency", (
+        _flag("--senders", type=int, default=8, help="senders of the ingest measurement (default: %(default)s)"),
+        _flag("--transitions", type=int, default=200_000, help="transitions per ingest (default: %(default)s)"),
+        _flag("--actors", type=int, default=2, help="actors of the khgrl up measurement (default: %(default)s)"),
+        RATE,
+        _flag("--seconds", type=float, default=60.0, help="length of each khgrl up (default: %(default)s)"),
+        _flag("--repeats", type=int, default=2, help="pairs of each measurement (default: %(default)s)"),
+        SEED, OUT)),
+    "flood": Benchmark("khgrl.benchmarks.flood", "run_flood_benchmark",
+                       "the actor's control-loop period before, during and after a message flood", (
+        _flag("--messages", type=int, default=100_000, help="garbage messages (default: %(default)s)"),
+        RATE,
+        _flag("--quiet-s", type=float, default=15.0, help="seconds before and after (default: %(default)s)"),
+        _flag("--rt-priority", type=int, default=0,
+              help="actor loop under SCHED_FIFO at this priority, 0: normal scheduling (default: %(default)s)"),
+        SEED, OUT)),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """``khgrl bench`` with one sub-command per entry of :data:`BENCHMARKS`."""
+    parser = argparse.ArgumentParser(prog="khgrl bench", description="Benchmarks that print numbers.")
+    sub = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
+    for name, bench in BENCHMARKS.items():
+        p = sub.add_parser(name, help=bench.help, description=bench.help)
+        for names, kw in bench.flags:
+            p.add_argument(*names, **kw)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one benchmark; 2 with a one-line error if its settings are bad.
+
+    :param argv: command-line arguments after ``bench`` (default: ``sys.argv[1:]``)
+    """
+    args = vars(build_parser().parse_args(argv))
+    bench = BENCHMARKS[args.pop("benchmark")]
+    run = getattr(importlib.import_module(bench.module), bench.function)
+    try:
+        run(**{k: tuple(v) if isinstance(v, list) else v for k, v in args.items()})
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"khgrl bench: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
