@@ -10,7 +10,7 @@ from khgrl.common.config.settings import TQCSettings
 from khgrl.common.delivery.ingest import StreamTable
 from khgrl.common.tasks.spaces import SpacesEnv
 from khgrl.learner.checkpoint import CheckpointError, fault_reason, find_checkpoint, load_checkpoint, remove_stale_temps
-from khgrl.learner.trainer import Trainer, build_model, torch_device
+from khgrl.learner.trainer import Trainer, build_model, keep_freed_memory, torch_device
 
 __all__ = ["open_learner", "rss_mb"]
 
@@ -33,6 +33,7 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     """
     learner_dir = Path(learner_dir)
     learner_dir.mkdir(parents=True, exist_ok=True)
+    keep_freed_memory()  # (no page faults in every training iteration)
     ckpt_dir = Path(checkpoint_dir or learner_dir)
     _remove_stale_temps(ckpt_dir)
     kw = dict(learning_starts=tqc.learning_starts, train_freq=tqc.train_freq, log_dir=learner_dir / "tb",
