@@ -36,6 +36,7 @@ BUFFER_FILE = "replay_buffer.pkl"  # and the replay buffer (our own file on loca
 # name (--algo) -> "module:class", imported when asked for (so that naming one imports no learning library)
 REGISTRY: dict[str, str] = {
     "tqc": "khgrl.learner.tqc:TQCAlgorithm",
+    "sac": "khgrl.learner.sac:SACAlgorithm",
 }
 
 
