@@ -45,6 +45,7 @@ def test_training_iterations_reuse_freed_memory():
     assert out.returncode == 0, out.stderr[-2000:]
     res = json.loads(out.stdout.strip().splitlines()[-1])
     assert res["kept"] is True
-    # glibc's defaults: the tensors of every iteration are mapped and faulted in anew (thousands of pages)
+    # glibc's defaults: the tensors of every iteration are mapped and faulted in anew (~10,000 pages); kept: a few
+    # (the heap still grows now and then to a new peak)
     assert min(res["before"]) > 2000, res
-    assert max(res["after"]) < 200, res
+    assert max(res["after"]) < min(res["before"]) / 10, res
