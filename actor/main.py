@@ -69,7 +69,7 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
     rejects = RejectCounter(f"actor/{actor}")
     inbox = Inbox(maxsize=10_000, overflow="drop_oldest")
     link = ActorLink(session, keys, actor, inbox, rejects)
-    receiver = WeightsReceiver(link.weights_subscriber(), policy.actor.state_dict(), rejects, keys.weights)
+    receiver = WeightsReceiver(link.weights_subscriber(), policy.weights_template(), rejects, keys.weights)
     receiver.start()
     announcer = TaskAnnouncer(session, keys, "actor", actor, task) if task is not None else None
     link.announce()
@@ -118,7 +118,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     """
     import torch
     from khgrl.common.tasks.kgrl_env import KGRLEnv
-    from sb3_contrib.tqc.policies import TQCPolicy
+    from khgrl.learner.algorithm import algorithm_class
 
     cfg = pc.cfg
     seed = cfg.actor_seed(actor)
@@ -142,9 +142,10 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         return _error(actor, exc)
     env.action_space.seed(seed)  # SB3 seeds the action space it samples warm-up actions from
     torch.manual_seed(seed)
-    policy = TQCPolicy(env.observation_space, env.action_space, lr_schedule=lambda _: cfg.tqc.learning_rate,
-                       net_arch=list(cfg.tqc.net_arch))
-    policy.set_training_mode(False)
+    try:  # the learner algorithm's policy network (--algo), on the CPU, in evaluation mode
+        policy = algorithm_class(cfg.algo).actor_policy(env.observation_space, env.action_space, cfg.tqc)
+    except ValueError as exc:
+        return _error(actor, exc)
     log.info("actor %s (seed %d): task %s (O = %d, %d observations, digest %s), %s, world ready in %.1f s", actor,
              seed, cfg.task_spec, task.out_dim, task.obs_dim, task.digest, cfg.method, time.perf_counter() - t0)
 

@@ -46,7 +46,8 @@ class WeightsReceiver:
     against the local actor network, converts to tensors and leaves the newest ready for the control loop.
 
     :param subscriber: a Zenoh subscriber with a ``handler`` (None: only :meth:`parse` is used).
-    :param template: the actor network's state dict (names and shapes to expect).
+    :param template: the actor network's tensors by name (their shapes, or tensors: what to expect; the policy's
+        :meth:`~khgrl.learner.algorithm.ActorPolicy.weights_template`).
     :param rejects: counts refused weights messages.
     :param key: the weights key (for the reject log).
     :param gate: admits weights by learner epoch and version (None: every well-formed message; see
@@ -56,7 +57,7 @@ class WeightsReceiver:
     def __init__(self, subscriber, template: dict, rejects: RejectCounter, key: str,
                  gate: WeightsGate | None = None) -> None:
         self.sub = subscriber
-        self.template = {k: tuple(v.shape) for k, v in template.items()}
+        self.template = {k: tuple(getattr(v, "shape", v)) for k, v in template.items()}
         self.rejects = rejects
         self.key = key
         self.lock = threading.Lock()
@@ -190,7 +191,8 @@ class WeightsReceiver:
 class PolicyWeights:
     """Which weights the policy runs with, and how they lag behind the transitions taken.
 
-    :param policy: the local TQC policy (its ``actor`` network gets the state dicts).
+    :param policy: the local policy (:class:`~khgrl.learner.algorithm.ActorPolicy`: ``load_weights`` takes the
+        state dicts).
     :param actor: this actor's id (its entry in ``trained``).
     :param receiver: the background receiver to take updates from.
     """
@@ -221,7 +223,7 @@ class PolicyWeights:
             if why is None:
                 return False
             log.warning("replacing the loaded weights with version %d: %s", item.version, why)
-        self.policy.actor.load_state_dict(item.state_dict)
+        self.policy.load_weights(item.state_dict)
         self.epoch, self.version = item.epoch, item.version
         self.trained = int(item.trained.get(self.actor, 0))
         self.swaps += 1

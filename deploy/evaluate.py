@@ -169,36 +169,31 @@ def load_scale(run_dir: Path, actor: str, dim: int) -> tuple[Any, str]:
     return model, f"learned by actor-{actor} ({model.n_points} points)"
 
 
-def load_policy(model_zip: Path, env: Any, net_arch: tuple[int, ...], lr: float) -> Any:
-    """A TQC policy on ``env``'s spaces with the checkpoint's weights, in evaluation mode.
+def load_policy(model_zip: Path, env: Any, settings: Any, algo: str = "tqc") -> Any:
+    """The policy of a learner checkpoint on ``env``'s spaces, in evaluation mode, loaded through the learner-algorithm
+    interface (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.checkpoint_policy`).
 
     :param model_zip: the learner's ``model.zip``.
     :param env: the evaluation environment (its spaces).
-    :param net_arch: the run's hidden layer sizes.
-    :param lr: the run's learning rate (the policy's optimiser is built but unused).
+    :param settings: the run's learner settings (``TQCSettings``: network sizes).
+    :param algo: the algorithm that wrote the checkpoint (``--algo``).
     :raises EvalError: the file does not load or does not fit the task's spaces.
     """
-    from sb3_contrib.tqc.policies import TQCPolicy
-    from stable_baselines3.common.save_util import load_from_zip_file
+    from khgrl.learner.algorithm import algorithm_class
 
     try:
-        _, params, _ = load_from_zip_file(model_zip, device="cpu", load_data=False)
-    except Exception as exc:  # noqa: BLE001 - a damaged or foreign zip
-        raise EvalError(f"{model_zip}: cannot read the model ({type(exc).__name__}: {exc})") from None
-    if not params or "policy" not in params:
-        raise EvalError(f"{model_zip}: no policy weights in it")
-    policy = TQCPolicy(env.observation_space, env.action_space, lr_schedule=lambda _: lr, net_arch=list(net_arch))
-    state = params["policy"]
-    want = {k: tuple(v.shape) for k, v in policy.state_dict().items()}
-    got = {k: tuple(v.shape) for k, v in state.items()}
-    if want != got:
-        bad = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
-        raise EvalError(f"{model_zip}: the policy does not fit this task's spaces (observation "
-                        f"{env.observation_space.shape[0]}, action {env.action_space.shape[0]}) and net_arch "
-                        f"{list(net_arch)}: {bad[0]} is {got.get(bad[0])} in the checkpoint, {want.get(bad[0])} here")
-    policy.load_state_dict(state)
-    policy.set_training_mode(False)
-    return policy
+        return algorithm_class(algo).checkpoint_policy(model_zip, env.observation_space, env.action_space, settings)
+    except ValueError as exc:
+        raise EvalError(f"{model_zip}: {exc}") from None
+
+
+def _checkpoint_algo(model_zip: Path, cfg: Any) -> str:
+    """The algorithm that wrote the checkpoint (its ``state.json``), else the run's ``--algo``."""
+    try:
+        saved = json.loads((model_zip.parent / "state.json").read_text()).get("algo")
+    except (OSError, ValueError, AttributeError):
+        saved = None
+    return saved or getattr(cfg, "algo", "tqc")
 
 
 def _trained(model_zip: Path) -> dict:
@@ -217,7 +212,7 @@ def run_episode(env: Any, policy: Any, episode: int, seed: int,
     """One deterministic episode without a human.
 
     :param env: a :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv`.
-    :param policy: the TQC policy.
+    :param policy: the policy (:class:`~khgrl.learner.algorithm.ActorPolicy`).
     :param episode: the episode number (from 1).
     :param seed: the reset seed.
     :param on_step: ``on_step(env, done)`` after the reset and after every step (the GIF's frames).
@@ -282,7 +277,7 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
         env = KGRLEnv(world=world, seed=seed, scale_model=scale_model)
     except TaskError as exc:
         raise EvalError(str(exc)) from None
-    policy = load_policy(model_zip, env, cfg.tqc.net_arch, cfg.tqc.learning_rate)
+    policy = load_policy(model_zip, env, cfg.tqc, _checkpoint_algo(model_zip, cfg))
     result = Evaluation(task=task.name, spec=spec, checkpoint=model_zip.parent, trained=_trained(model_zip),
                         scale=scale_text, episodes=[])
     from khgrl.deploy.gif import GifRecorder

@@ -47,6 +47,7 @@ from khgrl.deploy.rundir import (
 )
 from khgrl.deploy.secure import SecureRun, prepare_secure_run, run_identities
 from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
+from khgrl.learner.algorithm import check_algorithm
 
 __all__ = ["main", "build_parser", "RunPlan", "plan_run"]
 
@@ -152,6 +153,7 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
         cfg = dataclasses.replace(cfg, demos=str(Path(cfg.demos).resolve()))
     run_dir = Path(cfg.run_dir)
     _check_run_dir(run_dir, args, cfg.checkpoint_dir)
+    check_algorithm(cfg.algo)
     task = check_task(cfg)
     previous = previous_runtime(run_dir) if args.resume else {}
     run_id = cfg.run or str(previous.get("run") or "") or make_run_id(run_dir)

@@ -1,9 +1,11 @@
 """Learner checkpoints on local disk: ``CHECKPOINT_DIR/checkpoint/`` (``CHECKPOINT_DIR``: ``RUN_DIR/learner``
 unless ``--checkpoint-dir`` puts it elsewhere, e.g. on a data disk).
 
-A checkpoint holds ``model.zip`` (policy, optimisers, entropy coefficient), ``replay_buffer.pkl`` (SB3's
-pickle of the :class:`~khgrl.learner.replay.StreamReplayBuffer`: transitions with their intervention and clip flags
-and provenance) and ``state.json`` (stream positions, counters, pending training iterations, weights version).
+A checkpoint holds what the learner algorithm saves (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.save`:
+``model.zip``, policy, optimisers, entropy coefficient; ``replay_buffer.pkl``, SB3's pickle of the
+:class:`~khgrl.learner.replay.StreamReplayBuffer`: transitions with their intervention and clip flags and
+provenance) and ``state.json`` (the algorithm's name, stream positions, counters, pending training iterations,
+weights version). A checkpoint is resumed by the algorithm that wrote it (one without a name: ``tqc``).
 It is written to a temporary directory (``checkpoint.tmp-PID``, fsynced) that is then renamed into place,
 ``state.json`` last, so a crash leaves either the previous checkpoint or the new one, never a mix. The pickle
 is our own file on local disk, never anything from the wire. (SB3 is imported when a checkpoint is read, so
@@ -28,16 +30,15 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from khgrl.learner.algorithm import BUFFER_FILE, DEFAULT, MODEL_FILE, algorithm_class
 
-__all__ = ["STATE_FILE", "FORMAT", "TMP_PREFIX", "CheckpointError", "SaveFaults", "checkpoint_dir", "find_checkpoint",
-           "save_checkpoint", "load_checkpoint", "load_checkpoint_arrays", "remove_stale_temps", "is_disk_fault",
-           "fault_reason"]
+__all__ = ["STATE_FILE", "MODEL_FILE", "BUFFER_FILE", "FORMAT", "TMP_PREFIX", "CheckpointError", "SaveFaults",
+           "checkpoint_dir", "find_checkpoint", "save_checkpoint", "load_checkpoint", "load_checkpoint_arrays",
+           "remove_stale_temps", "is_disk_fault", "fault_reason"]
 
 log = logging.getLogger("khgrl.learner")
 
 STATE_FILE = "state.json"
-MODEL_FILE = "model.zip"
-BUFFER_FILE = "replay_buffer.pkl"
 TMP_PREFIX = "checkpoint.tmp-"  # + the PID of the learner writing it
 FORMAT = 2  # 1: side arrays in .npy files beside the buffer; 2: inside the replay buffer pickle
 RETRY_FIRST_S = 1.0  # a failed save is retried after 1 s, 2 s, 4 s, ... up to RETRY_MAX_S
@@ -86,14 +87,12 @@ def _fsync(path: Path, directory: bool = False) -> None:
         os.close(fd)
 
 
-def _write(tmp: Path, model: Any, state: dict[str, Any]) -> None:
+def _write(tmp: Path, algo: Any, state: dict[str, Any]) -> None:
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    model.save(tmp / MODEL_FILE)
-    model.save_replay_buffer(tmp / BUFFER_FILE)
-    for name in (MODEL_FILE, BUFFER_FILE):
-        _fsync(tmp / name)
+    for path in algo.save(tmp):
+        _fsync(path)
     with open(tmp / STATE_FILE, "w") as fh:  # written last: a checkpoint without it is incomplete
         json.dump({"format": FORMAT, "time": time.time(), **state}, fh, indent=1)
         fh.flush()
@@ -113,19 +112,20 @@ def _swap_in(learner_dir: Path, tmp: Path) -> Path:
     return final
 
 
-def save_checkpoint(learner_dir: str | Path, model: Any, state: dict[str, Any]) -> Path:
+def save_checkpoint(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -> Path:
     """Write model, replay buffer and ``state`` to a temporary directory, then rename it to ``checkpoint/``
     (the previous checkpoint is kept until then). On any error the temporary directory is removed, the previous
     checkpoint is left as it was, and the error is raised (:func:`is_disk_fault` tells a disk fault).
 
     :param learner_dir: the learner's checkpoint directory (``RUN_DIR/learner`` or its ``--checkpoint-dir``)
-    :param model: the TQC model (its replay buffer is saved with it)
+    :param algo: the learner algorithm (:class:`~khgrl.learner.algorithm.LearnerAlgorithm`; its replay buffer is
+        saved with it)
     :param state: JSON-able counters and stream positions (``format`` and ``time`` are added)
     """
     learner_dir = Path(learner_dir)
     tmp = learner_dir / f"{TMP_PREFIX}{os.getpid()}"
     try:
-        _write(tmp, model, state)
+        _write(tmp, algo, state)
         return _swap_in(learner_dir, tmp)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -242,27 +242,28 @@ class SaveFaults:
         self.error, self.streak, self.retry_at = "", 0, 0.0
 
 
-def load_checkpoint(ckpt: str | Path, env: Any, device: str = "cpu") -> tuple[Any, dict[str, Any]]:
-    """The model (with its replay buffer) and the state of a checkpoint.
+def load_checkpoint(ckpt: str | Path, task: Any, settings: Any, device: str = "cpu",
+                    algo: str = DEFAULT) -> tuple[Any, dict[str, Any]]:
+    """The learner algorithm (with its replay buffer) and the state of a checkpoint.
 
     :param ckpt: the checkpoint directory (:func:`find_checkpoint`)
-    :param env: an environment with the model's spaces (``khgrl.common.tasks.spaces.SpacesEnv``)
+    :param task: the run's task descriptor (the model's spaces; None: the passage world)
+    :param settings: the run's learner settings (``TQCSettings``)
     :param device: the torch device to train on (a checkpoint made on a GPU resumes on a CPU and back)
+    :param algo: the run's ``--algo``; a checkpoint of another algorithm is refused
     """
-    from khgrl.learner.replay import StreamReplayBuffer
-    from sb3_contrib import TQC
-
     ckpt = Path(ckpt)
     state = json.loads((ckpt / STATE_FILE).read_text())
     if state.get("format", 1) != FORMAT:
         raise CheckpointError(f"{ckpt}: checkpoint format {state.get('format', 1)} was written by an older learner "
                               f"and cannot be resumed by this one (format {FORMAT})")
-    model = TQC.load(ckpt / MODEL_FILE, env=env, device=device)
-    model.load_replay_buffer(ckpt / BUFFER_FILE)
-    if not isinstance(model.replay_buffer, StreamReplayBuffer):
-        raise CheckpointError(f"{ckpt}: the replay buffer is a {type(model.replay_buffer).__name__}, "
-                              "not a StreamReplayBuffer")
-    return model, state
+    saved = state.get("algo", DEFAULT)
+    if saved != algo:
+        raise CheckpointError(f"{ckpt}: a checkpoint of a {saved} learner; this run's --algo is {algo}")
+    try:
+        return algorithm_class(algo).load(ckpt, task, settings, device), state
+    except ValueError as exc:
+        raise CheckpointError(f"{ckpt}: {exc}") from None
 
 
 def load_checkpoint_arrays(ckpt: str | Path) -> dict[str, np.ndarray]:

@@ -293,7 +293,7 @@ class LearnerLoop:
         t0 = time.perf_counter()
         tr = self.trainer
         try:
-            path = save_checkpoint(self.ckpt_dir, tr.model, {**tr.state(), **self.streams.state()})
+            path = save_checkpoint(self.ckpt_dir, tr.algo, {**tr.state(), **self.streams.state()})
         except Exception as exc:
             if not is_disk_fault(exc):
                 raise

@@ -31,6 +31,7 @@ from khgrl.common.delivery.task_link import TASK_FILE, TaskAnnouncer, fetch_task
 from khgrl.common.delivery.transport import Inbox, open_client, undeclare_all
 from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
 from khgrl.common.wire.protocol import Keys
+from khgrl.learner.algorithm import check_algorithm
 from khgrl.learner.checkpoint import CheckpointError, find_checkpoint
 
 if TYPE_CHECKING:
@@ -75,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         pc = resolve_process(args)
         keys = Keys(pc.run)
+        check_algorithm(pc.cfg.algo)
     except (ValueError, FileNotFoundError) as exc:
         return _fail(exc)
     learner_dir = Path(pc.cfg.run_dir) / "learner"
@@ -129,7 +131,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         if task is None:
             return 0
         trainer, streams = open_learner(cfg.tqc, cfg.seed, learner_dir, resume=resume, logger_formats=formats,
-                                        task=task, checkpoint_dir=cfg.checkpoint_dir or None)
+                                        task=task, checkpoint_dir=cfg.checkpoint_dir or None, algo=cfg.algo)
         log.info("task %s (O = %d, %d observations, digest %s); epoch %s, learning_starts %d, training on %s",
                  task.name, task.out_dim, task.obs_dim, task.digest, trainer.epoch, trainer.learning_starts, device)
         announcer = TaskAnnouncer(session, keys, "learner", learner_id, task)

@@ -1,4 +1,5 @@
-"""A learner's start: a fresh model and stream table, or both as the newest checkpoint left them (``--resume``)."""
+"""A learner's start: a fresh algorithm (``--algo``) and stream table, or both as the newest checkpoint left them
+(``--resume``)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,9 @@ from pathlib import Path
 
 from khgrl.common.config.settings import TQCSettings
 from khgrl.common.delivery.ingest import StreamTable
-from khgrl.common.tasks.spaces import SpacesEnv
+from khgrl.learner.algorithm import DEFAULT
 from khgrl.learner.checkpoint import CheckpointError, fault_reason, find_checkpoint, load_checkpoint, remove_stale_temps
-from khgrl.learner.trainer import Trainer, build_model, torch_device
+from khgrl.learner.trainer import Trainer, build_algorithm, keep_freed_memory, torch_device
 
 __all__ = ["open_learner", "rss_mb"]
 
@@ -19,7 +20,7 @@ log = logging.getLogger("khgrl.learner")
 
 def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume: bool,
                  logger_formats: tuple[str, ...] = ("csv", "tensorboard"), task=None,
-                 checkpoint_dir: str | Path | None = None) -> tuple[Trainer, StreamTable]:
+                 checkpoint_dir: str | Path | None = None, algo: str = DEFAULT) -> tuple[Trainer, StreamTable]:
     """A fresh model and empty stream table, or (``resume``) both as the newest checkpoint left them. Temporary
     checkpoint directories that killed learners left behind are removed first.
 
@@ -30,22 +31,25 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     :param logger_formats: SB3 logger output formats
     :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (None: the passage world's spaces)
     :param checkpoint_dir: where the checkpoints are (None: ``learner_dir``)
+    :param algo: the learner algorithm's registered name (``--algo``; a checkpoint must be of the same)
     """
     learner_dir = Path(learner_dir)
     learner_dir.mkdir(parents=True, exist_ok=True)
+    keep_freed_memory()  # (no page faults in every training iteration)
     ckpt_dir = Path(checkpoint_dir or learner_dir)
     _remove_stale_temps(ckpt_dir)
     kw = dict(learning_starts=tqc.learning_starts, train_freq=tqc.train_freq, log_dir=learner_dir / "tb",
               logger_formats=logger_formats)
     if not resume:
-        return Trainer(build_model(tqc, seed, task), **kw), StreamTable()
+        log.info("learner algorithm %s, seed %d", algo, seed)
+        return Trainer(build_algorithm(tqc, seed, task, algo), **kw), StreamTable()
     ckpt = find_checkpoint(ckpt_dir)
     if ckpt is None:
         raise CheckpointError(f"--resume: no checkpoint under {ckpt_dir}")
-    model, state = load_checkpoint(ckpt, SpacesEnv(task), torch_device(tqc.device))
+    model, state = load_checkpoint(ckpt, task, tqc, torch_device(tqc.device), algo)
     trainer, streams = Trainer(model, **kw), StreamTable.from_state(state)
     trainer.restore(state)
-    log.info("resumed from %s: %d transitions (buffer pos %d), version %d, %d iterations, actors %s", ckpt,
+    log.info("%s resumed from %s: %d transitions (buffer pos %d), version %d, %d iterations, actors %s", algo, ckpt,
              trainer.total, trainer.buffer.pos, trainer.version, trainer.iterations,
              {a: streams[a].next_seq for a in streams})
     return trainer, streams

@@ -1,5 +1,6 @@
-"""The learner's TQC model and its training schedule: transitions into the replay buffer, due training
-iterations, and what the weights and ack messages say about them.
+"""The learner's algorithm (TQC by default, :mod:`khgrl.learner.algorithm`) and its training schedule:
+transitions into the replay buffer, due training iterations, and what the weights and ack messages say about
+them.
 
 Update-to-data ratio as SB3's ``learn()`` with ``train_freq`` F and ``gradient_steps`` G (the paper: 8 and 8):
 one training iteration (G gradient steps) is due for every multiple of F in ``(learning_starts, ingested]``.
@@ -15,6 +16,7 @@ stored so far whenever the learner is free, and the status reports the update-to
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import secrets
 from collections import deque
@@ -24,13 +26,39 @@ from typing import Any, Callable
 import numpy as np
 from khgrl.common.config.settings import TQCSettings
 from khgrl.common.delivery.ingest import ActorStream
-from khgrl.common.tasks.spaces import SpacesEnv
 from khgrl.common.wire.protocol import Ack, Transitions, Weights
+from khgrl.learner.algorithm import DEFAULT, LearnerAlgorithm, algorithm_class
 from khgrl.learner.replay import StreamReplayBuffer
 
-__all__ = ["Trainer", "build_model", "torch_device"]
+__all__ = ["Trainer", "build_algorithm", "build_model", "torch_device", "keep_freed_memory"]
 
 log = logging.getLogger("khgrl.learner")
+
+# glibc malloc parameters (malloc.h): the learner keeps the memory a training iteration frees (keep_freed_memory)
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+MMAP_THRESHOLD = 32 * 2**20  # the highest value glibc's own dynamic threshold reaches (64-bit)
+TRIM_THRESHOLD = 2 * MMAP_THRESHOLD  # glibc's dynamic rule: twice the mmap threshold
+
+
+def keep_freed_memory() -> bool:
+    """Make this process's malloc keep the memory a training iteration frees for the next one, rather than hand it
+    back to the kernel and fault it in again. Returns whether it was set (False where the C library is not glibc).
+
+    torch's CPU tensors come from malloc. A TQC iteration (8 gradient steps, minibatch 256, 2 x 256 networks)
+    allocates and frees tens of MB in tensors of 0.1-2 MB. glibc starts with a 128 kB mmap threshold and trims
+    the heap whenever 256 kB lie free at its top; it raises both only after it happens to free a large mmapped
+    block. A learner process stayed at the low values: every iteration mapped, faulted in (13,000-17,000 minor
+    page faults) and returned its tensors' memory again -- about 15 % of the time inside ``train()``, which
+    made the learner slower than standalone SB3 in a process that had freed a large block before. The two
+    thresholds are set to what glibc's own adaptation reaches at most (mmap 32 MB, trim twice that): memory
+    the learner frees stays in the process up to that much.
+    """
+    try:
+        libc = ctypes.CDLL(None)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
 
 
 def torch_device(name: str) -> str:
@@ -48,42 +76,43 @@ def torch_device(name: str) -> str:
     return "cuda" if name == "cuda" or (name == "auto" and torch.cuda.is_available()) else "cpu"
 
 
-def build_model(tqc: TQCSettings, seed: int, task=None):
-    """A fresh sb3-contrib TQC with the run's settings on the task's spaces, whose replay buffer is a
-    :class:`StreamReplayBuffer` (which draws no random numbers: the seeded model is SB3's own).
+def build_algorithm(tqc: TQCSettings, seed: int, task=None, algo: str = DEFAULT) -> LearnerAlgorithm:
+    """A fresh learner algorithm (``--algo``) with the run's settings on the task's spaces, on the device
+    ``tqc.device`` means here.
 
-    :param tqc: the TQC settings (``khgrl.common.config.settings.TQCSettings``)
+    :param tqc: the learner settings (``khgrl.common.config.settings.TQCSettings``)
     :param seed: the model's seed
     :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (None: the passage world's spaces)
+    :param algo: the registered algorithm's name (:data:`khgrl.learner.algorithm.REGISTRY`)
     """
-    from sb3_contrib import TQC
-
-    kwargs = {**tqc.sb3_kwargs(seed), "device": torch_device(tqc.device)}
-    return TQC("MlpPolicy", SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer)
+    return algorithm_class(algo).build(task, tqc, seed, torch_device(tqc.device))
 
 
-def _configure_logger(model: Any, folder: Path, formats: tuple[str, ...]) -> None:
-    """SB3's logger of ``model`` writing ``formats`` to ``folder``."""
-    from stable_baselines3.common.logger import configure
+def build_model(tqc: TQCSettings, seed: int, task=None):
+    """The SB3 model of a fresh ``tqc`` algorithm (:func:`build_algorithm`): sb3-contrib TQC whose replay buffer is
+    a :class:`StreamReplayBuffer` (which draws no random numbers: the seeded model is SB3's own).
 
-    model.set_logger(configure(str(folder), list(formats)))
+    :param tqc: the TQC settings
+    :param seed: the model's seed
+    :param task: the run's task descriptor (None: the passage world's spaces)
+    """
+    return build_algorithm(tqc, seed, task).model
 
 
 class Trainer:
-    """Owns the model: stores transitions, keeps the schedule of due iterations, trains them, and reports what
-    the latest weights cover. One per learner incarnation (``epoch``)."""
+    """Owns the learner algorithm (:class:`~khgrl.learner.algorithm.LearnerAlgorithm`): stores transitions, keeps
+    the schedule of due iterations, trains them, and reports what the latest weights cover. One per learner
+    incarnation (``epoch``)."""
 
-    def __init__(self, model: Any, *, learning_starts: int, train_freq: int, log_dir: str | Path,
+    def __init__(self, algo: LearnerAlgorithm, *, learning_starts: int, train_freq: int, log_dir: str | Path,
                  logger_formats: tuple[str, ...] = ("csv", "tensorboard")) -> None:
-        """:param model: a TQC whose replay buffer is a :class:`StreamReplayBuffer` (:func:`build_model`, or loaded)
+        """:param algo: the algorithm (:func:`build_algorithm`, or loaded from a checkpoint)
         :param learning_starts: transitions before the first training iteration
         :param train_freq: transitions per training iteration
-        :param log_dir: where SB3's logger writes (csv, TensorBoard)
+        :param log_dir: where the algorithm's SB3 logger writes (csv, TensorBoard)
         :param logger_formats: SB3 logger output formats
         """
-        if not isinstance(model.replay_buffer, StreamReplayBuffer):
-            raise TypeError("the learner's model needs a StreamReplayBuffer (build_model)")
-        self.model = model
+        self.algo = algo
         self.learning_starts = int(learning_starts)
         self.train_freq = int(train_freq)
         self.epoch = secrets.token_hex(6)
@@ -94,12 +123,12 @@ class Trainer:
         self.version = 0
         self.weights_trained: dict[str, int] = {}
         self.schedule = True  # simulation mode: iterations come due with the data; robot mode: train_now
-        _configure_logger(model, Path(log_dir), logger_formats)
+        algo.set_logger(Path(log_dir), logger_formats)
 
     @property
     def buffer(self) -> StreamReplayBuffer:
-        """The model's replay buffer."""
-        return self.model.replay_buffer
+        """The algorithm's replay buffer."""
+        return self.algo.buffer
 
     @property
     def training_started(self) -> bool:
@@ -127,9 +156,9 @@ class Trainer:
 
     def _add(self, msg: Transitions, stream: ActorStream, positions, term: np.ndarray, trunc: np.ndarray) -> None:
         n, first, base = msg.n, msg.first_step, self.total
-        self.buffer.add_batch(msg.obs, msg.next_obs, msg.action, msg.reward, (term | trunc).astype(np.float32),
-                              (trunc & ~term).astype(np.float32), intervened=msg.intervened, clipped=msg.clipped,
-                              actor=stream.code, first_step=first)
+        self.algo.store(msg.obs, msg.next_obs, msg.action, msg.reward, (term | trunc).astype(np.float32),
+                        (trunc & ~term).astype(np.float32), intervened=msg.intervened, clipped=msg.clipped,
+                        actor=stream.code, first_step=first)
         if self.schedule:  # an iteration comes due at every multiple of train_freq past learning_starts
             lo = max(base, self.learning_starts) + 1
             for at in range(-(-lo // self.train_freq) * self.train_freq, base + n + 1, self.train_freq):
@@ -166,15 +195,9 @@ class Trainer:
         return self.gradient_steps / max(1, self.total - self.learning_starts)
 
     def _train(self, at: int, snapshot: dict[str, int], limit: int | None) -> None:
-        model = self.model
-        model.num_timesteps = at
-        self.buffer.sample_limit = limit
-        try:
-            model.train(gradient_steps=model.gradient_steps, batch_size=model.batch_size)
-        finally:
-            self.buffer.sample_limit = None
+        self.algo.train(self.algo.gradient_steps, timestep=at, sample_limit=limit)
         self.iterations += 1
-        self.gradient_steps += model.gradient_steps
+        self.gradient_steps += self.algo.gradient_steps
         self.version += 1
         self.weights_trained = dict(snapshot)
 
@@ -184,7 +207,7 @@ class Trainer:
         :param seconds: how long the iteration took
         :param queue_depth: messages waiting in the learner's inbox
         """
-        lg = self.model.logger
+        lg = self.algo.logger
         lg.record("learner/ingested", self.total)
         lg.record("learner/version", self.version)
         lg.record("learner/iteration_s", seconds)
@@ -195,9 +218,8 @@ class Trainer:
     # ------------------------------------------------------------------------------------ messages
     def weights(self) -> Weights:
         """The actor network of the latest version, and the transitions per actor it was trained on."""
-        sd = self.model.policy.actor.state_dict()
-        tensors = {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
-        return Weights(version=self.version, trained=dict(self.weights_trained), tensors=tensors, epoch=self.epoch)
+        return Weights(version=self.version, trained=dict(self.weights_trained), tensors=self.algo.policy_weights(),
+                       epoch=self.epoch)
 
     def ack(self, stream: ActorStream) -> Ack:
         """What the learner holds of one actor's stream, in the actor's own index space.
@@ -215,7 +237,8 @@ class Trainer:
     def state(self) -> dict[str, Any]:
         """Counters and the schedule for a checkpoint."""
         rb = self.buffer
-        return {"epoch": self.epoch, "total_ingested": self.total, "learning_starts": self.learning_starts,
+        return {"algo": self.algo.name, "epoch": self.epoch, "total_ingested": self.total,
+                "learning_starts": self.learning_starts,
                 "iterations": self.iterations, "gradient_steps": self.gradient_steps, "version": self.version,
                 "weights_trained": dict(self.weights_trained), "due": [[at, snap] for at, snap in self.due],
                 "replay": {"pos": int(rb.pos), "full": bool(rb.full), "size": int(rb.buffer_size)}}

@@ -1,7 +1,8 @@
 """The one source of a run's settings: frozen dataclasses, the ``--flags`` built from them, and TOML/JSON files.
 
 * :class:`TQCSettings` -- the paper's TQC settings (Section IV); the learner and the single-process baseline
-  both build their model from :meth:`TQCSettings.sb3_kwargs`.
+  both build their model from :meth:`TQCSettings.sb3_kwargs`. They are the learner's settings whatever its
+  algorithm (``RunConfig.algo``, ``--algo``): another algorithm takes those that apply to it.
 * :class:`StreamSettings` -- the transition stream and its flow control (batch size, lead limit, outbox,
   timeouts, checkpoint interval).
 * :class:`RunConfig` -- a whole run: world, method, episodes, seed, processes, and the two above.
@@ -141,6 +142,9 @@ class RunConfig:
                       roles=(ACTOR, HUMAN))
     method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither", METHODS,
                        roles=(ACTOR, REFERENCE))
+    algo: str = _opt("tqc", "the learner's algorithm, by its name in khgrl.learner.algorithm.REGISTRY (tqc: "
+                            "sb3-contrib TQC, the paper's; it takes the [tqc] settings that apply to it)",
+                     roles=(LEARNER, ACTOR))
     episodes: int = _opt(60, "episodes per actor (in the whole run: a resumed run continues up to this)",
                          roles=(ACTOR, REFERENCE))
     seed: int = _opt(0, "seed of the learner and of actor 0 (actor i: seed + i) and the human client",
@@ -190,6 +194,8 @@ class RunConfig:
             raise ValueError("human 'replay' needs replay: the corrections.csv of a recorded run (--replay FILE)")
         if self.connect_timeout <= 0 or self.rate < 0:
             raise ValueError("connect_timeout must be > 0 and rate >= 0")
+        if not self.algo.isidentifier():
+            raise ValueError(f"algo {self.algo!r}: expected the name of a registered learner algorithm, e.g. tqc")
         self.tqc.validate()
         self.stream.validate(self.tqc.train_freq)
         return self

@@ -256,6 +256,9 @@ def test_weights_parse_load_and_lag():
     class Policy:
         actor = net
 
+        def load_weights(self, sd):
+            net.load_state_dict(sd)
+
     rejects = RejectCounter("actor/a0")
     rx = WeightsReceiver(None, net.state_dict(), rejects, "k/weights")
     w = PolicyWeights(Policy(), "a0", rx)

@@ -65,18 +65,18 @@ class _Pub:
 
 
 class _FakeModel:
-    """Writes small files where the TQC model would write its own; ``fail_buffer`` makes the buffer a disk fault."""
+    """Writes small files where the learner algorithm would write its own; ``fail_buffer`` makes the buffer a disk
+    fault."""
 
     def __init__(self, fail_buffer: OSError | None = None) -> None:
         self.fail_buffer = fail_buffer
 
-    def save(self, path: Path) -> None:
-        Path(path).write_bytes(b"model")
-
-    def save_replay_buffer(self, path: Path) -> None:
-        Path(path).write_bytes(b"half a buffer")
+    def save(self, directory: Path) -> list[Path]:
+        (Path(directory) / "model.zip").write_bytes(b"model")
+        (Path(directory) / "replay_buffer.pkl").write_bytes(b"half a buffer")
         if self.fail_buffer is not None:
             raise self.fail_buffer
+        return [Path(directory) / "model.zip", Path(directory) / "replay_buffer.pkl"]
 
 
 def _entries(d: Path) -> list[str]:

@@ -125,14 +125,14 @@ def test_ingest_never_waits_for_a_gradient_step(tmp_path):
     loop = LearnerLoop(trainer, streams, pub, learner_id="L", learner_dir=tmp_path / "learner", checkpoint_every=0,
                        flag=StopFlag())
     training = threading.Event()
-    real_train = trainer.model.train
+    real_train = trainer.algo.model.train
 
     def slow_train(**kw):
         training.set()
         time.sleep(1.5)
         real_train(**kw)
 
-    trainer.model.train = slow_train
+    trainer.algo.model.train = slow_train
     inbox = Inbox(maxsize=1000)
     runner = threading.Thread(target=loop.run, args=(inbox,))
     runner.start()

@@ -150,7 +150,7 @@ def test_replay_buffer_save_load_keeps_side_arrays(tmp_path):
     loop, _ = make_loop(tmp_path)
     loop.offer(batch(0, 0, 8))
     loop.offer(batch(1, 8, 8, intervened=0))
-    model = loop.trainer.model
+    model = loop.trainer.algo.model
     model.save_replay_buffer(tmp_path / "rb.pkl")
     before = {k: v.copy() for k, v in model.replay_buffer.side_arrays().items()}
     model.replay_buffer = None
@@ -208,8 +208,8 @@ def test_checkpoint_missing_or_old(tmp_path):
 def test_save_checkpoint_replaces_the_previous_one(tmp_path):
     loop, _ = make_loop(tmp_path)
     loop.offer(batch(0, 0, 8))
-    first = save_checkpoint(tmp_path / "learner", loop.trainer.model, {"mark": 1})
-    second = save_checkpoint(tmp_path / "learner", loop.trainer.model, {"mark": 2})
+    first = save_checkpoint(tmp_path / "learner", loop.trainer.algo, {"mark": 1})
+    second = save_checkpoint(tmp_path / "learner", loop.trainer.algo, {"mark": 2})
     assert first == second and json.loads((second / "state.json").read_text())["mark"] == 2
     assert not (tmp_path / "learner" / "checkpoint.old").exists()
 

@@ -106,6 +106,9 @@ class _Policy:
 
         self.actor = torch.nn.Linear(3, 2)
 
+    def load_weights(self, sd) -> None:
+        self.actor.load_state_dict(sd)
+
 
 def _weights(version: int, epoch: str | None = "e1", fill: float = 1.0) -> bytes:
     tensors = {"weight": np.full((2, 3), fill, np.float32), "bias": np.zeros(2, np.float32)}

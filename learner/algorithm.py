@@ -1,0 +1,144 @@
+"""The learner-algorithm interface: what the learner loop, checkpoints, resume, weights publishing, the actor's
+policy and ``khgrl eval`` need of a reinforcement-learning algorithm, and the registry of those there are.
+
+An algorithm is a class registered in :data:`REGISTRY` under the name ``--algo`` takes (``RunConfig.algo``,
+recorded in the run's ``config.json``). The learner side (:class:`LearnerAlgorithm`) is built from the task's
+spaces, the run's learner settings (``[tqc]``: :class:`~khgrl.common.config.settings.TQCSettings`) and a seed;
+it stores batches in its :class:`~khgrl.learner.replay.StreamReplayBuffer`, trains n gradient steps at a time
+on what a due iteration may sample, exports its policy network's weights for the actors, and saves and loads
+itself together with its replay buffer in a checkpoint directory. The actor side (:class:`ActorPolicy`) is only
+the policy network, on the CPU, in float32, taking the learner's weights by name.
+
+Implementations: ``tqc`` (:mod:`khgrl.learner.tqc`, sb3-contrib TQC, the paper's, the default); SB3-based ones
+share :class:`khgrl.learner.sb3_offpolicy.SB3OffPolicy`. Adding one: a module with the class and one line in
+:data:`REGISTRY`.
+"""
+
+from __future__ import annotations
+
+from importlib import import_module
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from khgrl.common.config.settings import TQCSettings
+    from khgrl.learner.replay import StreamReplayBuffer
+
+__all__ = ["LearnerAlgorithm", "ActorPolicy", "REGISTRY", "DEFAULT", "MODEL_FILE", "BUFFER_FILE", "algorithm_class",
+           "check_algorithm"]
+
+DEFAULT = "tqc"
+MODEL_FILE = "model.zip"  # in a checkpoint directory: the networks, optimisers and training counters
+BUFFER_FILE = "replay_buffer.pkl"  # and the replay buffer (our own file on local disk, never from the wire)
+
+# name (--algo) -> "module:class", imported when asked for (so that naming one imports no learning library)
+REGISTRY: dict[str, str] = {
+    "tqc": "khgrl.learner.tqc:TQCAlgorithm",
+    "sac": "khgrl.learner.sac:SACAlgorithm",
+}
+
+
+class ActorPolicy(Protocol):
+    """The policy network an actor runs (CPU, float32, evaluation mode) and ``khgrl eval`` evaluates."""
+
+    def predict(self, obs: np.ndarray, deterministic: bool = False) -> tuple[np.ndarray, Any]:
+        """The action for ``obs`` (SB3's ``predict``: in the action space's bounds), and a recurrent state (None)."""
+        ...
+
+    def weights_template(self) -> dict[str, tuple[int, ...]]:
+        """The name and shape of every tensor :meth:`load_weights` takes (what a weights message must carry)."""
+        ...
+
+    def load_weights(self, tensors: dict[str, Any]) -> None:
+        """Load the learner's weights (torch CPU float32 tensors by name, as :meth:`weights_template`)."""
+        ...
+
+
+class LearnerAlgorithm(Protocol):
+    """The learner's side of an algorithm: one instance per learner incarnation."""
+
+    name: ClassVar[str]
+    gradient_steps: int  # per training iteration (the run's gradient_steps)
+    logger: Any  # SB3's Logger (record / dump) the training scalars go to
+
+    @classmethod
+    def build(cls, task: Any, settings: TQCSettings, seed: int, device: str) -> LearnerAlgorithm:
+        """A fresh algorithm on the task's spaces, seeded.
+
+        :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (None: the passage world)
+        :param settings: the run's learner settings
+        :param seed: the seed of the networks (and of the minibatch sampling)
+        :param device: the torch device to train on ('cpu', 'cuda')
+        """
+        ...
+
+    @classmethod
+    def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str) -> LearnerAlgorithm:
+        """The algorithm and its replay buffer as :meth:`save` left them in ``directory``."""
+        ...
+
+    @classmethod
+    def actor_policy(cls, observation_space: Any, action_space: Any, settings: TQCSettings) -> ActorPolicy:
+        """A fresh policy network for an actor (initialised from torch's global generator, as the caller seeded it)."""
+        ...
+
+    @classmethod
+    def checkpoint_policy(cls, model_file: Path, observation_space: Any, action_space: Any,
+                          settings: TQCSettings) -> ActorPolicy:
+        """The policy held in a checkpoint's :data:`MODEL_FILE`; :class:`ValueError` (one line) if it does not load
+        or does not fit these spaces and settings."""
+        ...
+
+    @property
+    def buffer(self) -> StreamReplayBuffer:
+        """The replay buffer (transitions, their flags and provenance; its ``lock`` and ``sample_limit``)."""
+        ...
+
+    def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: np.ndarray, done: np.ndarray,
+              timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int, first_step: int) -> None:
+        """Store one batch of one actor's consecutive transitions (:meth:`StreamReplayBuffer.add_batch`)."""
+        ...
+
+    def train(self, gradient_steps: int, *, timestep: int, sample_limit: int | None) -> None:
+        """Run ``gradient_steps`` gradient steps.
+
+        :param gradient_steps: how many
+        :param timestep: the environment step this iteration belongs to (SB3's ``num_timesteps``)
+        :param sample_limit: sample only the first this many stored transitions (None: all)
+        """
+        ...
+
+    def policy_weights(self) -> dict[str, np.ndarray]:
+        """The actor's policy network: every tensor of :meth:`ActorPolicy.weights_template`, CPU float32 copies."""
+        ...
+
+    def set_logger(self, folder: Path, formats: tuple[str, ...]) -> None:
+        """Write training scalars to ``folder`` in ``formats`` (SB3 logger: 'csv', 'tensorboard')."""
+        ...
+
+    def save(self, directory: Path) -> list[Path]:
+        """Write :data:`MODEL_FILE` and :data:`BUFFER_FILE` into ``directory``; returns the files written."""
+        ...
+
+
+def check_algorithm(name: str) -> str:
+    """``name`` if an algorithm is registered under it (nothing is imported).
+
+    :param name: an ``--algo`` value
+    :raises ValueError: no algorithm of that name (the message lists the registered ones)
+    """
+    if name not in REGISTRY:
+        raise ValueError(f"unknown --algo {name!r}: registered are {', '.join(REGISTRY)}")
+    return name
+
+
+def algorithm_class(name: str) -> type[LearnerAlgorithm]:
+    """The algorithm registered as ``name`` (its module imported now).
+
+    :param name: an ``--algo`` value
+    :raises ValueError: no algorithm of that name (the message lists the registered ones)
+    """
+    module, _, attr = REGISTRY[check_algorithm(name)].partition(":")
+    return getattr(import_module(module), attr)

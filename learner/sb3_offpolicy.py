@@ -1,0 +1,186 @@
+"""The learner-algorithm interface (:mod:`khgrl.learner.algorithm`) for Stable-Baselines3's off-policy
+algorithms: a subclass names the SB3 class, its policy class and its keyword arguments; everything else --
+the :class:`~khgrl.learner.replay.StreamReplayBuffer`, a due iteration's ``train()``, weights for the actors,
+checkpoint files -- is here once.
+
+The model is ``ALGO("MlpPolicy", SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer)``; the
+buffer draws no random numbers, so a seeded model is SB3's own. The actors get the policy's ``actor`` network
+(its ``state_dict``); an actor builds the same policy class on the CPU and loads them into its ``actor``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from khgrl.common.config.settings import TQCSettings
+from khgrl.common.tasks.spaces import SpacesEnv
+from khgrl.learner.algorithm import BUFFER_FILE, MODEL_FILE
+from khgrl.learner.replay import StreamReplayBuffer
+
+__all__ = ["SB3OffPolicy", "SB3ActorPolicy"]
+
+
+class SB3ActorPolicy:
+    """An SB3 policy (evaluation mode) as an :class:`~khgrl.learner.algorithm.ActorPolicy`: actions from
+    ``predict``, weights into its ``actor`` network.
+
+    :param policy: an SB3 actor-critic policy with an ``actor`` network (SAC's, TQC's)
+    """
+
+    def __init__(self, policy: Any) -> None:
+        self.policy = policy
+        policy.set_training_mode(False)
+
+    def predict(self, obs: np.ndarray, deterministic: bool = False) -> tuple[np.ndarray, Any]:
+        """SB3's ``predict`` (squashed into the action space's bounds).
+
+        :param obs: one observation
+        :param deterministic: the mean action (else a sample of the policy)
+        """
+        return self.policy.predict(obs, deterministic=deterministic)
+
+    def weights_template(self) -> dict[str, tuple[int, ...]]:
+        """The ``actor`` network's tensor names and shapes."""
+        return {k: tuple(v.shape) for k, v in self.policy.actor.state_dict().items()}
+
+    def load_weights(self, tensors: dict[str, Any]) -> None:
+        """Load the learner's ``actor`` network.
+
+        :param tensors: torch tensors by name
+        """
+        self.policy.actor.load_state_dict(tensors)
+
+
+class SB3OffPolicy:
+    """The learner-algorithm interface for an SB3 off-policy algorithm (subclasses: ``name``, :meth:`sb3_class`,
+    :meth:`policy_class`, and :meth:`sb3_kwargs` where the run's settings map differently).
+
+    :param model: the SB3 model, its replay buffer a :class:`StreamReplayBuffer`
+    """
+
+    name: ClassVar[str] = ""
+
+    def __init__(self, model: Any) -> None:
+        if not isinstance(model.replay_buffer, StreamReplayBuffer):
+            raise TypeError(f"the learner's {self.name} model needs a StreamReplayBuffer")
+        self.model = model
+        self.gradient_steps = int(model.gradient_steps)
+        self.batch_size = int(model.batch_size)
+
+    # ------------------------------------------------------------------------------------ what a subclass says
+    @classmethod
+    def sb3_class(cls) -> type:
+        """The SB3 algorithm class (imported when called)."""
+        raise NotImplementedError
+
+    @classmethod
+    def policy_class(cls) -> type:
+        """The SB3 policy class its ``"MlpPolicy"`` is (imported when called)."""
+        raise NotImplementedError
+
+    @classmethod
+    def sb3_kwargs(cls, settings: TQCSettings, seed: int) -> dict[str, Any]:
+        """Keyword arguments of the SB3 class (default: :meth:`TQCSettings.sb3_kwargs`, SB3's own names).
+
+        :param settings: the run's learner settings
+        :param seed: the model's seed
+        """
+        return settings.sb3_kwargs(seed)
+
+    # ------------------------------------------------------------------------------------ building and loading
+    @classmethod
+    def build(cls, task: Any, settings: TQCSettings, seed: int, device: str) -> SB3OffPolicy:
+        """A fresh model on the task's spaces (see :meth:`LearnerAlgorithm.build`)."""
+        kwargs = {**cls.sb3_kwargs(settings, seed), "device": device}
+        return cls(cls.sb3_class()("MlpPolicy", SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer))
+
+    @classmethod
+    def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str) -> SB3OffPolicy:
+        """The model and replay buffer :meth:`save` wrote in ``directory`` (on ``device``, whatever it was saved
+        from)."""
+        model = cls.sb3_class().load(Path(directory) / MODEL_FILE, env=SpacesEnv(task), device=device)
+        model.load_replay_buffer(Path(directory) / BUFFER_FILE)
+        if not isinstance(model.replay_buffer, StreamReplayBuffer):
+            raise ValueError(f"{directory}: the replay buffer is a {type(model.replay_buffer).__name__}, not a "
+                             "StreamReplayBuffer")
+        return cls(model)
+
+    @classmethod
+    def actor_policy(cls, observation_space: Any, action_space: Any, settings: TQCSettings) -> SB3ActorPolicy:
+        """The policy class on the CPU with the run's network sizes (see :meth:`LearnerAlgorithm.actor_policy`)."""
+        return SB3ActorPolicy(cls.policy_class()(observation_space, action_space,
+                                                 lr_schedule=lambda _: settings.learning_rate,
+                                                 net_arch=list(settings.net_arch)))
+
+    @classmethod
+    def checkpoint_policy(cls, model_file: Path, observation_space: Any, action_space: Any,
+                          settings: TQCSettings) -> SB3ActorPolicy:
+        """The whole policy (actor and critics) of a ``model.zip``, checked against these spaces and sizes."""
+        from stable_baselines3.common.save_util import load_from_zip_file
+
+        try:
+            _, params, _ = load_from_zip_file(model_file, device="cpu", load_data=False)
+        except Exception as exc:  # noqa: BLE001 - a damaged or foreign zip
+            raise ValueError(f"cannot read the model ({type(exc).__name__}: {exc})") from None
+        if not params or "policy" not in params:
+            raise ValueError("no policy weights in it")
+        wrapped = cls.actor_policy(observation_space, action_space, settings)
+        state = params["policy"]
+        want = {k: tuple(v.shape) for k, v in wrapped.policy.state_dict().items()}
+        got = {k: tuple(v.shape) for k, v in state.items()}
+        if want != got:
+            bad = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
+            raise ValueError(f"the policy does not fit this task's spaces (observation {observation_space.shape[0]}, "
+                             f"action {action_space.shape[0]}) and net_arch {list(settings.net_arch)} of a "
+                             f"{cls.name} policy: {bad[0]} is {got.get(bad[0])} in the checkpoint, "
+                             f"{want.get(bad[0])} here")
+        wrapped.policy.load_state_dict(state)
+        wrapped.policy.set_training_mode(False)
+        return wrapped
+
+    # ------------------------------------------------------------------------------------ the learner's use
+    @property
+    def buffer(self) -> StreamReplayBuffer:
+        """The model's replay buffer."""
+        return self.model.replay_buffer
+
+    @property
+    def logger(self) -> Any:
+        """SB3's logger of the model."""
+        return self.model.logger
+
+    def set_logger(self, folder: Path, formats: tuple[str, ...]) -> None:
+        """SB3's logger writing ``formats`` to ``folder``."""
+        from stable_baselines3.common.logger import configure
+
+        self.model.set_logger(configure(str(folder), list(formats)))
+
+    def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: np.ndarray, done: np.ndarray,
+              timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int, first_step: int) -> None:
+        """One batch into the replay buffer (:meth:`StreamReplayBuffer.add_batch`, same arguments)."""
+        self.buffer.add_batch(obs, next_obs, action, reward, done, timeout, intervened=intervened, clipped=clipped,
+                              actor=actor, first_step=first_step)
+
+    def train(self, gradient_steps: int, *, timestep: int, sample_limit: int | None) -> None:
+        """SB3's ``train(gradient_steps, batch_size)`` at environment step ``timestep``, sampling within
+        ``sample_limit``."""
+        self.model.num_timesteps = timestep
+        self.buffer.sample_limit = sample_limit
+        try:
+            self.model.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
+        finally:
+            self.buffer.sample_limit = None
+
+    def policy_weights(self) -> dict[str, np.ndarray]:
+        """The policy's ``actor`` network as CPU float32 arrays."""
+        sd = self.model.policy.actor.state_dict()
+        return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
+
+    def save(self, directory: Path) -> list[Path]:
+        """``model.zip`` (SB3's ``save``) and ``replay_buffer.pkl`` (``save_replay_buffer``)."""
+        directory = Path(directory)
+        self.model.save(directory / MODEL_FILE)
+        self.model.save_replay_buffer(directory / BUFFER_FILE)
+        return [directory / MODEL_FILE, directory / BUFFER_FILE]
