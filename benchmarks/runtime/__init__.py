@@ -20,7 +20,7 @@ the other, so the ratios are taken under the same load:
    :class:`khgrl.common.config.settings.TQCSettings`, replay buffer of random transitions) timing
    ``model.train(gradient_steps=8, batch_size=256)`` in this process; the two alternate in slices (the learner
    is paused by a control message while this process trains, so they never compete for a core and a drifting
-   load hits both alike); the ratio (target >= 90 %). Also reported: the learner's time inside ``train()``
+   load hits both alike); the ratio (target >= 100 %). Also reported: the learner's time inside ``train()``
    alone (its ``learner/iteration_s`` scalar), which separates the service loop's overhead from a slower
    ``train()`` in that process.
 5. **exactly-once across a learner kill** (:mod:`.resume`; default on unless ``--quick``): an actor streams,
