@@ -158,11 +158,14 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     rc = 1
     t_run = time.perf_counter()
     try:
-        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag), zenoh_config=pc.zenoh_config)
-    except ConnectionError as exc:
+        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag), timeout=cfg.connect_timeout,
+                              zenoh_config=pc.zenoh_config)
+    except ConnectionError as exc:  # stopped while waiting, no router within --connect-timeout, or a bad endpoint
+        if flag:
+            return 0
         log.error("%s", exc)
-        print(f"khgrl actor {actor}: {exc}", file=sys.stderr, flush=True)
-        return 0 if flag else 1
+        print(f"khgrl actor {actor}: error: {exc}", file=sys.stderr, flush=True)
+        return 1
     with session:
         if other := actor_alive(session, Keys(pc.run), actor):
             return _error(actor, f"actor {actor} is already alive on the router ({other}): a second process with "

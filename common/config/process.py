@@ -9,7 +9,10 @@ from dataclasses import dataclass
 from khgrl.common.config.settings import RunConfig, add_config_flags, read_run_file, resolve
 from khgrl.common.delivery.zenoh_config import ENV, config_file
 
-__all__ = ["ProcessConfig", "add_process_flags", "resolve_process"]
+__all__ = ["ProcessConfig", "add_process_flags", "resolve_process", "PROCESS_SETTINGS"]
+
+# the settings every process has a flag for, whatever else it takes: how it reaches the router
+PROCESS_SETTINGS = {"run", "connect", "connect_timeout", "lease_ms"}
 
 
 @dataclass(frozen=True)
@@ -26,14 +29,15 @@ class ProcessConfig:
 
 def add_process_flags(parser: argparse.ArgumentParser, only: set[str] | None = None) -> None:
     """``--config`` (a run's ``config.json`` written by ``khgrl up``, or a TOML file), ``--run``, ``--connect``
-    and the run-setting flags: how every process is started (by ``khgrl up``: ``--config RUN_DIR/config.json``
+    and the run-setting flags (``only``: those settings, and always :data:`PROCESS_SETTINGS`, so ``--connect-timeout``
+    too): how every process is started (by ``khgrl up``: ``--config RUN_DIR/config.json``
     and its own id; by hand on another machine: flags)."""
     parser.add_argument("--config", default=None, metavar="FILE",
                         help="run configuration: RUN_DIR/config.json of khgrl up, or a TOML file (default: none)")
     parser.add_argument("--zenoh-config", default=None, metavar="FILE",
                         help=f"Zenoh configuration (JSON5; certificates, access, buffers) merged under KhGRL's "
                              f"required settings; examples in deploy/zenoh/ (default: ${ENV} if set, else built-in)")
-    add_config_flags(parser, only)
+    add_config_flags(parser, None if only is None else set(only) | PROCESS_SETTINGS)
 
 
 def resolve_process(args: argparse.Namespace) -> ProcessConfig:
