@@ -31,7 +31,7 @@ class Inbound:
     """Handles the actor's incoming messages and keeps what they tell: the learners alive, paused, and why the
     actor must stop with exit code 2 (a learner of another task, or its stream superseded).
 
-    :param parts: the loop's :class:`~khgrl.actor.loop.ActorParts`.
+    :param parts: the loop's :class:`~khgrl.actor.parts.ActorParts`.
     :param flag: the process's stop flag.
     :param dims: the sizes corrections must have.
     :param gate: the weights gate (default: a new one), installed in ``parts.weights.receiver``.

@@ -27,8 +27,9 @@ from pathlib import Path
 
 from khgrl.actor.arbiter import CorrectionArbiter
 from khgrl.actor.exploration import ExplorationScale
-from khgrl.actor.loop import ActorLoop, ActorParts
+from khgrl.actor.loop import ActorLoop
 from khgrl.actor.pacing import set_realtime
+from khgrl.actor.parts import ActorParts
 from khgrl.actor.record import CorrectionRecord
 from khgrl.actor.results import EpisodeLog
 from khgrl.actor.telemetry import TensorBoard

@@ -195,7 +195,7 @@ class LearnerLoop:
     def run(self, inbox: Any) -> None:
         """Turn until the stop flag is set (SIGINT/SIGTERM or a ``stop`` command). The caller checkpoints last.
 
-        :param inbox: where the Zenoh callbacks file transitions and control messages (the ingest thread's)
+        :param inbox: where the learner's link files transitions and control messages (the ingest thread's)
         """
         ingest = self.ingest.start(inbox)
         try:
