@@ -6,7 +6,8 @@ to the learner without losing or duplicating any.
     khgrl actor --run RUN --connect tcp/HOST:PORT --run-dir DIR --id a0 [any run setting flag]
 
 Wiring, top to bottom: settings -> logging and signals -> world and policy (seeded exactly as single-process
-SB3 seeds them) -> Zenoh session -> the loop's parts (:mod:`khgrl.actor.loop`) -> run -> result files in
+SB3 seeds them) -> Zenoh session (one error line and exit 1 if the router is not reached within ``--connect-timeout``)
+-> the loop's parts (:mod:`khgrl.actor.loop`) -> run -> result files in
 RUN_DIR/actor-ID/ (episodes.csv/json, corrections.csv, summary.json, config.json, scale.npz, tb/).
 With ``--resume`` the actor continues the episode numbering of its earlier part and appends to its files.
 

@@ -5,16 +5,16 @@ resumes. See docs/protocol.md for the messages and the flow control.
     khgrl learner --config RUN_DIR/config.json [--resume]
     khgrl learner --run RUN --connect tcp/HOST:PORT --run-dir DIR [--learning-starts N ...]
 
-The parts, in the order a transition meets them: the Zenoh callback files the payload in an inbox
-(:class:`khgrl.common.delivery.transport.Inbox`), :mod:`khgrl.learner.loop` decodes it,
-:mod:`khgrl.common.delivery.ingest` orders it into its
-actor's stream, :mod:`khgrl.learner.trainer` stores it in the replay buffer (:mod:`khgrl.learner.replay`) and trains
-when
-an iteration is due; acks and weights go out through :mod:`khgrl.common.delivery.learner_link`;
-:mod:`khgrl.learner.checkpoint`
-saves and loads everything in ``RUN_DIR/learner/checkpoint`` (or ``CHECKPOINT_DIR/checkpoint`` with
-``--checkpoint-dir``). A checkpoint that fails on a full or unwritable disk is logged, shown in the status and
-retried while training goes on; if the final one fails the learner says so and exits with 1.
+The parts, in the order a transition meets them: the learner's link
+(:class:`~khgrl.common.delivery.learner_link.LearnerLink`: its subscribers, the weights queryable, its liveliness
+token) files the payload in an inbox; the ingest thread (:class:`~khgrl.common.delivery.learner_side.LearnerIngest`)
+decodes and checks it, orders it into its actor's stream (:mod:`khgrl.common.delivery.ingest`) and hands it to
+:mod:`khgrl.learner.trainer`, which stores it in the replay buffer (:mod:`khgrl.learner.replay`);
+:mod:`khgrl.learner.loop` trains when an iteration is due; acks and weights go out through the link's publisher;
+:mod:`khgrl.learner.checkpoint` saves and loads everything in ``RUN_DIR/learner/checkpoint`` (or
+``CHECKPOINT_DIR/checkpoint`` with ``--checkpoint-dir``). A checkpoint that fails on a full or unwritable disk is
+logged, shown in the status and retried while training goes on; if the final one fails the learner says so and exits
+with 1. A router not reached within ``--connect-timeout`` is one error line naming it (exit 1).
 """
 
 from __future__ import annotations

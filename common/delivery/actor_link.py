@@ -15,7 +15,7 @@ from khgrl.common.wire.checks import ProtocolError
 from khgrl.common.wire.messages import Ack, Control, Correction, Message
 from khgrl.common.wire.protocol import Keys, RejectCounter, encode
 
-__all__ = ["ActorLink", "actor_alive"]
+__all__ = ["ActorLink", "actor_alive", "NewestPayload"]
 
 log = logging.getLogger("khgrl.actor")
 
@@ -45,6 +45,23 @@ def _count_oversize(rejects: RejectCounter):
         rejects.reject(kind, key, ProtocolError(f"{size} bytes exceeds the {kind} limit of {limit}"))
 
     return on_oversize
+
+
+class NewestPayload:
+    """A subscriber that keeps only the newest sample (Zenoh's RingChannel(1)), read by a background thread.
+
+    :param subscriber: the ring subscriber
+    """
+
+    def __init__(self, subscriber) -> None:
+        self.sub = subscriber
+
+    def recv(self) -> bytes:
+        """The next payload, waiting for it; raises once the subscriber is undeclared."""
+        return self.sub.handler.recv().payload.to_bytes()
+
+    def undeclare(self) -> None:
+        self.sub.undeclare()
 
 
 class ActorLink:
@@ -83,9 +100,9 @@ class ActorLink:
         self.seq = {"frame": 0, "episode": 0, "scale": 0, "status": 0, "request": 0}
         self.token = None
 
-    def weights_subscriber(self):
+    def weights_subscriber(self) -> NewestPayload:
         """A subscriber to the learner's weights that keeps only the newest sample (RingChannel(1))."""
-        return ring_subscriber(self.session, self.keys.weights, 1)
+        return NewestPayload(ring_subscriber(self.session, self.keys.weights, 1))
 
     def announce(self) -> None:
         """Declare this actor's liveliness token."""
