@@ -26,7 +26,6 @@ __all__ = ["Inbound", "HUMAN_COMMANDS"]
 log = logging.getLogger("khgrl.actor")
 
 
-
 class Inbound:
     """Handles the actor's incoming messages and keeps what they tell: the learners alive, paused, and why the
     actor must stop with exit code 2 (a learner of another task, or its stream superseded).
