@@ -14,25 +14,23 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from khgrl.common.delivery.senders import HUMAN_COMMANDS, read_for_actor
 from khgrl.common.delivery.trust import WeightsGate
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.checks import ProtocolError
-from khgrl.common.wire.messages import Ack, Control, Correction, Dims
-from khgrl.common.wire.protocol import Keys, attribute_control, decode
+from khgrl.common.wire.messages import Ack, Control, Dims
+from khgrl.common.wire.protocol import attribute_control
 
-__all__ = ["Inbound"]
+__all__ = ["Inbound", "HUMAN_COMMANDS"]
 
 log = logging.getLogger("khgrl.actor")
-
-_KINDS = {"ack": Ack, "correction": Correction, "control": Control, "human_request": Control}
-HUMAN_COMMANDS = ("pause", "resume")  # what a human-input client may ask the actors (human/<id>/request)
 
 
 class Inbound:
     """Handles the actor's incoming messages and keeps what they tell: the learners alive, paused, and why the
     actor must stop with exit code 2 (a learner of another task, or its stream superseded).
 
-    :param parts: the loop's :class:`~khgrl.actor.loop.ActorParts`.
+    :param parts: the loop's :class:`~khgrl.actor.parts.ActorParts`.
     :param flag: the process's stop flag.
     :param dims: the sizes corrections must have.
     :param gate: the weights gate (default: a new one), installed in ``parts.weights.receiver``.
@@ -69,31 +67,20 @@ class Inbound:
         if kind == "alive":
             self.on_alive(key, payload)
             return
-        try:
-            msg = decode(_KINDS[kind], payload, self.dims)
+        try:  # decoded, and checked against the key it came on (the sender's own)
+            msg = read_for_actor(kind, key, payload, self.dims)
         except ProtocolError as exc:
-            self.p.rejects.reject(kind, key, exc)
+            self.p.rejects.reject(getattr(exc, "kind", kind), key, exc)
             return
         if kind == "ack":
             self._on_ack(msg, key)
         elif kind == "correction":
-            if msg.client != Keys.chunk(key, 3):
-                self.p.rejects.reject("correction", key, ProtocolError(f"client {msg.client!r} published on {key}"))
-                return
             self.p.arbiter.offer(msg, arrival, episode, self.p.env.t)
-        elif kind == "human_request":
-            self._on_human_request(msg, key)
+        elif kind == "human_request":  # a person's pause or resume (e.g. the GUI's space bar), on its own key
+            log.info("%s from human-input client %r", msg.command, msg.envelope.sender)
+            self.paused = msg.command == "pause"
         else:
             self._on_control(msg, key)
-
-    def _on_human_request(self, msg: Control, key: str) -> None:
-        """A person's pause or resume (e.g. the GUI's space bar), on the client's own key."""
-        if msg.command not in HUMAN_COMMANDS or msg.envelope.sender != Keys.chunk(key, 3):
-            why = f"{msg.command!r} from {msg.envelope.sender!r} on {key}: a human client may only pause or resume"
-            self.p.rejects.reject("control", key, ProtocolError(why))
-            return
-        log.info("%s from human-input client %r", msg.command, msg.envelope.sender)
-        self.paused = msg.command == "pause"
 
     def _on_ack(self, msg: Ack, key: str) -> None:
         stream = self.p.stream

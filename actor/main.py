@@ -6,7 +6,8 @@ to the learner without losing or duplicating any.
     khgrl actor --run RUN --connect tcp/HOST:PORT --run-dir DIR --id a0 [any run setting flag]
 
 Wiring, top to bottom: settings -> logging and signals -> world and policy (seeded exactly as single-process
-SB3 seeds them) -> Zenoh session -> the loop's parts (:mod:`khgrl.actor.loop`) -> run -> result files in
+SB3 seeds them) -> Zenoh session (one error line and exit 1 if the router is not reached within ``--connect-timeout``)
+-> the loop's parts (:mod:`khgrl.actor.loop`) -> run -> result files in
 RUN_DIR/actor-ID/ (episodes.csv/json, corrections.csv, summary.json, config.json, scale.npz, tb/).
 With ``--resume`` the actor continues the episode numbering of its earlier part and appends to its files.
 
@@ -27,8 +28,9 @@ from pathlib import Path
 
 from khgrl.actor.arbiter import CorrectionArbiter
 from khgrl.actor.exploration import ExplorationScale
-from khgrl.actor.loop import ActorLoop, ActorParts
+from khgrl.actor.loop import ActorLoop
 from khgrl.actor.pacing import set_realtime
+from khgrl.actor.parts import ActorParts
 from khgrl.actor.record import CorrectionRecord
 from khgrl.actor.results import EpisodeLog
 from khgrl.actor.telemetry import TensorBoard
@@ -152,11 +154,14 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     rc = 1
     t_run = time.perf_counter()
     try:
-        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag), zenoh_config=pc.zenoh_config)
-    except ConnectionError as exc:
+        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag), timeout=cfg.connect_timeout,
+                              zenoh_config=pc.zenoh_config)
+    except ConnectionError as exc:  # stopped while waiting, no router within --connect-timeout, or a bad endpoint
+        if flag:
+            return 0
         log.error("%s", exc)
-        print(f"khgrl actor {actor}: {exc}", file=sys.stderr, flush=True)
-        return 0 if flag else 1
+        print(f"khgrl actor {actor}: error: {exc}", file=sys.stderr, flush=True)
+        return 1
     with session:
         if other := actor_alive(session, Keys(pc.run), actor):
             return _error(actor, f"actor {actor} is already alive on the router ({other}): a second process with "

@@ -8,6 +8,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+from khgrl.common.delivery.actor_side import RateLimitStats
 from khgrl.common.wire.messages import ActorInfo, Frame
 
 __all__ = ["TensorBoard", "RateLimitStats", "status_info", "summary", "frame"]
@@ -62,14 +63,6 @@ class TensorBoard:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
-
-
-class RateLimitStats:
-    """How often and how long the actor waited for the learner (flow control)."""
-
-    def __init__(self) -> None:
-        self.waits = 0
-        self.wait_s = 0.0
 
 
 def frame(env, actor: str, episode: int, info: dict, t: int, intervening: bool, ret: float, last: bool) -> Frame:

@@ -45,7 +45,8 @@ class WeightsReceiver:
     """Drains a RingChannel(1) weights subscriber in a background thread: decodes, validates names and shapes
     against the local actor network, converts to tensors and leaves the newest ready for the control loop.
 
-    :param subscriber: a Zenoh subscriber with a ``handler`` (None: only :meth:`parse` is used).
+    :param subscriber: the newest weights payload
+        (:meth:`~khgrl.common.delivery.actor_link.ActorLink.weights_subscriber`; None: only :meth:`parse` is used).
     :param template: the actor network's tensors by name (their shapes, or tensors: what to expect; the policy's
         :meth:`~khgrl.learner.algorithm.ActorPolicy.weights_template`).
     :param rejects: counts refused weights messages.
@@ -70,13 +71,12 @@ class WeightsReceiver:
         self.thread.start()
 
     def _run(self) -> None:
-        handler = self.sub.handler
         while True:
             try:
-                sample = handler.recv()
+                payload = self.sub.recv()
             except Exception:  # noqa: BLE001 - ZError "channel is empty and closed" after undeclare
                 return
-            self.offer(sample.payload.to_bytes())
+            self.offer(payload)
 
     def parse(self, payload: bytes) -> WeightsUpdate:
         """Decode and check one weights payload (raises :class:`ProtocolError`).

@@ -25,6 +25,7 @@ def sender_main(argv: list[str]) -> int:
     """One sender process: ``ENDPOINT RUN ACTOR N BATCH WINDOW SEED``; prints a JSON line with its times."""
     import numpy as np
     from khgrl.benchmarks.runtime.link import batches
+    from khgrl.common.delivery.declare import alive_now, publisher, subscribe
     from khgrl.common.delivery.transport import Inbox, open_client
     from khgrl.common.wire.messages import Ack
     from khgrl.common.wire.protocol import Keys, ProtocolError, decode, encode
@@ -34,11 +35,9 @@ def sender_main(argv: list[str]) -> int:
     payloads = [_as_actor(p, actor, decode, encode) for p in batches(n, batch, seed)]
     keys, acks = Keys(run), Inbox(maxsize=100_000)
     with open_client(endpoint, timeout=30) as session:
-        import zenoh
-
-        sub = session.declare_subscriber(keys.ack(actor), acks.callback("ack"))
-        pub = session.declare_publisher(keys.transitions(actor), congestion_control=zenoh.CongestionControl.BLOCK)
-        while not any(r.ok for r in session.liveliness().get(keys.learners_alive, timeout=1.0)):
+        sub = subscribe(session, keys.ack(actor), acks.callback("ack"))
+        pub = publisher(session, keys.transitions(actor), congestion="block")
+        while not alive_now(session, keys.learners_alive, timeout=1.0):
             time.sleep(0.2)
         time.sleep(0.5)
         print(json.dumps({"ready": actor}), flush=True)

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from khgrl.common.config.settings import RunConfig, add_config_flags, resolve, write_run_config
+from khgrl.common.delivery.declare import put, subscribe
 from khgrl.common.delivery.task_link import TASK_FILE, save_task
 from khgrl.common.delivery.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
 from khgrl.common.delivery.zenoh_config import config_file
@@ -286,13 +287,10 @@ class Run:
         write_pids(self.plan.run_dir, os.getpid(), {p.name: p.pid for p in self.group.procs})
 
     def _supervise(self, session) -> None:
-        import zenoh
-
-        subs = [session.declare_subscriber(self.keys.episode("*"), self.inbox.callback("episode")),
-                session.declare_subscriber(self.keys.status("learner", "*"), self.inbox.callback("status")),
+        subs = [subscribe(session, self.keys.episode("*"), self.inbox.callback("episode")),
+                subscribe(session, self.keys.status("learner", "*"), self.inbox.callback("status")),
                 # only other sessions' commands: this launcher's own stop never counts as one from elsewhere
-                session.declare_subscriber(self.keys.control("**"), self.inbox.callback("control"),
-                                           allowed_origin=zenoh.Locality.REMOTE)]
+                subscribe(session, self.keys.control("**"), self.inbox.callback("control"), remote_only=True)]
         try:
             with ProgressView(self.cfg.actor_ids(), self.cfg.episodes, self.plan.progress) as view:
                 self._watch(view)
@@ -355,7 +353,7 @@ class Run:
         seq = 0
         for procs, target, until in phases:
             while True:
-                session.put(self.keys.control(target), encode(Control(command="stop"), "launcher", seq))
+                put(session, self.keys.control(target), encode(Control(command="stop"), "launcher", seq))
                 seq += 1
                 left = until - time.monotonic()
                 if self.group.wait_all(max(0.0, min(1.0, left)), procs) or left <= 0:

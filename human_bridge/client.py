@@ -19,6 +19,7 @@ from typing import Iterator
 
 import numpy as np
 from khgrl.common.config.process import ProcessConfig
+from khgrl.common.delivery.declare import publisher, put, subscribe, token
 from khgrl.common.delivery.task_link import fetch_task
 from khgrl.common.delivery.transport import Inbox, open_client, undeclare_all
 from khgrl.common.process import StopFlag
@@ -52,14 +53,12 @@ class CorrectionPublisher:
     """
 
     def __init__(self, session, keys: Keys, client: str) -> None:
-        import zenoh
-
         self.client = client
         self.seq = 0
         self.sent = 0
         self.active: dict[str, bool] = {}  # actor -> whether our last word to it was a hold
-        self._pub = session.declare_publisher(keys.correction(client), congestion_control=zenoh.CongestionControl.BLOCK,
-                                              priority=zenoh.Priority.INTERACTIVE_HIGH, express=True)
+        self._pub = publisher(session, keys.correction(client), congestion="block", priority="interactive_high",
+                              express=True)
 
     def send(self, actor: str, p_h: np.ndarray | None, episode: int = 0, t: int = 0, step: int | None = None) -> None:
         """Hold ``actor``'s desired position at ``p_h`` (2,), or release it (``p_h`` None).
@@ -105,8 +104,6 @@ class HumanClient:
 
     def __init__(self, session, keys: Keys, client: str, flag: StopFlag, actor: str = "*",
                  kinds: tuple[str, ...] = ("frame",)) -> None:
-        import zenoh
-
         self.session, self.keys, self.client, self.flag = session, keys, client, flag
         self.rejects = RejectCounter(f"human/{client}")
         self.frames = 0
@@ -115,12 +112,11 @@ class HumanClient:
         sel = actor or "*"
         topics = {"frame": keys.frame(sel), "scale": keys.scale(sel), "episode": keys.episode(sel),
                   "status": keys.status("actor", sel)}
-        self._decls = [session.declare_subscriber(topics[k], self.inbox.callback(k)) for k in kinds]
-        self._decls += [session.declare_subscriber(keys.control(t), self.controls.callback("control"))
+        self._decls = [subscribe(session, topics[k], self.inbox.callback(k)) for k in kinds]
+        self._decls += [subscribe(session, keys.control(t), self.controls.callback("control"))
                         for t in ("human", "all")]
-        self._decls.append(session.liveliness().declare_token(keys.alive("human", client)))
-        self._status = session.declare_publisher(keys.status("human", client),
-                                                 congestion_control=zenoh.CongestionControl.DROP)
+        self._decls.append(token(session, keys.alive("human", client)))
+        self._status = publisher(session, keys.status("human", client), congestion="drop")
         self._decls.append(self._status)
         self.pub = CorrectionPublisher(session, keys, client)
         self._status_seq = 0
@@ -160,14 +156,11 @@ class HumanClient:
 
     def control_actors(self, command: str) -> None:
         """Ask the actors to ``pause`` or ``resume``, on this client's own ``human/<id>/request``."""
-        import zenoh
-
         if command not in ("pause", "resume"):
             raise ValueError(f"a human-input client may only pause or resume the actors, not {command!r}")
-        self.session.put(self.keys.human_request(self.client),
-                         encode(Control(command=command), self.client, self._control_seq),
-                         congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
-                         express=True)
+        put(self.session, self.keys.human_request(self.client),
+            encode(Control(command=command), self.client, self._control_seq), congestion="block",
+            priority="interactive_high", express=True)
         self._control_seq += 1
 
     def close(self) -> None:
@@ -182,8 +175,8 @@ class HumanClient:
 @contextmanager
 def connected(proc: ProcessConfig, client: str, flag: StopFlag, actor: str = "*",
               kinds: tuple[str, ...] = ("frame",)) -> Iterator[HumanClient]:
-    """A :class:`HumanClient` on a session to the run's router; waits for the router until ``flag`` is set
-    (:class:`ConnectionError` then).
+    """A :class:`HumanClient` on a session to the run's router; waits for the router until ``flag`` is set or for
+    the connect timeout (``--connect-timeout``; :class:`ConnectionError` then, naming the endpoint).
 
     :param proc: the resolved process configuration (run id, endpoint, lease).
     :param client: the client id.
@@ -192,7 +185,7 @@ def connected(proc: ProcessConfig, client: str, flag: StopFlag, actor: str = "*"
     :param kinds: what to subscribe to (see :class:`HumanClient`).
     """
     with open_client(proc.endpoint, proc.cfg.stream.lease_ms, stop=lambda: bool(flag),
-                     zenoh_config=proc.zenoh_config) as session:
+                     timeout=proc.cfg.connect_timeout, zenoh_config=proc.zenoh_config) as session:
         link = HumanClient(session, Keys(proc.run), client, flag, actor, kinds)
         try:
             yield link

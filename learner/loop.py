@@ -1,80 +1,44 @@
-"""The learner's main loop, without Zenoh: messages in, acks / weights / status out through a publisher.
+"""The learner's main loop: training, weights, checkpoints and status; what arrives goes through the delivery layer.
 
-:meth:`LearnerLoop.run` keeps ingest apart from training. Its *ingest thread* takes messages as they arrive
-(served per actor, :class:`~khgrl.common.delivery.ingest.FairInbox`), decodes and checks them, stores accepted batches
-in the
-replay buffer and acks their actors; it never waits for a gradient step. The calling thread trains -- one due
-iteration at a time (``simulation`` mode: the schedule of SB3's ``learn()``; ``robot`` mode: whenever it is
-free, on everything stored) -- publishes the new weights and acks every actor, checkpoints when due or asked
-to (ingest pauses meanwhile), and publishes a status about once a second. Memory stays bounded: the inbox is
-bounded in messages and bytes, each actor has at most its window of batches out, and the replay buffer has
-its capacity.
+:meth:`LearnerLoop.run` keeps ingest apart from training. The ingest thread
+(:class:`~khgrl.common.delivery.learner_side.LearnerIngest`) decodes and checks what arrives, orders it per actor,
+stores accepted batches in the replay buffer (``trainer.add``) and acks their actors; it never waits for a gradient
+step. The calling thread trains -- one due iteration at a time (``simulation`` mode: the schedule of SB3's
+``learn()``; ``robot`` mode: whenever it is free, on everything stored) -- publishes the new weights and acks every
+actor, checkpoints when due or asked to (ingest pauses meanwhile), and publishes a status about once a second.
 
-Unit tests drive the same steps in one thread: :meth:`LearnerLoop.offer` / :meth:`LearnerLoop.control` with
-decoded messages (or :meth:`LearnerLoop.receive` with payload bytes), then :meth:`LearnerLoop.step`, with a
-publisher that collects the typed messages.
+Unit tests drive the same steps in one thread: :meth:`LearnerLoop.offer` / :meth:`LearnerLoop.control` with decoded
+messages (or :meth:`LearnerLoop.receive` with payload bytes), then :meth:`LearnerLoop.step`, with a publisher that
+collects the typed messages.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
 import time
-from collections import Counter
 from pathlib import Path
-from typing import Any, Callable, Protocol
+from typing import Any, Callable
 
-from khgrl.common.delivery.ingest import FairInbox, StreamTable
+from khgrl.common.delivery.ingest import StreamTable
+from khgrl.common.delivery.learner_link import Publisher
+from khgrl.common.delivery.learner_side import IDLE_WAIT_S, LearnerIngest
 from khgrl.common.process import StopFlag
-from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.messages import LearnerInfo
-from khgrl.common.wire.protocol import (
-    ANY_DIMS,
-    Ack,
-    Control,
-    Dims,
-    Keys,
-    ProtocolError,
-    RejectCounter,
-    Status,
-    Transitions,
-    Weights,
-    attribute_control,
-    decode,
-)
+from khgrl.common.wire.protocol import Control, Status
 from khgrl.learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint
 from khgrl.learner.resume import open_learner, rss_mb
 from khgrl.learner.trainer import Trainer
 
-__all__ = ["Publisher", "LearnerLoop", "open_learner", "MAX_DRAIN"]
+__all__ = ["Publisher", "LearnerLoop", "open_learner"]
 
 log = logging.getLogger("khgrl.learner")
 
-MAX_DRAIN = 512  # messages taken per turn before the loop trains / acks / checkpoints
-IDLE_WAIT_S = 0.05  # how long a turn waits for the first message when there is nothing to train
 STATUS_EVERY_S = 1.0
 
 
-class Publisher(Protocol):
-    """Where the loop's messages go (Zenoh in the process, a list in tests)."""
-
-    queries: int  # weights queries answered so far
-
-    def weights(self, msg: Weights) -> None: ...
-
-    def ack(self, msg: Ack) -> None: ...
-
-    def status(self, msg: Status) -> None: ...
-
-
-class _Inbox(Protocol):
-    def get(self, timeout: float = 0.0) -> tuple | None: ...
-
-    def qsize(self) -> int: ...
-
-
 class LearnerLoop:
-    """Stream ordering, training, acks, weights, checkpoints and status of one learner incarnation."""
+    """Training, weights, checkpoints and status of one learner incarnation; receiving, ordering and acks in
+    :attr:`ingest` (:class:`~khgrl.common.delivery.learner_side.LearnerIngest`)."""
 
     def __init__(self, trainer: Trainer, streams: StreamTable, publisher: Publisher, *, learner_id: str,
                  learner_dir: str | Path, checkpoint_every: int, flag: StopFlag,
@@ -99,97 +63,29 @@ class LearnerLoop:
         self.checkpoint_every = int(checkpoint_every)
         self.flag = flag
         self.clock = clock
-        self.rejects = RejectCounter(f"learner/{learner_id}")
-        self.results: Counter = Counter()  # offers by result
         self.paused = False
         self.checkpoint_requested = False
         self.checkpoints = 0
         self.last_ckpt_total = trainer.total
         self.train_time = 0.0
         self.scalar_faults = 0  # training scalars the SB3 logger could not write
-        self.touched: set[str] = set()
-        self.inbox: _Inbox | None = None
-        self.task: TaskDescriptor | None = None  # the run's task: batches of other sizes or tasks are refused
-        self.dims = ANY_DIMS
         self.mode = mode
         trainer.schedule = mode == "simulation"
-        self.lock = threading.RLock()  # streams, counters and acks between the ingest and training threads
-        self.wake = threading.Event()  # set by ingest when there may be something to train
+        self.ingest = ing = LearnerIngest(streams, publisher, store=trainer.add, ack_of=trainer.ack,
+                                          on_control=self.control, learner_id=learner_id, flag=flag)
+        self.receive, self.offer, self.set_task, self.ack_all = ing.receive, ing.offer, ing.set_task, ing.ack_all
+        self.rejects, self.lock, self.wake = ing.rejects, ing.lock, ing.wake
         now = clock()
         self._status_t, self._status_steps = now, trainer.gradient_steps
 
-    # ------------------------------------------------------------------------------------ input
-    def receive(self, kind: str, key: str, payload: bytes) -> None:
-        """One message as it arrived (``kind`` as filed by the inbox); a bad one is counted and logged.
+    @property
+    def inbox(self) -> Any:
+        """The fair inbox the ingest thread takes from (None when driven without one)."""
+        return self.ingest.inbox
 
-        :param kind: 'transitions', 'control' (``control/learner``, ``control/all``) or 'request' (a ``control``
-            message on ``actor/<id>/request``: only ``checkpoint`` from that actor is taken there)
-        :param key: the key expression it arrived on
-        :param payload: its bytes
-        """
-        try:
-            if kind == "request":
-                self.request(decode(Control, payload), key)
-            elif kind == "transitions":
-                msg = decode(Transitions, payload, self.dims)
-                if msg.actor != Keys.chunk(key, 3):
-                    raise ProtocolError(f"actor {msg.actor!r} published on {key}")
-                if self.task is not None and msg.task is not None and msg.task != self.task.digest:
-                    raise ProtocolError(f"actor {msg.actor} runs a task with digest {msg.task}, this learner was built "
-                                        f"for {self.task.name!r} (digest {self.task.digest}): start them with one task")
-                self.offer(msg)
-            else:
-                cmd = decode(Control, payload)
-                attribute_control(cmd, key, log)
-                self.control(cmd)
-        except ProtocolError as exc:
-            self.rejects.reject("control" if kind == "request" else kind, key, exc)
-
-    def request(self, msg: Control, key: str) -> None:
-        """An actor's request on its ``actor/<id>/request``: a ``checkpoint`` from that actor, nothing else (raises
-        :class:`ProtocolError`).
-
-        :param msg: the decoded message
-        :param key: the key it came on
-        """
-        if msg.command != "checkpoint":
-            raise ProtocolError(f"command {msg.command!r} on {key}: an actor may only request a checkpoint")
-        if msg.envelope is not None and msg.envelope.sender != Keys.chunk(key, 3):
-            raise ProtocolError(f"sender {msg.envelope.sender!r} published on {key}")
-        self.control(msg)
-
-    def set_task(self, task) -> None:
-        """The run's task descriptor: transitions are checked against its sizes and digest, acks carry its digest.
-
-        :param task: a :class:`~khgrl.common.wire.descriptor.TaskDescriptor`
-        """
-        self.task = task
-        self.dims = Dims(obs=task.obs_dim, out=task.out_dim)
-
-    def _ack(self, actor: str) -> Ack:
-        ack = self.trainer.ack(self.streams[actor])
-        return ack if self.task is None else ack.replace(task=self.task.digest)
-
-    def offer(self, msg: Transitions) -> str:
-        """A decoded batch: ordered into its actor's stream and, when accepted, stored (with any batches it
-        unblocked). Returns 'accepted', 'duplicate', 'held' or 'superseded'; the actor is acked at the next
-        :meth:`step` (a superseded stream at once, with ``superseded`` set: its process stops).
-
-        :param msg: the batch
-        """
-        with self.lock:
-            res = self.streams.offer(msg)
-            self.results[res.result] += 1
-            if res.result == "superseded":  # a later stream of this actor id was taken: this one is refused
-                self.pub.ack(self._ack(msg.actor).replace(received=-1, durable=-1, trained=0, stream=msg.stream,
-                                                          superseded=True))
-                return res.result
-            for batch in res.ready:
-                self.trainer.add(batch, res.stream, self.streams.positions)
-            self.touched.add(msg.actor)
-        if res.ready:
-            self.wake.set()
-        return res.result
+    @inbox.setter
+    def inbox(self, inbox: Any) -> None:
+        self.ingest.inbox = inbox
 
     def control(self, msg: Control) -> None:
         """A decoded control command: stop, checkpoint, pause or resume training.
@@ -204,22 +100,6 @@ class LearnerLoop:
         elif msg.command in ("pause", "resume"):
             self.paused = msg.command == "pause"
 
-    def drain(self, inbox: _Inbox) -> int:
-        """Take up to :data:`MAX_DRAIN` messages (waiting briefly for the first when there is nothing to train).
-
-        :param inbox: a :class:`khgrl.common.delivery.transport.Inbox` (items ``(kind, key, payload, arrival)``)
-        """
-        n = 0
-        while n < MAX_DRAIN:
-            idle = n == 0 and (not self.trainer.due or self.paused)
-            item = inbox.get(IDLE_WAIT_S if idle else 0.0)
-            if item is None:
-                break
-            kind, key, payload = item[:3]
-            self.receive(kind, key, payload)
-            n += 1
-        return n
-
     # ------------------------------------------------------------------------------------ output
     def start(self) -> None:
         """Publish the current weights (version 0, or the resumed version) and ack every known stream (after a
@@ -227,22 +107,9 @@ class LearnerLoop:
         self.pub.weights(self.trainer.weights())
         self.ack_all()
 
-    def ack_all(self) -> None:
-        """Ack every known actor stream."""
-        with self.lock:
-            for actor in list(self.streams):
-                self.pub.ack(self._ack(actor))
-
-    def ack_touched(self) -> None:
-        """Ack the actors whose batches arrived since the last call."""
-        with self.lock:
-            for actor in sorted(self.touched):
-                self.pub.ack(self._ack(actor))
-            self.touched.clear()
-
     def step(self) -> None:
         """After messages were taken in: ack, then :meth:`work`."""
-        self.ack_touched()
+        self.ingest.ack_touched()
         self.work()
 
     def work(self) -> bool:
@@ -274,7 +141,7 @@ class LearnerLoop:
         self.pub.weights(self.trainer.weights())
         self.ack_all()
         try:
-            self.trainer.record_iteration(dt, self.queue_depth())
+            self.trainer.record_iteration(dt, self.ingest.queue_depth())
         except OSError as exc:  # SB3's scalar files on a full or read-only disk: those scalars are lost, nothing else
             self.scalar_faults += 1
             if self.scalar_faults in (1, 10) or self.scalar_faults % 1000 == 0:
@@ -308,45 +175,29 @@ class LearnerLoop:
         self.ack_all()
         return path
 
-    def queue_depth(self) -> int:
-        """Messages waiting in the inbox (0 when driven without one)."""
-        return self.inbox.qsize() if self.inbox is not None else 0
-
     def info(self) -> LearnerInfo:
         """This learner's status (the rate: gradient steps per second since the previous call)."""
         with self.lock:
-            return self._info()
-
-    def _info(self) -> LearnerInfo:
-        tr, now = self.trainer, self.clock()
-        rate = (tr.gradient_steps - self._status_steps) / max(now - self._status_t, 1e-9)
-        self._status_t, self._status_steps = now, tr.gradient_steps
-        streams = [self.streams[a] for a in self.streams]
-        return LearnerInfo(id=self.id, epoch=tr.epoch, ingested=tr.total, iterations=tr.iterations,
-                           gradient_steps=tr.gradient_steps, grad_steps_per_s=round(rate, 2), version=tr.version,
-                           pending_iterations=len(tr.due), queue_depth=self.queue_depth(),
-                           rejects=self.rejects.by_kind(), paused=self.paused, checkpoints=self.checkpoints,
-                           next_seq={st.actor: st.next_seq for st in streams},
-                           durable={st.actor: st.durable for st in streams},
-                           duplicates={st.actor: st.duplicates for st in streams},
-                           weights_queries=int(self.pub.queries), checkpoint_error=self.saves.error,
-                           checkpoint_failures=self.saves.failures, mode=self.mode, utd=round(tr.utd, 4),
-                           rss_mb=rss_mb(), not_admitted_dropped=int(getattr(self.inbox, "dropped", 0)))
+            tr, now = self.trainer, self.clock()
+            rate = (tr.gradient_steps - self._status_steps) / max(now - self._status_t, 1e-9)
+            self._status_t, self._status_steps = now, tr.gradient_steps
+            return LearnerInfo(id=self.id, epoch=tr.epoch, ingested=tr.total, iterations=tr.iterations,
+                               gradient_steps=tr.gradient_steps, grad_steps_per_s=round(rate, 2), version=tr.version,
+                               pending_iterations=len(tr.due), paused=self.paused, checkpoints=self.checkpoints,
+                               checkpoint_error=self.saves.error, checkpoint_failures=self.saves.failures,
+                               mode=self.mode, utd=round(tr.utd, 4), rss_mb=rss_mb(), **self.ingest.info())
 
     def publish_status(self) -> None:
         """Publish :meth:`info` as this learner's status."""
         self.pub.status(Status(role="learner", info=self.info()))
 
     # ------------------------------------------------------------------------------------ the loop
-    def run(self, inbox: _Inbox) -> None:
+    def run(self, inbox: Any) -> None:
         """Turn until the stop flag is set (SIGINT/SIGTERM or a ``stop`` command). The caller checkpoints last.
 
-        :param inbox: where the Zenoh callbacks file transitions and control messages (served per actor, see
-            :class:`~khgrl.common.delivery.ingest.FairInbox`)
+        :param inbox: where the learner's link files transitions and control messages (the ingest thread's)
         """
-        inbox = self.inbox = FairInbox(inbox, self.streams.__contains__)
-        ingest = threading.Thread(target=self._ingest, args=(inbox,), name="ingest", daemon=True)
-        ingest.start()
+        ingest = self.ingest.start(inbox)
         try:
             while not self.flag:
                 if not self.work():
@@ -356,24 +207,9 @@ class LearnerLoop:
             self.flag.set("stop")
             ingest.join(10.0)
 
-    def _ingest(self, inbox: _Inbox) -> None:
-        """The ingest thread: take in, store and ack what arrives until the stop flag is set."""
-        try:
-            while not self.flag:
-                item = inbox.get(IDLE_WAIT_S)
-                n = 0
-                while item is not None:
-                    self.receive(*item[:3])
-                    n += 1
-                    item = inbox.get(0.0) if n < MAX_DRAIN else None
-                self.ack_touched()
-        except Exception:  # noqa: BLE001 - a bug here must stop the learner, not leave it training on nothing
-            log.exception("ingest thread failed")
-            self.flag.set("ingest thread failed")
-
     def summary(self) -> dict[str, Any]:
         """Totals for the log line at the end."""
         tr = self.trainer
         return {"transitions": tr.total, "iterations": tr.iterations, "gradient_steps": tr.gradient_steps,
                 "train_s": round(self.train_time, 1), "version": tr.version, "rejected": self.rejects.by_kind(),
-                "offers": dict(self.results), "not_admitted_dropped": getattr(self.inbox, "dropped", 0)}
+                "offers": dict(self.ingest.results), "not_admitted_dropped": self.ingest.dropped}

@@ -5,16 +5,16 @@ resumes. See docs/protocol.md for the messages and the flow control.
     khgrl learner --config RUN_DIR/config.json [--resume]
     khgrl learner --run RUN --connect tcp/HOST:PORT --run-dir DIR [--learning-starts N ...]
 
-The parts, in the order a transition meets them: the Zenoh callback files the payload in an inbox
-(:class:`khgrl.common.delivery.transport.Inbox`), :mod:`khgrl.learner.loop` decodes it,
-:mod:`khgrl.common.delivery.ingest` orders it into its
-actor's stream, :mod:`khgrl.learner.trainer` stores it in the replay buffer (:mod:`khgrl.learner.replay`) and trains
-when
-an iteration is due; acks and weights go out through :mod:`khgrl.common.delivery.learner_link`;
-:mod:`khgrl.learner.checkpoint`
-saves and loads everything in ``RUN_DIR/learner/checkpoint`` (or ``CHECKPOINT_DIR/checkpoint`` with
-``--checkpoint-dir``). A checkpoint that fails on a full or unwritable disk is logged, shown in the status and
-retried while training goes on; if the final one fails the learner says so and exits with 1.
+The parts, in the order a transition meets them: the learner's link
+(:class:`~khgrl.common.delivery.learner_link.LearnerLink`: its subscribers, the weights queryable, its liveliness
+token) files the payload in an inbox; the ingest thread (:class:`~khgrl.common.delivery.learner_side.LearnerIngest`)
+decodes and checks it, orders it into its actor's stream (:mod:`khgrl.common.delivery.ingest`) and hands it to
+:mod:`khgrl.learner.trainer`, which stores it in the replay buffer (:mod:`khgrl.learner.replay`);
+:mod:`khgrl.learner.loop` trains when an iteration is due; acks and weights go out through the link's publisher;
+:mod:`khgrl.learner.checkpoint` saves and loads everything in ``RUN_DIR/learner/checkpoint`` (or
+``CHECKPOINT_DIR/checkpoint`` with ``--checkpoint-dir``). A checkpoint that fails on a full or unwritable disk is
+logged, shown in the status and retried while training goes on; if the final one fails the learner says so and exits
+with 1. A router not reached within ``--connect-timeout`` is one error line naming it (exit 1).
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
-from khgrl.common.delivery.task_link import TASK_FILE, TaskAnnouncer, fetch_task, load_task_file, save_task
-from khgrl.common.delivery.transport import Inbox, open_client, undeclare_all
+from khgrl.common.delivery.task_link import TASK_FILE, fetch_task, load_task_file, save_task
+from khgrl.common.delivery.transport import open_client
 from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
 from khgrl.common.wire.protocol import Keys
 from khgrl.learner.algorithm import check_algorithm
@@ -41,10 +41,6 @@ __all__ = ["main", "build_parser"]
 
 log = logging.getLogger("khgrl.learner")
 
-# Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
-# batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
-INBOX_SIZE = 100_000
-INBOX_BYTES = 256 * 2**20  # and at most this much payload (each actor has at most its window of batches out)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -99,7 +95,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     :param resume: continue from the checkpoint
     """
     import torch  # (imported here: --help and flag errors answer at once)
-    from khgrl.common.delivery.learner_link import ZenohPublisher
+    from khgrl.common.delivery.learner_link import LearnerLink
     from khgrl.learner.loop import LearnerLoop
     from khgrl.learner.resume import open_learner
     from khgrl.learner.trainer import torch_device
@@ -119,7 +115,8 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     formats = ("csv", "tensorboard") if cfg.tensorboard else ("csv",)
     log.info("khgrl learner %s: run %s, connecting to %s", learner_id, pc.run, pc.endpoint)
     try:
-        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag), zenoh_config=pc.zenoh_config)
+        session = open_client(pc.endpoint, cfg.stream.lease_ms, stop=lambda: bool(flag), timeout=cfg.connect_timeout,
+                              zenoh_config=pc.zenoh_config)
     except ConnectionError as exc:  # stopped while waiting for the router, or an endpoint Zenoh refuses
         log.info("%s", exc)
         if flag:
@@ -134,32 +131,22 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
                                         task=task, checkpoint_dir=cfg.checkpoint_dir or None, algo=cfg.algo)
         log.info("task %s (O = %d, %d observations, digest %s); epoch %s, learning_starts %d, training on %s",
                  task.name, task.out_dim, task.obs_dim, task.digest, trainer.epoch, trainer.learning_starts, device)
-        announcer = TaskAnnouncer(session, keys, "learner", learner_id, task)
-        pub = ZenohPublisher(session, keys, learner_id)
-        inbox = Inbox(maxsize=INBOX_SIZE, overflow="drop_newest", max_bytes=INBOX_BYTES)
-        subs = [session.declare_subscriber(keys.transitions("*"), inbox.callback("transitions")),
-                session.declare_subscriber(keys.control("learner"), inbox.callback("control")),
-                session.declare_subscriber(keys.control("all"), inbox.callback("control")),
-                session.declare_subscriber(keys.request("*"), inbox.callback("request")),  # actors' checkpoint asks
-                session.declare_queryable(keys.weights, pub.answer)]
-        loop = LearnerLoop(trainer, streams, pub, learner_id=learner_id, learner_dir=learner_dir,
+        link = LearnerLink(session, keys, learner_id, task)
+        loop = LearnerLoop(trainer, streams, link.publisher, learner_id=learner_id, learner_dir=learner_dir,
                            checkpoint_every=cfg.stream.checkpoint_every, flag=flag,
                            checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode)
         loop.set_task(task)
         loop.start()
-        # the token names this incarnation (its epoch): actors take weights only of an epoch whose token is alive
-        token = session.liveliness().declare_token(keys.learner_alive(learner_id, trainer.epoch))
+        link.announce(trainer.epoch)
         print(f"khgrl learner {learner_id} ready (epoch {trainer.epoch}, version {trainer.version}, "
               f"{trainer.total} transitions)", flush=True)
         try:
-            loop.run(inbox)
+            loop.run(link.inbox)
             log.info("stopping (%s): final checkpoint", flag.reason or "stop")
             saved = loop.checkpoint() is not None
         finally:
-            undeclare_all(*subs, token)
-            announcer.undeclare()
-            pub.close()
-    log.info("learner %s done: %s; inbox dropped %s", learner_id, loop.summary(), inbox.dropped)
+            link.close()
+    log.info("learner %s done: %s; inbox dropped %s", learner_id, loop.summary(), link.inbox.dropped)
     return 0 if saved else _final_checkpoint_failed(loop)
 
 

@@ -10,6 +10,7 @@ from typing import Callable
 
 import numpy as np
 from khgrl.benchmarks.runtime.procs import BENCH_ACTOR
+from khgrl.common.delivery.declare import alive_now, publisher, put, subscribe
 from khgrl.common.delivery.transport import Inbox, undeclare_all
 from khgrl.common.tasks.spaces import ACT_DIM, OBS_DIM
 from khgrl.common.wire.messages import Ack, Control, Status, Transitions
@@ -52,17 +53,13 @@ class Link:
     """
 
     def __init__(self, session, run: str) -> None:
-        import zenoh
-
         self.session = session
         self.keys = Keys(run)
         self.acks = Inbox(maxsize=100_000)
         self.status = Inbox(maxsize=100_000)
-        self.decls = [session.declare_subscriber(self.keys.ack(BENCH_ACTOR), self.acks.callback("ack")),
-                      session.declare_subscriber(self.keys.status("learner", "*"), self.status.callback("status"))]
-        self.pub = session.declare_publisher(self.keys.transitions(BENCH_ACTOR),
-                                             congestion_control=zenoh.CongestionControl.BLOCK,
-                                             priority=zenoh.Priority.DATA)
+        self.decls = [subscribe(session, self.keys.ack(BENCH_ACTOR), self.acks.callback("ack")),
+                      subscribe(session, self.keys.status("learner", "*"), self.status.callback("status"))]
+        self.pub = publisher(session, self.keys.transitions(BENCH_ACTOR), congestion="block", priority="data")
         self.decls.append(self.pub)
         self._control_seq = 0
 
@@ -72,8 +69,7 @@ class Link:
         while time.monotonic() < deadline:
             if learner.poll() is not None:
                 raise RuntimeError(f"{learner.name} exited with {learner.poll()}:\n{learner.tail()}")
-            replies = list(self.session.liveliness().get(self.keys.learners_alive, timeout=1.0))
-            if any(r.ok for r in replies):
+            if alive_now(self.session, self.keys.learners_alive, timeout=1.0):
                 time.sleep(0.3)  # let the subscription reach this client through the router
                 return
             time.sleep(0.2)
@@ -81,7 +77,7 @@ class Link:
 
     def control(self, command: str) -> None:
         """Send ``control/learner COMMAND`` (pause, resume, ...)."""
-        self.session.put(self.keys.control("learner"), encode(Control(command=command), "bench", self._control_seq))
+        put(self.session, self.keys.control("learner"), encode(Control(command=command), "bench", self._control_seq))
         self._control_seq += 1
 
     def _drain_acks(self, received: int, wait: float) -> tuple[int, float | None]:

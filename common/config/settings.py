@@ -164,7 +164,8 @@ class RunConfig:
                        roles=(HUMAN,))
     connect: str = _opt("", "join the router at this endpoint (tcp/HOST:PORT) instead of starting one", roles=_LAH)
     port: int = _opt(0, "port of the router khgrl up starts on 127.0.0.1 (0: a free one)", roles=())
-    connect_timeout: float = _opt(15.0, "fail if the router cannot be reached within this many seconds", roles=())
+    connect_timeout: float = _opt(15.0, "fail if the router cannot be reached within this many seconds",
+                                  roles=_LAH)
     rate: float = _opt(0.0, "actor control rate in Hz (0: as fast as flow control allows)", roles=(ACTOR,))
     actor_rt_priority: int = _opt(0, "actors' control loops under SCHED_FIFO at this priority "
                                      "(1-99; needs --rate and root; 0: off)", roles=(ACTOR,))

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import logging
 
+from khgrl.common.delivery.declare import alive_now, alive_subscriber, publisher, put, query, ring_subscriber, token
 from khgrl.common.delivery.transport import Inbox, Rings, undeclare_all
 from khgrl.common.wire.checks import ProtocolError
 from khgrl.common.wire.messages import Ack, Control, Correction, Message
 from khgrl.common.wire.protocol import Keys, RejectCounter, encode
 
-__all__ = ["ActorLink", "actor_alive"]
+__all__ = ["ActorLink", "actor_alive", "NewestPayload"]
 
 log = logging.getLogger("khgrl.actor")
 
@@ -28,14 +29,12 @@ def actor_alive(session, keys: Keys, actor: str, timeout: float = 2.0) -> str | 
     :param actor: the actor id.
     :param timeout: seconds to wait for replies.
     """
-    found = None
     try:
-        for r in session.liveliness().get(keys.alive("actor", actor), timeout=timeout):
-            if r.ok and found is None:
-                found = str(r.ok.key_expr)
+        found = alive_now(session, keys.alive("actor", actor), timeout)
     except Exception as exc:  # noqa: BLE001
         log.warning("liveliness query for actor %s failed: %s", actor, exc)
-    return found
+        return None
+    return found[0] if found else None
 
 
 def _count_oversize(rejects: RejectCounter):
@@ -46,6 +45,23 @@ def _count_oversize(rejects: RejectCounter):
         rejects.reject(kind, key, ProtocolError(f"{size} bytes exceeds the {kind} limit of {limit}"))
 
     return on_oversize
+
+
+class NewestPayload:
+    """A subscriber that keeps only the newest sample (Zenoh's RingChannel(1)), read by a background thread.
+
+    :param subscriber: the ring subscriber
+    """
+
+    def __init__(self, subscriber) -> None:
+        self.sub = subscriber
+
+    def recv(self) -> bytes:
+        """The next payload, waiting for it; raises once the subscriber is undeclared."""
+        return self.sub.handler.recv().payload.to_bytes()
+
+    def undeclare(self) -> None:
+        self.sub.undeclare()
 
 
 class ActorLink:
@@ -59,8 +75,6 @@ class ActorLink:
     """
 
     def __init__(self, session, keys: Keys, actor: str, inbox: Inbox, rejects: RejectCounter | None = None) -> None:
-        import zenoh
-
         self.session = session
         self.keys = keys
         self.actor = actor
@@ -75,45 +89,35 @@ class ActorLink:
                 ("control", keys.control("all"), 16, Control.MAX_BYTES),
                 ("human_request", keys.human_request("*"), 16, Control.MAX_BYTES)):
             self.rings.add(kind, key, capacity, limit)
-        self.subs = [session.liveliness().declare_subscriber(keys.learners_alive, inbox.liveliness_callback("alive"),
-                                                             history=True)]
-        block, drop = zenoh.CongestionControl.BLOCK, zenoh.CongestionControl.DROP
+        self.subs = [alive_subscriber(session, keys.learners_alive, inbox.liveliness_callback("alive"), history=True)]
         self.pubs = {
-            "transitions": session.declare_publisher(keys.transitions(actor), congestion_control=block,
-                                                     priority=zenoh.Priority.DATA),
-            "frame": session.declare_publisher(keys.frame(actor), congestion_control=drop,
-                                               priority=zenoh.Priority.DATA),
-            "episode": session.declare_publisher(keys.episode(actor), congestion_control=block),
-            "scale": session.declare_publisher(keys.scale(actor), congestion_control=block),
-            "status": session.declare_publisher(keys.status("actor", actor), congestion_control=drop,
-                                                priority=zenoh.Priority.DATA_LOW),
+            "transitions": publisher(session, keys.transitions(actor), congestion="block", priority="data"),
+            "frame": publisher(session, keys.frame(actor), congestion="drop", priority="data"),
+            "episode": publisher(session, keys.episode(actor), congestion="block"),
+            "scale": publisher(session, keys.scale(actor), congestion="block"),
+            "status": publisher(session, keys.status("actor", actor), congestion="drop", priority="data_low"),
         }
         self.seq = {"frame": 0, "episode": 0, "scale": 0, "status": 0, "request": 0}
         self.token = None
 
-    def weights_subscriber(self):
+    def weights_subscriber(self) -> NewestPayload:
         """A subscriber to the learner's weights that keeps only the newest sample (RingChannel(1))."""
-        import zenoh
-
-        return self.session.declare_subscriber(self.keys.weights, zenoh.handlers.RingChannel(1))
+        return NewestPayload(ring_subscriber(self.session, self.keys.weights, 1))
 
     def announce(self) -> None:
         """Declare this actor's liveliness token."""
-        self.token = self.session.liveliness().declare_token(self.keys.alive("actor", self.actor))
+        self.token = token(self.session, self.keys.alive("actor", self.actor))
 
     def learners_alive(self, timeout: float = 1.0) -> set[str]:
         """Liveliness keys of the learners alive right now (``alive/learner/<id>/<epoch>``; a liveliness query).
 
         :param timeout: seconds to wait for replies.
         """
-        out: set[str] = set()
         try:
-            for r in self.session.liveliness().get(self.keys.learners_alive, timeout=timeout):
-                if r.ok:
-                    out.add(str(r.ok.key_expr))
+            return set(alive_now(self.session, self.keys.learners_alive, timeout))
         except Exception as exc:  # noqa: BLE001
             log.warning("liveliness query failed: %s", exc)
-        return out
+            return set()
 
     def other_task(self, mine, timeout: float = 1.0) -> str | None:
         """Why a learner alive now cannot train this actor (it was built for another task), or None.
@@ -137,11 +141,10 @@ class ActorLink:
         :param timeout: seconds to wait for replies.
         """
         try:
-            replies = list(self.session.get(self.keys.weights, timeout=timeout))
+            return [payload for _, payload in query(self.session, self.keys.weights, timeout)]
         except Exception as exc:  # noqa: BLE001
             log.warning("weights query failed: %s", exc)
             return []
-        return [r.ok.payload.to_bytes() for r in replies if r.ok]
 
     def publish(self, msg: Message) -> None:
         """Publish a frame, episode report, scale or status, numbered per kind.
@@ -162,8 +165,8 @@ class ActorLink:
     def request_checkpoint(self) -> None:
         """Ask the learner for a checkpoint: a ``control`` ``checkpoint`` on this actor's own ``actor/<id>/request``
         (``control/**`` is the launcher's)."""
-        self.session.put(self.keys.request(self.actor),
-                         encode(Control(command="checkpoint"), self.actor, self.seq["request"]))
+        put(self.session, self.keys.request(self.actor),
+            encode(Control(command="checkpoint"), self.actor, self.seq["request"]))
         self.seq["request"] += 1
 
     def close(self) -> None:

@@ -22,7 +22,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from khgrl.common.wire.protocol import Keys, Transitions
+from khgrl.common.delivery.senders import owner
+from khgrl.common.wire.protocol import Transitions
 
 __all__ = ["ActorStream", "StreamTable", "Offer", "MAX_PENDING", "FairInbox", "PENDING_IDS", "PENDING_PER_ID"]
 
@@ -283,7 +284,7 @@ class FairInbox:
             self.barrier = item
             self.buffered += 1
             return
-        slot = Keys.chunk(item[1], 3)
+        slot = owner(item[1])
         q = self.pending.get(slot)
         if q is not None or (slot not in self.queues and not self.admitted(slot)):
             if (q is None and len(self.pending) >= PENDING_IDS) or (q is not None and len(q) >= PENDING_PER_ID):

@@ -1,19 +1,43 @@
-"""The learner's Zenoh output: weights (published, and answered to queries), per-actor acks and status.
+"""The learner's Zenoh side.
 
-Implements the :class:`khgrl.learner.loop.Publisher` interface over a Zenoh session: each typed message is encoded
-with this learner's id and a per-kind sequence number. The latest weights payload is kept for the weights
-queryable, so a late or restarted actor gets the current network at once.
+* :class:`LearnerLink` -- everything the learner declares: its inbox of transitions, control commands and the
+  actors' checkpoint requests (subscribers filing into a bounded :class:`~khgrl.common.delivery.transport.Inbox`),
+  the weights queryable, its task announcement and its liveliness token (named by its epoch).
+* :class:`ZenohPublisher` -- the :class:`Publisher` the learner loop sends through: weights (published, and
+  answered to queries), per-actor acks and status, each typed message encoded with this learner's id and a
+  per-kind sequence number. The latest weights payload is kept for the weights queryable, so a late or restarted
+  actor gets the current network at once.
 """
 
 from __future__ import annotations
 
 import threading
-from typing import Any
+from typing import Any, Protocol
 
-from khgrl.common.delivery.transport import undeclare_all
+from khgrl.common.delivery.declare import publisher, queryable, subscribe, token
+from khgrl.common.delivery.task_link import TaskAnnouncer
+from khgrl.common.delivery.transport import Inbox, undeclare_all
+from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.protocol import Ack, Keys, Status, Weights, encode
 
-__all__ = ["ZenohPublisher"]
+__all__ = ["Publisher", "ZenohPublisher", "LearnerLink", "INBOX_SIZE", "INBOX_BYTES"]
+
+# Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
+# batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
+INBOX_SIZE = 100_000
+INBOX_BYTES = 256 * 2**20  # and at most this much payload (each actor has at most its window of batches out)
+
+
+class Publisher(Protocol):
+    """Where the learner loop's messages go (Zenoh in the process, a list in tests)."""
+
+    queries: int  # weights queries answered so far
+
+    def weights(self, msg: Weights) -> None: ...
+
+    def ack(self, msg: Ack) -> None: ...
+
+    def status(self, msg: Status) -> None: ...
 
 
 class ZenohPublisher:
@@ -24,15 +48,9 @@ class ZenohPublisher:
         :param keys: the run's key expressions
         :param sender: this learner's id (envelope ``sender``)
         """
-        import zenoh
-
-        self._zenoh = zenoh
         self.session, self.keys, self.sender = session, keys, sender
-        self.weights_pub = session.declare_publisher(keys.weights, congestion_control=zenoh.CongestionControl.BLOCK,
-                                                     priority=zenoh.Priority.DATA)
-        self.status_pub = session.declare_publisher(keys.status("learner", sender),
-                                                    congestion_control=zenoh.CongestionControl.DROP,
-                                                    priority=zenoh.Priority.DATA_LOW)
+        self.weights_pub = publisher(session, keys.weights, congestion="block", priority="data")
+        self.status_pub = publisher(session, keys.status("learner", sender), congestion="drop", priority="data_low")
         self.ack_pubs: dict[str, Any] = {}
         self.seq = {"weights": 0, "ack": 0, "status": 0}
         self.queries = 0
@@ -65,10 +83,8 @@ class ZenohPublisher:
         with self._seq_lock:
             pub = self.ack_pubs.get(msg.actor)
             if pub is None:
-                zenoh = self._zenoh
-                pub = self.ack_pubs[msg.actor] = self.session.declare_publisher(
-                    self.keys.ack(msg.actor), congestion_control=zenoh.CongestionControl.BLOCK,
-                    priority=zenoh.Priority.INTERACTIVE_LOW)
+                pub = self.ack_pubs[msg.actor] = publisher(self.session, self.keys.ack(msg.actor), congestion="block",
+                                                           priority="interactive_low")
         pub.put(self._encode(msg))
 
     def status(self, msg: Status) -> None:
@@ -93,3 +109,40 @@ class ZenohPublisher:
     def close(self) -> None:
         """Undeclare every publisher (best effort, on the way out)."""
         undeclare_all(self.weights_pub, self.status_pub, *self.ack_pubs.values())
+
+
+class LearnerLink:
+    """Everything one learner declares on its session (in the order the protocol expects: the task, subscribers and
+    the weights queryable, then -- :meth:`announce` -- the liveliness token).
+
+    :param session: an open Zenoh session
+    :param keys: the run's key expressions
+    :param learner_id: this learner's id
+    :param task: the run's task descriptor (announced on ``task/learner/<id>``)
+    """
+
+    def __init__(self, session: Any, keys: Keys, learner_id: str, task: TaskDescriptor) -> None:
+        self.session, self.keys, self.id = session, keys, learner_id
+        self.announcer = TaskAnnouncer(session, keys, "learner", learner_id, task)
+        self.publisher = ZenohPublisher(session, keys, learner_id)
+        self.inbox = Inbox(maxsize=INBOX_SIZE, overflow="drop_newest", max_bytes=INBOX_BYTES)
+        cb = self.inbox.callback
+        self.decls = [subscribe(session, keys.transitions("*"), cb("transitions")),
+                      subscribe(session, keys.control("learner"), cb("control")),
+                      subscribe(session, keys.control("all"), cb("control")),
+                      subscribe(session, keys.request("*"), cb("request")),  # the actors' checkpoint requests
+                      queryable(session, keys.weights, self.publisher.answer)]
+
+    def announce(self, epoch: str) -> None:
+        """Declare the liveliness token: it names this incarnation (its epoch), and actors take weights only of an
+        epoch whose token is alive.
+
+        :param epoch: this learner incarnation's epoch
+        """
+        self.decls.append(token(self.session, self.keys.learner_alive(self.id, epoch)))
+
+    def close(self) -> None:
+        """Undeclare everything (best effort, on the way out)."""
+        undeclare_all(*self.decls)
+        self.announcer.undeclare()
+        self.publisher.close()

@@ -79,6 +79,10 @@ def wait_reachable(endpoint: str, timeout: float, stop: Callable[[], bool] = lam
         time.sleep(0.2)
 
 
+class ConnectTimeout(ConnectionError):
+    """No session within the connect timeout."""
+
+
 def _open(conf, stop: Callable[[], bool], timeout: float | None, what: str):
     """``zenoh.open(conf)`` in a helper thread, so that this thread keeps handling signals (a stop request or
     Ctrl-C while Zenoh waits for a router) and can give up after ``timeout`` s."""
@@ -99,8 +103,9 @@ def _open(conf, stop: Callable[[], bool], timeout: float | None, what: str):
     while th.is_alive():
         th.join(0.1)
         if th.is_alive() and (stop() or (deadline is not None and time.monotonic() > deadline)):
-            why = "stopped" if stop() else f"not connected within {timeout:g} s"
-            raise ConnectionError(f"{why} while opening a Zenoh session ({what})")
+            if stop():
+                raise ConnectionError(f"stopped while opening a Zenoh session ({what})")
+            raise ConnectTimeout(f"not connected within {timeout:g} s while opening a Zenoh session ({what})")
     if "error" in box:
         raise ConnectionError(f"could not open a Zenoh session ({what}): {box['error']}")
     return box["session"]
@@ -122,13 +127,24 @@ def _configured(make: Callable, endpoint: str, lease_ms: int, zenoh_config: str 
 def open_client(connect: str, lease_ms: int = 3000, *, stop: Callable[[], bool] = lambda: False,
                 timeout: float | None = None, zenoh_config: str | None = None):
     """A client session to the router at ``connect`` (use it as a context manager). Waits for the router
-    (it may start later) unless ``timeout`` is given; returns early with :class:`ConnectionError` when ``stop()``
-    turns true (e.g. a process's stop flag set by SIGTERM).
+    (it may start later) for ``timeout`` s (None: without end), then raises :class:`ConnectionError` with one line
+    naming the endpoint; returns early with :class:`ConnectionError` when ``stop()`` turns true (e.g. a process's
+    stop flag set by SIGTERM).
 
+    :param connect: the router's endpoint
+    :param lease_ms: the link lease
+    :param stop: polled while waiting
+    :param timeout: seconds to wait for the router (every process: ``--connect-timeout``)
     :param zenoh_config: a Zenoh configuration file (``--zenoh-config``); None: ``$ZENOH_CONFIG`` if set
     """
     conf = _configured(client_config, connect, lease_ms, zenoh_config)
-    return _open(conf, stop, timeout, f"router {connect}")
+    try:
+        return _open(conf, stop, timeout, f"router {connect}")
+    except ConnectTimeout:
+        raise ConnectionError(
+            f"no connection to the Zenoh router at {connect} within {timeout:g} s (--connect-timeout): is a router "
+            f"running there, and does it speak {connect.partition('/')[0]}/ (a tls/ router needs a tls/ endpoint "
+            f"and certificates: --zenoh-config)?") from None
 
 
 def open_router(listen: str, lease_ms: int = 3000, zenoh_config: str | None = None):

@@ -1,0 +1,181 @@
+"""The learner's receiving side: what arrives from the actors, decoded and checked
+(:func:`~khgrl.common.delivery.senders.read_for_learner`), ordered into each actor's stream
+(:class:`~khgrl.common.delivery.ingest.StreamTable`: accepted, duplicate, held or superseded), handed to the trainer
+in order, and acknowledged. :meth:`LearnerIngest.start` runs it on its own *ingest thread*, which takes messages as
+they arrive -- served per actor (:class:`~khgrl.common.delivery.ingest.FairInbox`) -- and never waits for a gradient
+step; the learner loop trains on the calling thread and shares :attr:`LearnerIngest.lock` with it (streams,
+counters and acks), and :attr:`LearnerIngest.wake` tells it that there may be something to train.
+
+Unit tests drive it in one thread: :meth:`LearnerIngest.offer` with decoded batches, or
+:meth:`LearnerIngest.receive` with payload bytes.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from typing import Any, Callable, Protocol
+
+from khgrl.common.delivery.ingest import FairInbox, StreamTable
+from khgrl.common.delivery.learner_link import Publisher
+from khgrl.common.delivery.senders import read_for_learner
+from khgrl.common.wire.checks import ProtocolError, RejectCounter
+from khgrl.common.wire.descriptor import TaskDescriptor
+from khgrl.common.wire.messages import Ack, Control, Dims, Transitions
+from khgrl.common.wire.protocol import ANY_DIMS, attribute_control
+
+__all__ = ["LearnerIngest", "MAX_DRAIN", "IDLE_WAIT_S"]
+
+log = logging.getLogger("khgrl.learner")
+
+MAX_DRAIN = 512  # messages taken in a row before the ingest thread acks what they brought
+IDLE_WAIT_S = 0.05  # how long the ingest thread (and an idle learner loop) waits for something to arrive
+
+
+class _Inbox(Protocol):
+    def get(self, timeout: float = 0.0) -> tuple | None: ...
+
+    def qsize(self) -> int: ...
+
+
+class LearnerIngest:
+    """Decodes, checks, orders, stores (through ``store``) and acks the actors' batches; hands control commands to
+    ``on_control``.
+
+    :param streams: the actor streams (empty, or from a checkpoint)
+    :param publisher: where acks go
+    :param store: called with ``(batch, stream, positions)`` for each batch accepted in order (the trainer's ``add``)
+    :param ack_of: the ack of an actor stream as the trainer sees it (trained, version, epoch)
+    :param on_control: a control command (``stop``, ``checkpoint``, ``pause``, ``resume``)
+    :param learner_id: this learner's id (rejects)
+    :param flag: the process's stop flag (the ingest thread runs until it is set, and sets it if it fails)
+    """
+
+    def __init__(self, streams: StreamTable, publisher: Publisher, *, store: Callable[..., None],
+                 ack_of: Callable[[Any], Ack], on_control: Callable[[Control], None], learner_id: str, flag) -> None:
+        self.streams, self.pub, self.store, self.ack_of, self.on_control = streams, publisher, store, ack_of, on_control
+        self.flag = flag
+        self.rejects = RejectCounter(f"learner/{learner_id}")
+        self.results: Counter = Counter()  # offers by result
+        self.touched: set[str] = set()
+        self.inbox: Any = None
+        self.task: TaskDescriptor | None = None  # the run's task: batches of other sizes or tasks are refused
+        self.dims: Dims = ANY_DIMS
+        self.lock = threading.RLock()  # streams, counters and acks between the ingest and training threads
+        self.wake = threading.Event()  # set when there may be something to train
+
+    def set_task(self, task: TaskDescriptor) -> None:
+        """The run's task descriptor: batches are checked against its sizes and digest, acks carry its digest.
+
+        :param task: the descriptor
+        """
+        self.task = task
+        self.dims = Dims(obs=task.obs_dim, out=task.out_dim)
+
+    # ------------------------------------------------------------------------------------ input
+    def receive(self, kind: str, key: str, payload: bytes) -> None:
+        """One message as it arrived (``kind`` as filed by the inbox); a bad one is counted and logged.
+
+        :param kind: 'transitions', 'control' (``control/learner``, ``control/all``) or 'request' (a ``control``
+            message on ``actor/<id>/request``: only ``checkpoint`` from that actor is taken there)
+        :param key: the key expression it arrived on
+        :param payload: its bytes
+        """
+        try:
+            msg = read_for_learner(kind, key, payload, self.dims, self.task)
+        except ProtocolError as exc:
+            self.rejects.reject("control" if kind == "request" else kind, key, exc)
+            return
+        if isinstance(msg, Transitions):
+            self.offer(msg)
+            return
+        if kind == "control":
+            attribute_control(msg, key, log)
+        self.on_control(msg)
+
+    def offer(self, msg: Transitions) -> str:
+        """A decoded batch: ordered into its actor's stream and, when accepted, stored (with any batches it
+        unblocked). Returns 'accepted', 'duplicate', 'held' or 'superseded'; the actor is acked by the next
+        :meth:`ack_touched` (a superseded stream at once, with ``superseded`` set: its process stops).
+
+        :param msg: the batch
+        """
+        with self.lock:
+            res = self.streams.offer(msg)
+            self.results[res.result] += 1
+            if res.result == "superseded":  # a later stream of this actor id was taken: this one is refused
+                self.pub.ack(self.ack(msg.actor).replace(received=-1, durable=-1, trained=0, stream=msg.stream,
+                                                         superseded=True))
+                return res.result
+            for batch in res.ready:
+                self.store(batch, res.stream, self.streams.positions)
+            self.touched.add(msg.actor)
+        if res.ready:
+            self.wake.set()
+        return res.result
+
+    # ------------------------------------------------------------------------------------ acks
+    def ack(self, actor: str) -> Ack:
+        """The ack of ``actor``'s stream now (with the run's task digest)."""
+        ack = self.ack_of(self.streams[actor])
+        return ack if self.task is None else ack.replace(task=self.task.digest)
+
+    def ack_all(self) -> None:
+        """Ack every known actor stream."""
+        with self.lock:
+            for actor in list(self.streams):
+                self.pub.ack(self.ack(actor))
+
+    def ack_touched(self) -> None:
+        """Ack the actors whose batches arrived since the last call."""
+        with self.lock:
+            for actor in sorted(self.touched):
+                self.pub.ack(self.ack(actor))
+            self.touched.clear()
+
+    # ------------------------------------------------------------------------------------ the ingest thread
+    def start(self, inbox: _Inbox) -> threading.Thread:
+        """Start the ingest thread on ``inbox`` (served per actor); returns it (join it after setting the flag).
+
+        :param inbox: where the Zenoh callbacks file ``(kind, key, payload, arrival)``
+            (:class:`~khgrl.common.delivery.learner_link.LearnerLink`)
+        """
+        fair = self.inbox = FairInbox(inbox, self.streams.__contains__)
+        thread = threading.Thread(target=self._run, args=(fair,), name="ingest", daemon=True)
+        thread.start()
+        return thread
+
+    def _run(self, inbox: _Inbox) -> None:
+        """Take in, store and ack what arrives until the stop flag is set."""
+        try:
+            while not self.flag:
+                item = inbox.get(IDLE_WAIT_S)
+                n = 0
+                while item is not None:
+                    self.receive(*item[:3])
+                    n += 1
+                    item = inbox.get(0.0) if n < MAX_DRAIN else None
+                self.ack_touched()
+        except Exception:  # noqa: BLE001 - a bug here must stop the learner, not leave it training on nothing
+            log.exception("ingest thread failed")
+            self.flag.set("ingest thread failed")
+
+    # ------------------------------------------------------------------------------------ status
+    def queue_depth(self) -> int:
+        """Messages waiting in the inbox (0 when driven without one)."""
+        return self.inbox.qsize() if self.inbox is not None else 0
+
+    @property
+    def dropped(self) -> int:
+        """Messages of actors not yet admitted that the fair inbox dropped."""
+        return int(getattr(self.inbox, "dropped", 0))
+
+    def info(self) -> dict[str, Any]:
+        """The receiving side's part of the learner's status (call with :attr:`lock` held)."""
+        streams = [self.streams[a] for a in self.streams]
+        return dict(queue_depth=self.queue_depth(), rejects=self.rejects.by_kind(),
+                    next_seq={st.actor: st.next_seq for st in streams},
+                    durable={st.actor: st.durable for st in streams},
+                    duplicates={st.actor: st.duplicates for st in streams},
+                    weights_queries=int(self.pub.queries), not_admitted_dropped=self.dropped)
