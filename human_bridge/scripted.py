@@ -1,17 +1,19 @@
 """The scripted human: a reproducible stand-in for a person who drags the robot's desired position.
 
 In the given episodes it asks the task's ``scripted_human`` (:class:`khgrl.common.tasks.api.Task`) for P_h at each
-step's
-KMP mean; optional seeded noise imitates an unsteady hand; None releases. The passage world's
-(:class:`khgrl.common.tasks.passage.task.PassageGuide`) knows a safe path through the gaps (and around the obstacle) --
-the
-scenario's ``human_waypoints`` -- and, over the part of the task where help is needed (the scenario's
-``human_window``, in workspace x), sets P_h on that path at the point the KMP mean has reached in x.
+step: from the step's KMP mean and, if the function asks for them, the step, its phase, the robot's position and
+the environment's observation (:func:`khgrl.common.tasks.api.call_scripted_human`); optional seeded noise
+imitates an unsteady hand; None releases. The passage world's (:class:`khgrl.common.tasks.passage.task.PassageGuide`)
+knows a safe path through the gaps (and around the obstacle) -- the scenario's ``human_waypoints`` -- and, over
+the part of the task where help is needed (the scenario's ``human_window``, in workspace x), sets P_h on that path
+at the point the KMP mean has reached in x.
 
 Its output is a correction P_h or ``None`` (released) per step: exactly what a person's drag produces.
 In one process it is applied with ``PassageEnv.set_correction`` (:class:`HumanCorrectionWrapper`); in the
 distributed system ``khgrl human scripted`` (:func:`run`, :class:`ScriptedAnswers`) publishes it as
-step-addressed correction messages that the actor applies the same way.
+step-addressed correction messages that the actor applies the same way. That client takes the task the actors
+announce (``task/actor/<id>``), not its own ``--task``: started by hand without ``--task`` it still drives the
+run's task, and it refuses with one line a task it cannot load here.
 """
 
 from __future__ import annotations
@@ -25,15 +27,17 @@ import gymnasium as gym
 import numpy as np
 from khgrl.common.config.process import ProcessConfig
 from khgrl.common.config.settings import PAPER_EPISODES
+from khgrl.common.delivery.task_link import fetch_task, fetch_tasks
 from khgrl.common.process import StopFlag, install_stop_handlers
-from khgrl.common.tasks.api import TaskError, load_task
+from khgrl.common.tasks.api import Task, TaskError, load_task, scripted_human_inputs
 from khgrl.common.tasks.passage.scenarios import Scenario, get_scenario
 from khgrl.common.tasks.passage.task import PassageGuide
+from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.protocol import Frame
 from khgrl.human_bridge.client import CorrectionPublisher, connected
 
 __all__ = ["PAPER_EPISODES", "ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper", "ScriptedAnswers",
-           "add_arguments", "run"]
+           "add_arguments", "run", "announced_task"]
 
 
 @dataclass(frozen=True)
@@ -45,17 +49,19 @@ class ScriptedHumanConfig:
 
 
 class ScriptedHuman:
-    """Decides P_h (or None) from what a person watching the screen sees: episode, robot and KMP mean.
+    """Decides P_h (or None) from what a person watching the screen sees: episode, step, robot and KMP mean.
 
-    :param guide: the task's ``scripted_human`` (mean -> P_h or None), or a passage scenario (its name).
+    :param guide: the task's ``scripted_human`` (``mean`` -> P_h or None, and optionally ``step``, ``phase``,
+        ``position``, ``obs``), or a passage scenario (its name).
     :param config: episodes, noise and seed (``window``: the passage world's only).
     """
 
-    def __init__(self, guide: Callable[[np.ndarray], np.ndarray | None] | Scenario | str,
+    def __init__(self, guide: Callable[..., np.ndarray | None] | Scenario | str,
                  config: ScriptedHumanConfig = ScriptedHumanConfig()) -> None:
         if isinstance(guide, (str, Scenario)):
             guide = PassageGuide(get_scenario(guide) if isinstance(guide, str) else guide, config.window)
         self.guide = guide
+        self.inputs = scripted_human_inputs(guide)  # what it asks for besides the mean (from its signature, once)
         self.config = config
         self._rng = np.random.default_rng(config.seed)
 
@@ -66,11 +72,26 @@ class ScriptedHuman:
     def active_in(self, episode: int) -> bool:
         return episode in self.config.episodes
 
-    def correction(self, episode: int, mean: np.ndarray) -> np.ndarray | None:
-        """P_h for this step, or None. ``mean`` is the KMP mean eta0_t at the current step (the red line)."""
+    def correction(self, episode: int, mean: np.ndarray, *, step: int = 0, phase: float | None = None,
+                   position: np.ndarray | None = None, obs: np.ndarray | None = None) -> np.ndarray | None:
+        """P_h for this step, or None.
+
+        :param episode: the episode (1-based).
+        :param mean: the KMP mean eta0_t at the step (the red line).
+        :param step: the step t the correction is for.
+        :param phase: its phase s_t.
+        :param position: where the robot is before the step (None: at the mean).
+        :param obs: the environment's latest observation (None: none yet).
+        """
         if not self.active_in(episode):
             return None
-        p_h = self.guide(np.asarray(mean, dtype=np.float64))
+        mean = np.asarray(mean, dtype=np.float64)
+        if self.inputs:
+            given = {"step": int(step), "phase": phase, "obs": obs,
+                     "position": mean.copy() if position is None else np.asarray(position, dtype=np.float64)}
+            p_h = self.guide(mean, **{n: given[n] for n in self.inputs})
+        else:
+            p_h = self.guide(mean)
         if p_h is None:
             return None
         p_h = np.asarray(p_h, dtype=np.float64).reshape(-1)
@@ -102,7 +123,9 @@ class HumanCorrectionWrapper(gym.Wrapper):
 
     def step(self, action):
         base = self.env.unwrapped
-        p_h = self.human.correction(self.episode, base.mapping.mean(min(base.t, base.horizon - 1)))
+        t = min(base.t, base.horizon - 1)
+        p_h = self.human.correction(self.episode, base.mapping.mean(t), step=t, phase=float(base.mapping.phases[t]),
+                                    position=base.position, obs=getattr(base, "_inner_obs", None))
         base.set_correction(p_h)
         obs, reward, terminated, truncated, info = self.env.step(action)
         if info.get("intervened"):
@@ -125,19 +148,25 @@ class ScriptedAnswers:
     """The scripted client's answer to each frame (lock-step, docs/distributed_runs.md).
 
     The frame describes step t. In a help episode it answers with a step-addressed correction for step t + 1
-    (P_h from the KMP mean there): the actor waits for it, so latency does not shift P_h against the mean.
-    Other episodes: nothing (a hold left over is released). While the episode before a help episode runs, it
-    announces lock-step for that episode with its word for step 0.
+    (P_h from the KMP mean there, the robot and the observation the frame shows): the actor waits for it, so
+    latency does not shift P_h against the mean. Other episodes: nothing (a hold left over is released). While the
+    episode before a help episode runs, it announces lock-step for that episode with its word for step 0 (decided
+    before that episode starts: the robot taken at the mean of step 0, no observation).
 
     :param human: the scripted human that decides P_h.
     :param pub: the correction stream to publish on.
+    :param horizon: N, steps per episode (the phases s_t = t / (N - 1)); None: the phase is not known.
     """
 
-    def __init__(self, human: ScriptedHuman, pub: CorrectionPublisher) -> None:
+    def __init__(self, human: ScriptedHuman, pub: CorrectionPublisher, horizon: int | None = None) -> None:
         self.human = human
         self.pub = pub
+        self.phases = np.linspace(0.0, 1.0, horizon) if horizon and horizon > 1 else None
         self.means: dict[int, np.ndarray] = {}  # step -> KMP mean, from the frames seen (the same every episode)
         self.announced: set[tuple[str, int]] = set()  # (actor, episode) whose lock-step was announced
+
+    def _phase(self, step: int) -> float | None:
+        return float(self.phases[min(step, len(self.phases) - 1)]) if self.phases is not None else None
 
     def frame(self, f: Frame) -> None:
         """Answer one frame.
@@ -147,51 +176,98 @@ class ScriptedAnswers:
         ep, t, actor = f.episode, f.t, f.actor
         self.means.setdefault(t, f.mean)
         if self.human.active_in(ep) and f.next_mean is not None:
-            self.pub.send(actor, self.human.correction(ep, f.next_mean), ep, t, step=t + 1)
+            p_h = self.human.correction(ep, f.next_mean, step=t + 1, phase=self._phase(t + 1), position=f.robot,
+                                        obs=f.obs)
+            self.pub.send(actor, p_h, ep, t, step=t + 1)
         elif self.pub.active.get(actor, False):
             self.pub.send(actor, None, ep, t)
         if self.human.active_in(ep + 1) and (actor, ep + 1) not in self.announced:
             self.announced.add((actor, ep + 1))
-            p0 = self.human.correction(ep + 1, self.means[0]) if 0 in self.means else None
+            p0 = self.human.correction(ep + 1, self.means[0], step=0, phase=self._phase(0)) if 0 in self.means else None
             self.pub.send(actor, p0, ep + 1, t, step=0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The scripted client's own flags (its settings -- scenario, seed, episodes, noise -- are run settings)."""
+    """The scripted client's own flags (its settings -- seed, episodes, noise -- are run settings; the task is the
+    one the actors announce)."""
     parser.add_argument("--actor", default="*", help="actor id to drive (default: %(default)s, every actor)")
     parser.add_argument("--id", default="scripted", help="client id (default: %(default)s)")
 
 
+def announced_task(announced: TaskDescriptor, cfg, say: Callable[[str], None] = print) -> Task:
+    """The task an actor announced, loaded here for its ``scripted_human`` (a function: it does not travel on the
+    wire, the task's spec does). The client's own ``--task``/``--scenario`` only matters where it is the same.
+
+    :param announced: the actor's task descriptor.
+    :param cfg: the client's run settings (``demos``, and ``task_spec`` to compare).
+    :param say: where a note goes when the actor's task differs from this client's settings.
+    :raises TaskError: one line: the task cannot be loaded here, is not the one announced, or has no scripted human.
+    """
+    spec = announced.spec
+    if spec != cfg.task_spec:
+        say(f"khgrl human scripted: the actor runs task {spec!r}; following it (this client's settings said "
+            f"{cfg.task_spec!r})")
+    try:
+        task = load_task(spec, cfg.demos or None)
+    except TaskError as exc:
+        raise TaskError(f"the actor runs task {spec!r}, which this client cannot load: {exc}") from None
+    if task.name != announced.name:
+        raise TaskError(f"the actor runs task {announced.name!r} ({spec!r}); here that spec gives task "
+                        f"{task.name!r}: run this client with the actor's code")
+    if task.scripted_human is None:
+        raise TaskError(f"the actor's task {task.name!r} has no scripted_human: use --human gui or none")
+    return task
+
+
+def _wait_for_task(link, actor: str, flag: StopFlag) -> TaskDescriptor | None:
+    """The task of ``actor`` (``*``: the first actor) as announced, waited for until it is or ``flag`` is set."""
+    said = False
+    while not flag:
+        if actor in ("*", ""):
+            found = fetch_task(link.session, link.keys, "actor", timeout=1.0, stop=lambda: bool(flag))
+        else:
+            found = fetch_tasks(link.session, link.keys, "actor", timeout=1.0, rejects=link.rejects).get(actor)
+        if found is not None:
+            return found
+        if not said:
+            print(f"khgrl human scripted: waiting for actor {actor} to announce the run's task", flush=True)
+            said = True
+        link.publish_status()
+    return None
+
+
 def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
-    """``khgrl human scripted``: corrections along the safe path in the run's ``human_episodes``.
+    """``khgrl human scripted``: corrections from the task's scripted human in the run's ``human_episodes``, for the
+    task the actors announce.
 
     :param args: the parsed command line (:func:`add_arguments`).
-    :param proc: the resolved run settings (run id, endpoint, scenario, seed, human_episodes, human_noise).
+    :param proc: the resolved run settings (run id, endpoint, seed, human_episodes, human_noise).
     """
     cfg = proc.cfg
-    try:
-        task = load_task(cfg.task_spec, cfg.demos or None)
-    except TaskError as exc:
-        print(f"khgrl human scripted: error: {exc}", file=sys.stderr, flush=True)
-        return 2
-    if task.scripted_human is None:
-        print(f"khgrl human scripted: error: task {task.name!r} has no scripted_human: use --human gui or none",
-              file=sys.stderr, flush=True)
-        return 2
-    human = ScriptedHuman(task.scripted_human, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes),
-                                                                   noise=cfg.human_noise, seed=cfg.seed))
     flag = StopFlag()
     install_stop_handlers(flag)
-    print(f"khgrl human scripted ({args.id}) driving actor {args.actor} of run {proc.run} in episodes "
-          f"{list(cfg.human_episodes)}", flush=True)
     try:
         with connected(proc, args.id, flag, args.actor) as link:
-            answers = ScriptedAnswers(human, link.pub)
+            announced = _wait_for_task(link, args.actor, flag)
+            if announced is None:
+                return 0
+            task = announced_task(announced, cfg)
+            human = ScriptedHuman(task.scripted_human, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes),
+                                                                           noise=cfg.human_noise, seed=cfg.seed))
+            print(f"khgrl human scripted ({args.id}) driving actor {args.actor} of run {proc.run}, task "
+                  f"{task.name!r}, in episodes {list(cfg.human_episodes)}", flush=True)
+            answers = ScriptedAnswers(human, link.pub, announced.horizon)
             while not flag:
                 got = link.next(timeout=0.2)
                 if got is not None:
                     answers.frame(got[1])
                 link.publish_status()
+    except TaskError as exc:
+        print(f"khgrl human scripted: error: {exc}", file=sys.stderr, flush=True)
+        return 2
+    except ValueError as exc:  # the task's scripted human gave something that is not a position
+        print(f"khgrl human scripted: error: {exc}", file=sys.stderr, flush=True)
+        return 1
     except ConnectionError as exc:
         if flag:
             return 0
