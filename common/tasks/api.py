@@ -98,7 +98,8 @@ class Task:
 
     :param name: a short name (shown in logs, frames and plots).
     :param make_env: ``make_env(seed) -> gymnasium.Env`` (called once per actor, with the actor's seed).
-    :param demos: (M, N, O) demonstrations or a path to a .npz/.csv file.
+    :param demos: (M, N, O) demonstrations or a path to a .npz/.csv file; None for a task that is always run
+        with ``--demos FILE`` (which replaces this field).
     :param workspace: (low, high) of the box P_t must stay in (a hard constraint; corrections are projected
         onto it).
     :param kmp: GMM/GMR and LC-NS-KMP settings.
@@ -257,6 +258,8 @@ def task_demos(task: Task) -> np.ndarray:
     """The task's demonstrations as checked float64 (M, N, O)."""
     from khgrl.common.tasks.demos import DemoFormatError, load_demos, validate_demos
 
+    if task.demos is None:
+        raise TaskError(f"task {task.name!r} has no demonstrations: Task.demos is None, so give --demos FILE")
     try:
         if isinstance(task.demos, (str, Path)):
             demos = load_demos(task.demos)
