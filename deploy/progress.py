@@ -22,7 +22,7 @@ from khgrl.common.wire.messages import EpisodeReport, LearnerInfo, Status
 __all__ = ["ProgressView", "ActorRow", "episode_line", "checkpoint_line", "plain_table"]
 
 _COLUMNS = ("actor", "episodes", "successes", "last return", "interventions", "human steps", "clipped", "mean |xi_h|")
-_WIDTHS = (5, 8, 9, 7, 13, 6, 9, 6)  # the live table's columns: 63 characters, 2 between them: 77
+_WIDTHS = (5, 9, 9, 7, 13, 6, 9, 6)  # the live table's columns: 64 characters, 2 between them: 78
 
 
 def _stat(stats: dict, name: str) -> float:

@@ -89,20 +89,20 @@ def test_a_scripted_human_started_by_hand_takes_the_actors_task(by_hand):
 @pytest.mark.timeout(400)
 def test_eval_on_a_hand_started_run_and_on_its_actor_folder_uses_the_learned_scale(by_hand, capsys):
     from khgrl.deploy.cli import main as khgrl
+    from khgrl.deploy.evaluate import find_run, read_config
 
     run_dir = by_hand[0]
     assert not (run_dir / "config.json").exists()  # no khgrl up: the settings are the actor's
     scale = read_json(run_dir / "actor-a0" / "scale_model.json")
     assert scale["n_updates"] > 0 and scale["x"], scale  # refitted from the human of episode 2
-    reports = []
-    for target in (run_dir, run_dir / "actor-a0"):
-        rc = khgrl(["eval", str(target), "--episodes", "1", "--csv", str(run_dir / "eval" / f"{target.name}.csv")])
-        out = capsys.readouterr()
-        assert rc == 0, out.err
-        reports.append(out.out)
-    for text in reports:
-        assert "task point-3d" in text and "scale learned by actor-a0" in text and "warning" not in text, text
-    assert reports[0].splitlines()[2:-1] == reports[1].splitlines()[2:-1]  # the same episode, the same scale
+    rc = khgrl(["eval", str(run_dir), "--episodes", "1"])
+    out = capsys.readouterr()
+    assert rc == 0, out.err
+    assert "task point-3d" in out.out and "scale learned by actor-a0" in out.out and "warning" not in out.out, out.out
+    assert (run_dir / "eval" / "eval.csv").is_file()
+    # the actor folder (what a user tried instead) is the same run and actor, its settings the same file
+    assert find_run(run_dir / "actor-a0") == (run_dir, "a0")
+    assert read_config(run_dir, "a0")[2] == run_dir / "actor-a0" / "config.json"
 
 
 # ============================================================================= 9. Fetch is quiet
