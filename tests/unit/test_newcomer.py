@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 from khgrl.common.metrics import EpisodeStats
 from khgrl.common.process import StopFlag
-from khgrl.common.tasks.api import TaskError, call_scripted_human, load_task, scripted_human_inputs
+from khgrl.common.tasks.api import TaskError, load_task
 from khgrl.common.tasks.demos import save_demos
 from khgrl.common.tasks.kgrl_env import KGRLEnv
 from khgrl.common.tasks.world import build_task_world
 from khgrl.common.wire.messages import EpisodeReport, Frame
 from khgrl.common.wire.protocol import ProtocolError, decode, encode
 from khgrl.deploy.examples.own_task import make_task as own_task
-from khgrl.deploy.outcome import Outcome, ending, final_line
+from khgrl.deploy.outcome import Outcome
 from khgrl.deploy.progress import ProgressView
 
 from helpers import REPO, RecordingPublisher
@@ -66,6 +66,8 @@ def test_the_live_table_fits_80_columns_with_every_header_word_whole():
 
 # ---------------------------------------------------------------------------- 2. "interrupted" said
 def test_the_last_line_says_how_the_run_ended():
+    from khgrl.deploy.outcome import ending, final_line
+
     flag = StopFlag()
     assert ending(Outcome(), flag) == "finished"
     assert ending(Outcome(failed=["learner"]), flag) == "failed (learner)"
@@ -134,6 +136,8 @@ def test_a_task_without_demos_runs_with_demos_and_says_so_without(tmp_path):
 
 # ---------------------------------------------------------------- 12. what a scripted human gets
 def test_scripted_human_inputs_are_read_from_its_signature():
+    from khgrl.common.tasks.api import call_scripted_human, scripted_human_inputs
+
     def old(mean):
         return None
 
