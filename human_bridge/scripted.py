@@ -11,9 +11,10 @@ at the point the KMP mean has reached in x.
 Its output is a correction P_h or ``None`` (released) per step: exactly what a person's drag produces.
 In one process it is applied with ``PassageEnv.set_correction`` (:class:`HumanCorrectionWrapper`); in the
 distributed system ``khgrl human scripted`` (:func:`run`, :class:`ScriptedAnswers`) publishes it as
-step-addressed correction messages that the actor applies the same way. That client takes the task the actors
-announce (``task/actor/<id>``), not its own ``--task``: started by hand without ``--task`` it still drives the
-run's task, and it refuses with one line a task it cannot load here.
+step-addressed correction messages that the actor applies the same way. That client drives the task the actors
+run: its own (``--task``, ``--config``) while their frames name it, else the one they announce
+(``task/actor/<id>``): started by hand without ``--task`` it still drives the run's task, and it refuses with one
+line a task it cannot load here.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import gymnasium as gym
 import numpy as np
 from khgrl.common.config.process import ProcessConfig
 from khgrl.common.config.settings import PAPER_EPISODES
-from khgrl.common.delivery.task_link import fetch_task, fetch_tasks
+from khgrl.common.delivery.task_link import fetch_tasks
 from khgrl.common.process import StopFlag, install_stop_handlers
 from khgrl.common.tasks.api import Task, TaskError, load_task, scripted_human_inputs
 from khgrl.common.tasks.passage.scenarios import Scenario, get_scenario
@@ -219,48 +220,77 @@ def announced_task(announced: TaskDescriptor, cfg, say: Callable[[str], None] = 
     return task
 
 
-def _wait_for_task(link, actor: str, flag: StopFlag) -> TaskDescriptor | None:
-    """The task of ``actor`` (``*``: the first actor) as announced, waited for until it is or ``flag`` is set."""
-    said = False
-    while not flag:
-        if actor in ("*", ""):
-            found = fetch_task(link.session, link.keys, "actor", timeout=1.0, stop=lambda: bool(flag))
-        else:
-            found = fetch_tasks(link.session, link.keys, "actor", timeout=1.0, rejects=link.rejects).get(actor)
-        if found is not None:
-            return found
-        if not said:
-            print(f"khgrl human scripted: waiting for actor {actor} to announce the run's task", flush=True)
-            said = True
-        link.publish_status()
-    return None
+def _human(task: Task, cfg) -> ScriptedHuman:
+    """The scripted human of ``task`` with the run's episodes, noise and seed."""
+    return ScriptedHuman(task.scripted_human, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes),
+                                                                  noise=cfg.human_noise, seed=cfg.seed))
+
+
+def _horizon(task: Task, human: ScriptedHuman) -> int | None:
+    """N (steps per episode, the demonstrations' length) where the scripted human asks for the phase."""
+    from khgrl.common.tasks.api import task_demos
+
+    return int(task_demos(task).shape[1]) if "phase" in human.inputs else None
+
+
+class _Follower:
+    """The answers for the task the actors run: this client's own task (``--task``, ``--config``) while the frames
+    name it, else -- at the first frame of another task -- the task its actor announces (:func:`announced_task`).
+    A frame names its task, so a client whose task is the run's answers from the first frame on, exactly as
+    before; one started by hand without ``--task`` switches at the first frame.
+
+    :param task: this client's own task.
+    :param cfg: the run settings.
+    :param link: the client's :class:`~khgrl.human_bridge.client.HumanClient`.
+    """
+
+    def __init__(self, task: Task, cfg, link) -> None:
+        self.cfg, self.link, self.task = cfg, link, task
+        human = _human(task, cfg)
+        self.answers = ScriptedAnswers(human, link.pub, _horizon(task, human))
+
+    def frame(self, f: Frame) -> None:
+        if f.task != self.task.name:
+            self._follow(f.actor)
+        self.answers.frame(f)
+
+    def _follow(self, actor: str) -> None:
+        announced = fetch_tasks(self.link.session, self.link.keys, "actor", timeout=5.0,
+                                rejects=self.link.rejects).get(actor)
+        if announced is None:
+            raise TaskError(f"actor {actor} runs a task other than {self.task.name!r} and does not say which")
+        task = announced_task(announced, self.cfg)
+        human = _human(task, self.cfg)
+        self.task, self.answers = task, ScriptedAnswers(human, self.link.pub, announced.horizon)
+        print(f"khgrl human scripted: now driving task {task.name!r}", flush=True)
 
 
 def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
     """``khgrl human scripted``: corrections from the task's scripted human in the run's ``human_episodes``, for the
-    task the actors announce.
+    task the actors run (its own, or the one they announce: :class:`_Follower`).
 
     :param args: the parsed command line (:func:`add_arguments`).
-    :param proc: the resolved run settings (run id, endpoint, seed, human_episodes, human_noise).
+    :param proc: the resolved run settings (run id, endpoint, task, seed, human_episodes, human_noise).
     """
     cfg = proc.cfg
+    try:
+        task = load_task(cfg.task_spec, cfg.demos or None)
+        if task.scripted_human is None:
+            raise TaskError(f"task {task.name!r} has no scripted_human: use --human gui or none")
+    except TaskError as exc:
+        print(f"khgrl human scripted: error: {exc}", file=sys.stderr, flush=True)
+        return 2
     flag = StopFlag()
     install_stop_handlers(flag)
+    print(f"khgrl human scripted ({args.id}) driving actor {args.actor} of run {proc.run} in episodes "
+          f"{list(cfg.human_episodes)} (task {task.name!r}, or the one the actors announce)", flush=True)
     try:
         with connected(proc, args.id, flag, args.actor) as link:
-            announced = _wait_for_task(link, args.actor, flag)
-            if announced is None:
-                return 0
-            task = announced_task(announced, cfg)
-            human = ScriptedHuman(task.scripted_human, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes),
-                                                                           noise=cfg.human_noise, seed=cfg.seed))
-            print(f"khgrl human scripted ({args.id}) driving actor {args.actor} of run {proc.run}, task "
-                  f"{task.name!r}, in episodes {list(cfg.human_episodes)}", flush=True)
-            answers = ScriptedAnswers(human, link.pub, announced.horizon)
+            follower = _Follower(task, cfg, link)
             while not flag:
                 got = link.next(timeout=0.2)
                 if got is not None:
-                    answers.frame(got[1])
+                    follower.frame(got[1])
                 link.publish_status()
     except TaskError as exc:
         print(f"khgrl human scripted: error: {exc}", file=sys.stderr, flush=True)
