@@ -1,17 +1,15 @@
 """``khgrl eval RUN_DIR``: how well a trained policy does on its own -- deterministic episodes, no human, no
 learning.
 
-``RUN_DIR`` is any run directory with a learner checkpoint and an actor folder -- one of ``khgrl up`` or one whose
-processes were started by hand with the same ``--run-dir`` -- or that actor folder itself (``RUN_DIR/actor-a0``).
-The run's settings (the task: ``--task``, ``--demos``; the network) come from ``RUN_DIR/config.json`` (written by
-``khgrl up``), else from the actor's ``RUN_DIR/actor-ID/config.json`` (every actor writes it when it ends); the
-learner's checkpoint (``RUN_DIR/learner/checkpoint``) holds the policy; the actor's ``scale_model.json`` holds the
-exploration scale L it learned (KhGRL), with which the policy's actions were trained -- without it L is the task's
-L0, and a run that should have learned one gets a warning line. Each episode
-is reset with ``seed + i``; the policy acts deterministically (the mean action). Output: a per-episode table
-and success rate / return mean ± std on stdout, a CSV (``RUN_DIR/eval/eval.csv`` by default; an existing file is
-never overwritten: ``eval-2.csv``, ...), and with ``--gif`` an animation of the first episode drawn with
-:mod:`khgrl.common.tasks.render`. A missing or unusable run directory, checkpoint or task is one line and exit 2.
+``RUN_DIR``: any run directory with a learner checkpoint and an actor folder (``khgrl up``'s, or processes started
+by hand with one ``--run-dir``), or that actor folder (``RUN_DIR/actor-a0``). The settings (task, ``--demos``,
+network) come from ``RUN_DIR/config.json`` (``khgrl up``), else the actor's ``actor-ID/config.json`` (written when
+it ends); the policy from the learner's checkpoint; the exploration scale L from the actor's ``scale_model.json``
+(KhGRL: the L the policy was trained with; missing, L0 and a warning line). Each episode is reset with ``seed + i``;
+the policy acts deterministically (the mean action). Output: a per-episode table and success rate / return mean ±
+std on stdout, a CSV (``RUN_DIR/eval/eval.csv`` by default; never overwritten: ``eval-2.csv``, ...), and with
+``--gif`` an animation of the first episode (:mod:`khgrl.common.tasks.render`). A missing or unusable run
+directory, checkpoint or task is one line and exit 2.
 """
 
 from __future__ import annotations
@@ -330,8 +328,7 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
 
 
 def _scale_warning(cfg: Any, task: Any, scale_model: Any, actor_dir: Path) -> str:
-    """A KhGRL run whose task learns its scale, evaluated without the actor's scale model: say so plainly (the
-    policy's actions were trained under the learned L, paper Section III-C). (A model never refitted is L0 itself.)"""
+    """The line saying a KhGRL run is evaluated without its learned scale (its policy trained under it, III-C)."""
     if cfg.method != "khgrl" or not task.learn_scale or scale_model is not None:
         return ""
     return (f"warning: {actor_dir / 'scale_model.json'} is missing: evaluating with the task's default scale L0, not "
@@ -346,8 +343,9 @@ def report(ev: Evaluation) -> str:
     :param ev: the evaluation.
     """
     trained = ", ".join(f"{k} {v}" for k, v in ev.trained.items()) or "no state.json"
+    source = f"; settings from {ev.settings}" if ev.settings and ev.settings.parent.name.startswith("actor-") else ""
     lines = [ev.warning] if ev.warning else []
-    lines += [f"task {ev.task} ({ev.spec}); checkpoint {ev.checkpoint} ({trained}); scale {ev.scale}",
+    lines += [f"task {ev.task} ({ev.spec}){source}; checkpoint {ev.checkpoint} ({trained}); scale {ev.scale}",
              f"{'episode':>7} {'seed':>6} {'steps':>6} {'return':>10} {'env':>10} {'r_a':>9}  success"]
     for e in ev.episodes:
         lines.append(f"{e.episode:>7} {e.seed:>6} {e.steps:>6} {e.ret:>10.2f} {e.env_return:>10.2f} "
