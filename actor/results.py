@@ -1,5 +1,7 @@
 """The actor's result files in RUN_DIR/actor-ID/: ``episodes.csv`` and ``episodes.json`` (a row per finished
 episode, written as it finishes, so a killed actor keeps its history), ``config.json`` and ``summary.json``.
+The columns of ``episodes.csv`` (:class:`khgrl.common.metrics.EpisodeStats`) are documented in the README,
+section "episodes.csv" (tests/unit/test_newcomer_fixes.py checks that every column is).
 
 With ``--resume`` (or when it continues the stream of a killed process, :mod:`khgrl.common.delivery.restart`) the actor
 continues an earlier part of the run: its episodes are read back, numbering continues after the last one, and

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 from khgrl.common.delivery.actor_side import RateLimitStats
+from khgrl.common.wire.descriptor import MAX_DIM
 from khgrl.common.wire.messages import ActorInfo, Frame
 
 __all__ = ["TensorBoard", "RateLimitStats", "status_info", "summary", "frame"]
@@ -82,7 +83,17 @@ def frame(env, actor: str, episode: int, info: dict, t: int, intervening: bool, 
                  mean=np.asarray(env.mapping.mean(t), np.float64), scale=np.asarray(info["scale"], np.float64),
                  intervening=intervening, task=env.task.name, ret=float(ret),
                  next_mean=np.asarray(env.mapping.mean(t + 1), np.float64) if t + 1 < env.horizon else None,
-                 last=True if last else None)
+                 last=True if last else None, obs=_frame_obs(getattr(env, "_inner_obs", None)))
+
+
+def _frame_obs(obs) -> np.ndarray | None:
+    """The task environment's observation for a frame: a flat vector of at most 4 * MAX_DIM finite numbers, or None
+    (a dict observation, or one too large or not finite, is left out)."""
+    try:
+        arr = np.asarray(obs, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return None
+    return arr if 1 <= arr.size <= 4 * MAX_DIM and np.all(np.isfinite(arr)) else None
 
 
 def _ms(periods: np.ndarray, q: float) -> float | None:

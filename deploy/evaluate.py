@@ -1,13 +1,15 @@
 """``khgrl eval RUN_DIR``: how well a trained policy does on its own -- deterministic episodes, no human, no
 learning.
 
-The run's ``config.json`` names the task (``--task``, ``--demos``) and the network; the learner's checkpoint
-(``RUN_DIR/learner/checkpoint``) holds the policy; an actor's ``scale_model.json`` holds the exploration scale L
-it learned (KhGRL), with which the policy's actions were trained -- without it L is the task's L0. Each episode
-is reset with ``seed + i``; the policy acts deterministically (the mean action). Output: a per-episode table
-and success rate / return mean ± std on stdout, a CSV (``RUN_DIR/eval/eval.csv`` by default; an existing file is
-never overwritten: ``eval-2.csv``, ...), and with ``--gif`` an animation of the first episode drawn with
-:mod:`khgrl.common.tasks.render`. A missing or unusable run directory, checkpoint or task is one line and exit 2.
+``RUN_DIR``: any run directory with a learner checkpoint and an actor folder (``khgrl up``'s, or processes started
+by hand with one ``--run-dir``), or that actor folder (``RUN_DIR/actor-a0``). The settings (task, ``--demos``,
+network) come from ``RUN_DIR/config.json`` (``khgrl up``), else the actor's ``actor-ID/config.json`` (written when
+it ends); the policy from the learner's checkpoint; the exploration scale L from the actor's ``scale_model.json``
+(KhGRL: the L the policy was trained with; missing, L0 and a warning line). Each episode is reset with ``seed + i``;
+the policy acts deterministically (the mean action). Output: a per-episode table and success rate / return mean ±
+std on stdout, a CSV (``RUN_DIR/eval/eval.csv`` by default; never overwritten: ``eval-2.csv``, ...), and with
+``--gif`` an animation of the first episode (:mod:`khgrl.common.tasks.render`). A missing or unusable run
+directory, checkpoint or task is one line and exit 2.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["EvalError", "EpisodeResult", "Evaluation", "evaluate", "add_parser", "free_path", "report"]
+__all__ = ["EvalError", "EpisodeResult", "Evaluation", "evaluate", "add_parser", "free_path", "report", "find_run"]
 
 GIF_MAX_FRAMES = 100  # the first episode is subsampled to about this many frames (~16 kB each)
 
@@ -59,6 +61,8 @@ class Evaluation:
     csv: Path | None = None
     gif: Path | None = None
     gif_frames: int = 0
+    settings: Path | None = None  # the config.json the run's settings came from
+    warning: str = ""  # e.g. a KhGRL run evaluated without its learned scale
 
     @property
     def success_rate(self) -> float:
@@ -83,21 +87,42 @@ def free_path(path: Path) -> Path:
     return candidate
 
 
-def read_config(run_dir: Path) -> tuple[Any, dict]:
-    """The run's settings and runtime facts from ``RUN_DIR/config.json``.
+def find_run(path: str | Path, actor: str | None = None) -> tuple[Path, str]:
+    """(run directory, actor id) of what ``khgrl eval`` was given: a run directory, or an actor folder in one
+    (``RUN_DIR/actor-ID``: its parent and that actor, unless ``actor`` names another).
+
+    :param path: ``RUN_DIR`` or ``RUN_DIR/actor-ID``.
+    :param actor: the actor asked for (None: ``a0``, or the folder's).
+    """
+    p = Path(path)
+    is_actor_dir = p.name.startswith("actor-") and any((p / f).is_file() for f in ("config.json", "episodes.csv"))
+    if is_actor_dir and not (p / "learner").is_dir():
+        return p.parent, actor or p.name[len("actor-"):]
+    return p, actor or "a0"
+
+
+def read_config(run_dir: Path, actor: str = "a0") -> tuple[Any, dict, Path]:
+    """The run's settings and runtime facts: from ``RUN_DIR/config.json`` (``khgrl up``), else from the actor's
+    ``RUN_DIR/actor-ID/config.json`` (processes started by hand; that actor's, else any actor's), and the file.
 
     :param run_dir: the run directory.
+    :param actor: the actor whose file is preferred.
     :raises EvalError: no such file, or it does not parse.
     """
     from khgrl.common.config.settings import read_run_file
 
-    path = Path(run_dir) / "config.json"
-    if not path.is_file():
-        raise EvalError(f"{run_dir}: no config.json (not a run directory of khgrl up)")
+    run_dir = Path(run_dir)
+    candidates = [run_dir / "config.json", run_dir / f"actor-{actor}" / "config.json",
+                  *sorted(run_dir.glob("actor-*/config.json"))]
+    path = next((c for c in candidates if c.is_file()), None)
+    if path is None:
+        raise EvalError(f"{run_dir}: no config.json there nor in an actor folder (khgrl up writes RUN_DIR/config.json, "
+                        f"an actor RUN_DIR/actor-ID/config.json when it ends): nothing says which task the run had")
     try:
-        return read_run_file(path)
+        cfg, runtime = read_run_file(path)
     except (ValueError, OSError) as exc:
         raise EvalError(f"{path}: {exc}") from None
+    return cfg, runtime, path
 
 
 def find_model(run_dir: Path, checkpoint: str | Path | None) -> Path:
@@ -246,16 +271,17 @@ def _write_csv(path: Path, episodes: list[EpisodeResult]) -> None:
 
 
 def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes: int = 10, seed: int | None = None,
-             gif: str | Path | None = None, csv_path: str | Path | None = None, actor: str = "a0") -> Evaluation:
+             gif: str | Path | None = None, csv_path: str | Path | None = None,
+             actor: str | None = None) -> Evaluation:
     """Evaluate a run's policy (see the module docstring).
 
-    :param run_dir: the run directory of ``khgrl up``.
+    :param run_dir: the run directory (or an actor folder in it: :func:`find_run`).
     :param checkpoint: a checkpoint directory or model.zip (None: the run's learner checkpoint).
     :param episodes: episodes to run.
     :param seed: seed of the first episode's reset (episode i: seed + i - 1; None: the run's seed).
     :param gif: write an animation of the first episode here (None: none).
     :param csv_path: the CSV of the episodes (None: RUN_DIR/eval/eval.csv); an existing file is not overwritten.
-    :param actor: the actor whose learned exploration scale is used.
+    :param actor: the actor whose learned exploration scale is used (None: a0, or the actor folder's).
     :raises EvalError: one line saying what is missing.
     """
     import torch
@@ -263,10 +289,10 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     from khgrl.common.tasks.kgrl_env import KGRLEnv
     from khgrl.common.tasks.world import build_task_world
 
-    run_dir = Path(run_dir)
     if episodes < 1:
         raise EvalError("--episodes must be >= 1")
-    cfg, runtime = read_config(run_dir)
+    run_dir, actor = find_run(run_dir, actor)
+    cfg, runtime, settings = read_config(run_dir, actor)
     model_zip = find_model(run_dir, checkpoint)
     task, spec = load_run_task(cfg, runtime.get("cwd"))
     seed = cfg.seed if seed is None else int(seed)
@@ -279,7 +305,8 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
         raise EvalError(str(exc)) from None
     policy = load_policy(model_zip, env, cfg.tqc, _checkpoint_algo(model_zip, cfg))
     result = Evaluation(task=task.name, spec=spec, checkpoint=model_zip.parent, trained=_trained(model_zip),
-                        scale=scale_text, episodes=[])
+                        scale=scale_text, episodes=[], settings=settings,
+                        warning=_scale_warning(cfg, task, scale_model, run_dir / f"actor-{actor}"))
     from khgrl.deploy.gif import GifRecorder
 
     recorder = GifRecorder(env, every=-(-env.horizon // GIF_MAX_FRAMES)) if gif else None
@@ -295,6 +322,15 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     return result
 
 
+def _scale_warning(cfg: Any, task: Any, scale_model: Any, actor_dir: Path) -> str:
+    """The line saying a KhGRL run is evaluated without its learned scale (its policy trained under it, III-C)."""
+    if cfg.method != "khgrl" or not task.learn_scale or scale_model is not None:
+        return ""
+    return (f"warning: {actor_dir / 'scale_model.json'} is missing: evaluating with the task's default scale L0, not "
+            f"the scale this KhGRL run learned from the human (give the run directory, or the actor folder, of the "
+            f"actor whose scale to use: --actor ID)")
+
+
 # ------------------------------------------------------------------------------------ command
 def report(ev: Evaluation) -> str:
     """The text ``khgrl eval`` prints: the inputs, one line per episode, the summary and the files.
@@ -302,7 +338,9 @@ def report(ev: Evaluation) -> str:
     :param ev: the evaluation.
     """
     trained = ", ".join(f"{k} {v}" for k, v in ev.trained.items()) or "no state.json"
-    lines = [f"task {ev.task} ({ev.spec}); checkpoint {ev.checkpoint} ({trained}); scale {ev.scale}",
+    source = f"; settings from {ev.settings}" if ev.settings and ev.settings.parent.name.startswith("actor-") else ""
+    lines = [ev.warning] if ev.warning else []
+    lines += [f"task {ev.task} ({ev.spec}){source}; checkpoint {ev.checkpoint} ({trained}); scale {ev.scale}",
              f"{'episode':>7} {'seed':>6} {'steps':>6} {'return':>10} {'env':>10} {'r_a':>9}  success"]
     for e in ev.episodes:
         lines.append(f"{e.episode:>7} {e.seed:>6} {e.steps:>6} {e.ret:>10.2f} {e.env_return:>10.2f} "
@@ -337,7 +375,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     """
     p = sub.add_parser("eval", help="run a trained policy deterministically (no human, no learning): success "
                                     "rate, returns, CSV, GIF")
-    p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory of khgrl up (reads its config.json)")
+    p.add_argument("run_dir", metavar="RUN_DIR",
+                   help="a run directory with a learner checkpoint and an actor folder (khgrl up's, or processes "
+                        "started by hand with one --run-dir), or its actor folder RUN_DIR/actor-ID")
     p.add_argument("--checkpoint", default=None, metavar="PATH",
                    help="a learner checkpoint directory or model.zip (default: RUN_DIR/learner/checkpoint)")
     p.add_argument("--episodes", type=int, default=10, help="episodes (default: %(default)s)")
@@ -346,8 +386,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--gif", default=None, metavar="FILE", help="animate episode 1 into this GIF (default: none)")
     p.add_argument("--csv", default=None, metavar="FILE",
                    help="per-episode results (default: RUN_DIR/eval/eval.csv; never overwritten: eval-2.csv, ...)")
-    p.add_argument("--actor", default="a0", metavar="ID",
-                   help="use the exploration scale this actor learned (default: %(default)s)")
+    p.add_argument("--actor", default=None, metavar="ID",
+                   help="use the exploration scale this actor learned (default: a0, or the actor folder's)")
     p.set_defaults(func=_cmd_eval)
     return p
 

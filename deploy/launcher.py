@@ -34,7 +34,7 @@ from khgrl.common.delivery.zenoh_config import config_file
 from khgrl.common.process import StopFlag, install_stop_handlers
 from khgrl.common.wire.messages import Control, EpisodeReport, Status
 from khgrl.common.wire.protocol import Keys, ProtocolError, RejectCounter, decode, encode
-from khgrl.deploy.outcome import Outcome, exit_code, report_failures, write_summary
+from khgrl.deploy.outcome import Outcome, ending, exit_code, final_line, report_failures, write_summary
 from khgrl.deploy.progress import ProgressView
 from khgrl.deploy.rundir import (
     RunDirError,
@@ -71,7 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     again.add_argument("--overwrite", action="store_true",
                        help="delete an earlier run in RUN_DIR first (default: off: such a directory is refused)")
     p.add_argument("--progress", action=argparse.BooleanOptionalAction, default=True,
-                   help="live progress table; --no-progress: one line per episode (default: on)")
+                   help="live progress table on a terminal (stdout elsewhere, e.g. a file: a line per episode and "
+                        "the table at the end); --no-progress: a line per episode only (default: on)")
     net = p.add_mutually_exclusive_group()
     net.add_argument("--secure", action="store_true",
                      help="mutual TLS and access control per process: a CA and a certificate for each process are "
@@ -385,10 +386,10 @@ def main(argv: list[str] | None = None) -> int:
     with ProcessGroup(plan.run_dir / "logs") as group:
         out = Run(plan, group, flag).execute()
         wall = time.monotonic() - t0
-        write_summary(plan, group, out, wall, bool(flag))
+        write_summary(plan, group, out, wall, bool(flag), ending(out, flag))
         report_failures(group, out)
     codes = {p.name: p.returncode for p in group.procs}
-    print(f"khgrl up: finished in {wall:.0f} s; exit codes {codes}; results in {plan.run_dir}", flush=True)
+    print(final_line(out, flag, wall, codes, plan.run_dir), flush=True)
     return exit_code(out, flag)
 
 

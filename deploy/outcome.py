@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from khgrl.common.process import StopFlag
 from khgrl.deploy.supervisor import ProcessGroup
 
-__all__ = ["Outcome", "write_summary", "report_failures", "exit_code"]
+__all__ = ["Outcome", "write_summary", "report_failures", "exit_code", "ending", "final_line"]
 
 
 @dataclass
@@ -22,16 +22,48 @@ class Outcome:
     rejects: dict = field(default_factory=dict)
 
 
-def write_summary(plan, group: ProcessGroup, out: Outcome, wall: float, interrupted: bool) -> dict:
-    """``RUN_DIR/summary.json``: exit codes, failures, wall time and each actor's own summary.
+def ending(out: Outcome, flag: StopFlag) -> str:
+    """How the run ended, in words: ``interrupted (SIGINT)``, ``failed (learner)``, ``timed out``, ``stopped from
+    elsewhere``, ``ended with an error`` or ``finished``.
+
+    :param out: how the run ended
+    :param flag: the launcher's stop flag (set by SIGINT/SIGTERM)
+    """
+    if flag:
+        return f"interrupted ({flag.reason})" if flag.reason else "interrupted"
+    if out.failed == ["timeout"]:
+        return "timed out"
+    if out.failed:
+        return f"failed ({', '.join(n for n in out.failed if n != 'timeout')})"
+    if out.stopped_by:
+        return "stopped from elsewhere"
+    return "ended with an error" if out.error else "finished"
+
+
+def final_line(out: Outcome, flag: StopFlag, wall: float, codes: dict, run_dir) -> str:
+    """The last line of ``khgrl up``: how the run ended, after how long, the exit codes and where the results are.
+
+    :param out: how the run ended
+    :param flag: the launcher's stop flag
+    :param wall: wall time in seconds
+    :param codes: exit code by process name
+    :param run_dir: the run directory
+    """
+    return f"khgrl up: {ending(out, flag)} after {wall:.0f} s; exit codes {codes}; results in {run_dir}"
+
+
+def write_summary(plan, group: ProcessGroup, out: Outcome, wall: float, interrupted: bool, ended: str = "") -> dict:
+    """``RUN_DIR/summary.json``: exit codes, failures, wall time, how the run ended and each actor's own summary.
 
     :param plan: the run's plan
     :param group: the run's processes (exited)
     :param out: how the run ended
     :param wall: wall time in seconds
     :param interrupted: stopped by SIGINT/SIGTERM
+    :param ended: how it ended in words (:func:`ending`)
     """
     summary = {"run": plan.run_id, "wall_time_s": wall, "exit_codes": {p.name: p.returncode for p in group.procs},
+               "ended": ended or ("interrupted" if interrupted else "finished"),
                "failed": out.failed, "interrupted": interrupted, "stopped_by": out.stopped_by or None,
                "error": out.error or None, "resumed": plan.resume, "launcher_rejects": out.rejects}
     for aid in plan.cfg.actor_ids():

@@ -4,19 +4,25 @@ return and human interventions, with the learner's ingest, gradient steps and we
 finished episode (``[a0] episode 3: return ...``, the line ``khgrl experiment`` follows) and one when the
 learner's checkpoints start failing or recover.
 
+The live table needs a terminal. When stdout is not one (``khgrl up ... > log``, a pipe, CI) the view prints the
+plain lines as episodes end and, at the end, the same table once in plain text, as wide as its cells (nothing cut),
+every line ended.
+
 It gets typed, already validated messages (:class:`khgrl.common.wire.messages.EpisodeReport`,
 :class:`khgrl.common.wire.messages.Status` with :class:`khgrl.common.wire.messages.LearnerInfo`) and only formats them.
 """
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 from khgrl.common.wire.messages import EpisodeReport, LearnerInfo, Status
 
-__all__ = ["ProgressView", "ActorRow", "episode_line", "checkpoint_line"]
+__all__ = ["ProgressView", "ActorRow", "episode_line", "checkpoint_line", "plain_table"]
 
 _COLUMNS = ("actor", "episodes", "successes", "last return", "interventions", "human steps", "clipped", "mean |xi_h|")
+_WIDTHS = (5, 9, 9, 7, 13, 6, 9, 6)  # the live table's columns: 64 characters, 2 between them: 78
 
 
 def _stat(stats: dict, name: str) -> float:
@@ -53,6 +59,22 @@ def checkpoint_line(info: LearnerInfo, markup: bool = False) -> str:
             "what is not saved, retried with backoff")
 
 
+def plain_table(title: str, header: tuple[str, ...] | list[str], rows: list[list[str]], caption: str = "") -> str:
+    """A table as plain text: right-aligned columns as wide as their widest cell (headers never cut), the title
+    above, the caption below, every line ended with a newline.
+
+    :param title: the line above the table
+    :param header: the column names
+    :param rows: the cells, one list per row
+    :param caption: lines below the table (may hold newlines)
+    """
+    widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
+    line = lambda cells: "  ".join(str(c).rjust(w) for c, w in zip(cells, widths)).rstrip()  # noqa: E731
+    out = [title, line(header), "  ".join("-" * w for w in widths), *(line(r) for r in rows)]
+    out += caption.splitlines() if caption else []
+    return "\n".join(out) + "\n"
+
+
 @dataclass
 class ActorRow:
     """One actor's totals over the episodes reported so far."""
@@ -84,22 +106,27 @@ class ActorRow:
 
 
 class ProgressView:
-    """The live table (``enabled``) or plain episode lines; use it as a context manager.
+    """The live table (``enabled`` on a terminal) or plain episode lines; use it as a context manager.
 
     :param actors: the run's actor ids (rows in this order; other actors get a row when they report)
     :param episodes: episodes per actor in the whole run
-    :param enabled: live table if true, else one printed line per episode
+    :param enabled: the table was asked for (``--progress``): live on a terminal; elsewhere plain episode lines
+        and the table once, in plain text, at the end. False (``--no-progress``): the lines only.
+    :param tty: whether stdout is a terminal (None: ask ``sys.stdout``)
     """
 
-    def __init__(self, actors: list[str], episodes: int, enabled: bool) -> None:
+    def __init__(self, actors: list[str], episodes: int, enabled: bool, tty: bool | None = None) -> None:
         self.rows = {a: ActorRow() for a in actors}
         self.episodes = episodes
         self.enabled = enabled
+        if tty is None:
+            tty = bool(getattr(sys.stdout, "isatty", lambda: False)())
+        self.live = enabled and tty
         self.learner: LearnerInfo | None = None
         self._live = None
 
     def __enter__(self) -> "ProgressView":
-        if self.enabled:
+        if self.live:
             from rich.live import Live
 
             self._live = Live(self._table(), refresh_per_second=4, transient=False)
@@ -111,6 +138,8 @@ class ProgressView:
             self._live.update(self._table())
             self._live.__exit__(*exc)
             self._live = None
+        elif self.enabled:
+            print(self.final_text(), end="", flush=True)
 
     def episode(self, report: EpisodeReport) -> None:
         """A finished episode of one actor.
@@ -118,7 +147,7 @@ class ProgressView:
         :param report: the actor's decoded episode message
         """
         self.rows.setdefault(report.actor, ActorRow()).add(report.stats)
-        if not self.enabled:
+        if not self.live:
             print(episode_line(report), flush=True)
         self.refresh()
 
@@ -130,7 +159,7 @@ class ProgressView:
         if isinstance(status.info, LearnerInfo):
             before = self.learner.checkpoint_error if self.learner is not None else ""
             self.learner = status.info
-            if not self.enabled and status.info.checkpoint_error != before:
+            if not self.live and status.info.checkpoint_error != before:
                 line = checkpoint_line(status.info) or f"checkpoint recovered ({status.info.checkpoints} saved)"
                 print(f"[{status.info.id}] {line}", flush=True)
             self.refresh()
@@ -139,22 +168,33 @@ class ProgressView:
         if self._live is not None:
             self._live.update(self._table())
 
-    def caption(self) -> str:
+    def caption(self, markup: bool = False) -> str:
+        """The learner's line (and a failing checkpoint's).
+
+        :param markup: rich markup (the live table's)
+        """
         li = self.learner
         if li is None:
             return "learner: waiting"
         text = (f"learner: {li.ingested} transitions, {li.gradient_steps} gradient steps "
                 f"({li.grad_steps_per_s:.0f}/s), weights v{li.version}")
-        failing = checkpoint_line(li, markup=self.enabled)
+        failing = checkpoint_line(li, markup=markup)
         return f"{text}\n{failing}" if failing else text
+
+    def final_text(self) -> str:
+        """The table in plain text (stdout not a terminal): every header and cell whole, lines ended."""
+        rows = [row.cells(name, self.episodes) for name, row in self.rows.items()]
+        return plain_table("KhGRL run", _COLUMNS, rows, self.caption())
 
     def _table(self):
         from rich.table import Table
 
-        table = Table(title="KhGRL run")
-        for col in _COLUMNS:
-            table.add_column(col, justify="right")
+        # fixed widths, no rules: the table fits 80 columns with every header word whole (two-word
+        # headers on two lines; a long cell folds instead of being cut)
+        table = Table(title="KhGRL run", box=None, pad_edge=False)
+        for col, width in zip(_COLUMNS, _WIDTHS):
+            table.add_column(col, justify="right", width=width, overflow="fold")
         for name, row in self.rows.items():
             table.add_row(*row.cells(name, self.episodes))
-        table.caption = self.caption()
+        table.caption = self.caption(markup=True)
         return table

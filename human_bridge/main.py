@@ -4,7 +4,9 @@ messages (docs/protocol.md): it reads the actors' frames and publishes correctio
 Clients:
 
 * ``scripted`` -- the reproducible stand-in for a person (:mod:`khgrl.human_bridge.scripted`): in the run's
-  ``human_episodes``, over the scenario's help window, it holds the desired position on a safe path.
+  ``human_episodes`` it asks the task's ``scripted_human`` for P_h (the passage world's holds the desired position
+  on a safe path over the scenario's help window). It drives the task the actors run: started by hand without
+  ``--task`` it takes the task they announce, or refuses with one line if that task cannot be loaded here.
 * ``gui`` -- a pygame window: a person drags the robot with the mouse (:mod:`khgrl.human_bridge.gui`).
 * ``replay`` -- feeds a recorded ``corrections.csv`` into a new run at the same episodes and steps
   (:mod:`khgrl.human_bridge.replay`).

@@ -1,4 +1,4 @@
-"""Zenoh for KhGRL processes (zenoh-python 1.x; see ../shared/design/zenoh-notes.md): configurations,
+"""Zenoh for KhGRL processes (zenoh-python 1.x): configurations,
 opening a session that can be interrupted, and the one inbox pattern (callback -> bounded queue).
 
 Topology: one small router process (``khgrl router``) listens on loopback; the learner, actors and human-input

@@ -11,7 +11,8 @@ settings
   linear constraints ``G P >= c`` (math.md §3);
 * the default exploration scale L0 and whether KhGRL learns it from the human (paper Section III-C);
 * optionally: ``position`` (where the robot is, in command coordinates, from the environment's observation;
-  default: the command last sent), ``scripted_human`` (P_h or None for the step whose KMP mean is given),
+  default: the command last sent), ``scripted_human`` (P_h or None for the step whose KMP mean is given; it may
+  also ask for the step, the phase, the robot's position and the observation: :func:`call_scripted_human`),
   and drawing hints (:class:`View`).
 
 The policy observes the environment's observation, the phase s and the robot's deviation from the KMP mean
@@ -23,6 +24,7 @@ checked task; every mistake in a task definition is one :class:`TaskError` namin
 from __future__ import annotations
 
 import importlib
+import inspect
 import os
 import sys
 from dataclasses import dataclass, field, replace
@@ -33,7 +35,7 @@ import numpy as np
 from khgrl.common.kmp.fit import KMPConfig
 
 __all__ = ["Task", "View", "Cuboid", "Sphere", "Point", "TaskError", "load_task", "BUILTIN_TASKS",
-           "MAX_DIM"]
+           "MAX_DIM", "HUMAN_INPUTS", "scripted_human_inputs", "call_scripted_human"]
 
 MAX_DIM = 64  # command (O) and observation sizes a task may have (also the wire's bound)
 
@@ -96,7 +98,8 @@ class Task:
 
     :param name: a short name (shown in logs, frames and plots).
     :param make_env: ``make_env(seed) -> gymnasium.Env`` (called once per actor, with the actor's seed).
-    :param demos: (M, N, O) demonstrations or a path to a .npz/.csv file.
+    :param demos: (M, N, O) demonstrations or a path to a .npz/.csv file; None for a task that is always run
+        with ``--demos FILE`` (which replaces this field).
     :param workspace: (low, high) of the box P_t must stay in (a hard constraint; corrections are projected
         onto it).
     :param kmp: GMM/GMR and LC-NS-KMP settings.
@@ -106,7 +109,9 @@ class Task:
     :param action_cost: weight of r_a = -action_cost |P_t - eta0_t|^2 (eq. 7).
     :param command: adapter ``command(env, p_t) -> env action`` (None: the action is P_t itself).
     :param position: ``position(obs) -> (O,)`` the robot in command coordinates (None: the command last sent).
-    :param scripted_human: ``scripted_human(mean) -> P_h or None`` for the step whose KMP mean is ``mean``.
+    :param scripted_human: ``scripted_human(mean) -> P_h or None`` for the step whose KMP mean is ``mean``; a
+        function that names any of ``step``, ``phase``, ``position``, ``obs`` as parameters (or takes
+        ``**kwargs``) gets those too (:func:`call_scripted_human`).
     :param view: drawing hints.
     :param success_key: the ``info`` key that marks a successful episode end.
     """
@@ -122,13 +127,52 @@ class Task:
     action_cost: float = 10.0
     command: Callable[[Any, np.ndarray], Any] | None = None
     position: Callable[[np.ndarray], np.ndarray] | None = None
-    scripted_human: Callable[[np.ndarray], np.ndarray | None] | None = None
+    scripted_human: Callable[..., np.ndarray | None] | None = None
     view: View = field(default_factory=View)
     success_key: str = "success"
 
     def with_demos(self, demos: Any) -> "Task":
         """This task with other demonstrations (``--demos FILE``)."""
         return replace(self, demos=demos)
+
+
+# ------------------------------------------------------------------------------------ the scripted human
+HUMAN_INPUTS = ("step", "phase", "position", "obs")  # what a scripted human may ask for besides the KMP mean
+
+
+def scripted_human_inputs(fn: Callable) -> tuple[str, ...]:
+    """Which of :data:`HUMAN_INPUTS` ``fn`` takes, from its signature: those it names as parameters, all of them if
+    it takes ``**kwargs``, none for the original one-argument ``scripted_human(mean)``.
+
+    :param fn: a task's ``scripted_human``.
+    """
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):  # a builtin or extension callable without a signature: the old call
+        return ()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return HUMAN_INPUTS
+    return tuple(n for n in HUMAN_INPUTS if n in params and params[n].kind is not inspect.Parameter.POSITIONAL_ONLY)
+
+
+def call_scripted_human(fn: Callable, mean: np.ndarray, *, step: int, phase: float, position: np.ndarray | None,
+                        obs: np.ndarray | None) -> Any:
+    """P_h (or None) from a task's ``scripted_human`` for one step: ``fn(mean)``, plus as keywords what it asks for
+    (:func:`scripted_human_inputs`).
+
+    :param fn: the task's ``scripted_human``.
+    :param mean: the KMP mean eta0_t of the step (O,).
+    :param step: the step t the correction is for (0-based).
+    :param phase: its phase s_t = t / (N - 1).
+    :param position: where the robot is before the step, in command coordinates (O,).
+    :param obs: the environment's latest observation (None where there is none: the check when a task is built,
+        and step 0 of an episode in a distributed run, whose word is given before the episode starts).
+    """
+    names = scripted_human_inputs(fn)
+    if not names:
+        return fn(mean)
+    given = {"step": step, "phase": phase, "position": position, "obs": obs}
+    return fn(mean, **{n: given[n] for n in names})
 
 
 # ------------------------------------------------------------------------------------ loading
@@ -214,6 +258,8 @@ def task_demos(task: Task) -> np.ndarray:
     """The task's demonstrations as checked float64 (M, N, O)."""
     from khgrl.common.tasks.demos import DemoFormatError, load_demos, validate_demos
 
+    if task.demos is None:
+        raise TaskError(f"task {task.name!r} has no demonstrations: Task.demos is None, so give --demos FILE")
     try:
         if isinstance(task.demos, (str, Path)):
             demos = load_demos(task.demos)

@@ -16,6 +16,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 from khgrl.common.config.settings import PAPER_EPISODES
+from khgrl.common.tasks.api import scripted_human_inputs
 
 __all__ = ["ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper"]
 
@@ -29,9 +30,10 @@ class ScriptedHumanConfig:
 
 
 class ScriptedHuman:
-    """Decides P_h (or None) from what a person watching the screen sees: episode, robot and KMP mean.
+    """Decides P_h (or None) from what a person watching the screen sees: episode, step, robot and KMP mean.
 
-    :param guide: the task's ``scripted_human`` (mean -> P_h or None), or a passage scenario (its name).
+    :param guide: the task's ``scripted_human`` (``mean`` -> P_h or None, and optionally ``step``, ``phase``,
+        ``position``, ``obs``), or a passage scenario (its name).
     :param config: episodes, noise and seed (``window``: the passage world's only).
     """
 
@@ -43,6 +45,7 @@ class ScriptedHuman:
 
             guide = PassageGuide(get_scenario(guide) if isinstance(guide, str) else guide, config.window)
         self.guide = guide
+        self.inputs = scripted_human_inputs(guide)  # what it asks for besides the mean (from its signature, once)
         self.config = config
         self._rng = np.random.default_rng(config.seed)
 
@@ -53,11 +56,26 @@ class ScriptedHuman:
     def active_in(self, episode: int) -> bool:
         return episode in self.config.episodes
 
-    def correction(self, episode: int, mean: np.ndarray) -> np.ndarray | None:
-        """P_h for this step, or None. ``mean`` is the KMP mean eta0_t at the current step (the red line)."""
+    def correction(self, episode: int, mean: np.ndarray, *, step: int = 0, phase: float | None = None,
+                   position: np.ndarray | None = None, obs: np.ndarray | None = None) -> np.ndarray | None:
+        """P_h for this step, or None.
+
+        :param episode: the episode (1-based).
+        :param mean: the KMP mean eta0_t at the step (the red line).
+        :param step: the step t the correction is for.
+        :param phase: its phase s_t.
+        :param position: where the robot is before the step (None: at the mean).
+        :param obs: the environment's latest observation (None: none yet).
+        """
         if not self.active_in(episode):
             return None
-        p_h = self.guide(np.asarray(mean, dtype=np.float64))
+        mean = np.asarray(mean, dtype=np.float64)
+        if self.inputs:
+            given = {"step": int(step), "phase": phase, "obs": obs,
+                     "position": mean.copy() if position is None else np.asarray(position, dtype=np.float64)}
+            p_h = self.guide(mean, **{n: given[n] for n in self.inputs})
+        else:
+            p_h = self.guide(mean)
         if p_h is None:
             return None
         p_h = np.asarray(p_h, dtype=np.float64).reshape(-1)
@@ -89,7 +107,9 @@ class HumanCorrectionWrapper(gym.Wrapper):
 
     def step(self, action):
         base = self.env.unwrapped
-        p_h = self.human.correction(self.episode, base.mapping.mean(min(base.t, base.horizon - 1)))
+        t = min(base.t, base.horizon - 1)
+        p_h = self.human.correction(self.episode, base.mapping.mean(t), step=t, phase=float(base.mapping.phases[t]),
+                                    position=base.position, obs=getattr(base, "_inner_obs", None))
         base.set_correction(p_h)
         obs, reward, terminated, truncated, info = self.env.step(action)
         if info.get("intervened"):

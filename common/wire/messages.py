@@ -41,6 +41,12 @@ def _vec(name: str, value: Any, n: int | None) -> np.ndarray:
     return vec(name, value, n)
 
 
+def _any_vec(name: str, value: Any, most: int) -> np.ndarray:
+    """A vector of 1..``most`` finite numbers."""
+    n = len(value) if isinstance(value, (list, tuple)) and 1 <= len(value) <= most else -1
+    return vec(name, value, n)
+
+
 @dataclass(frozen=True)
 class Message:
     KIND: ClassVar[str] = ""
@@ -195,7 +201,7 @@ class Frame(Message):
     """What an actor shows after each step (viewers and human-input clients draw and react to it)."""
 
     KIND: ClassVar[str] = "frame"
-    VECTORS: ClassVar[tuple[str, ...]] = ("robot", "desired", "mean", "scale", "next_mean")
+    VECTORS: ClassVar[tuple[str, ...]] = ("robot", "desired", "mean", "scale", "next_mean", "obs")
     MAX_BYTES: ClassVar[int] = 64 * 1024
     actor: str
     episode: int  # 1-based, counted over the whole run (a resumed run continues)
@@ -210,6 +216,7 @@ class Frame(Message):
     ret: float | None = None
     next_mean: np.ndarray | None = None  # KMP mean at step t + 1; absent after the horizon's last step
     last: bool | None = None  # true on the episode's last frame (terminated or truncated)
+    obs: np.ndarray | None = None  # the task environment's observation after the step (a scripted human may use it)
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Frame":
@@ -220,7 +227,8 @@ class Frame(Message):
                    phase=float(typ("phase", m.get("phase"), (int, float), low=0.0, high=1.0)),
                    intervening=typ("intervening", m.get("intervening"), bool),
                    task=typ("task", m.get("task"), str), ret=opt(m, "ret", typ, (int, float)),
-                   next_mean=opt(m, "next_mean", vec, o), last=opt(m, "last", typ, bool), **vecs)
+                   next_mean=opt(m, "next_mean", vec, o), last=opt(m, "last", typ, bool),
+                   obs=opt(m, "obs", _any_vec, 4 * MAX_DIM), **vecs)
 
 
 @dataclass(frozen=True, eq=False)

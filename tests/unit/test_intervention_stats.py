@@ -31,7 +31,7 @@ def test_progress_view_counts_interventions_clipping_and_xi(capsys):
     console = Console(width=200, record=True)
     console.print(view._table())
     text = console.export_text()
-    assert "interventions" in text and "mean |xi_h|" in text
+    assert "interventions" in text and "mean" in text and "|xi_h|" in text  # (two-word headers on two lines)
     line = next(ln for ln in text.splitlines() if "a0" in ln)
     # 3 interventions, 50 human steps, 10 clipped (20%), steps-weighted mean |xi_h| (40*0.5 + 10*1.0) / 50 = 0.6
     for cell in ("3/3", "3", "50", "10 (20%)", "0.6"):

@@ -90,7 +90,7 @@ BAD = [
     (dict(constraints=(np.array([[0.0, 0.0, 1.0]]), np.array([0.7]))), "violates hard constraint 6, your constraint 0"),
     (dict(scripted_human=lambda mean: mean[:2]), "scripted_human must return None or 3 finite values"),
     (dict(scripted_human=lambda mean: 1 / 0), "scripted_human raised ZeroDivisionError"),
-    (dict(constraints=(np.array([[0.0, 0.0, 1.0]]), np.array([0.9]))), "admit no solution"),  # z >= 0.9 > 0.8
+    (dict(constraints=(np.array([[0.0, 0.0, 1.0]]), np.array([0.9]))), "admit no point"),  # z >= 0.9 > 0.8
     (dict(constraints=(np.zeros((1, 2)), np.zeros(1))), "constraints need G of shape \\(K, 3\\)"),
     (dict(default_scale=(1.0, 2.0)), "default_scale needs 3 values"),
     (dict(default_scale=-1.0), "default_scale must be > 0"),

@@ -21,17 +21,43 @@ truncation after ``horizon`` steps (Fetch has no termination).
 
 from __future__ import annotations
 
+import contextlib
+import io
+import sys
 from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-__all__ = ["FetchPosition", "GripperSchedule", "MAX_STEP", "fetch_command"]
+__all__ = ["FetchPosition", "GripperSchedule", "MAX_STEP", "fetch_command", "import_robotics"]
 
 MAX_STEP = 0.05  # metres per step at |action| = 1 (Fetch's pos_ctrl scale)
 OPEN, CLOSED = 1.0, -1.0
 OBS_BOUND = 10.0
+
+
+def import_robotics():
+    """``gymnasium_robotics``, imported without the notice it prints on stderr at import (a Farama notification
+    about the AdroitHand environments' reward versions, nothing to do with Fetch). Exactly that text is dropped;
+    anything else printed during the import (a warning, an error) is passed on to stderr."""
+    if "gymnasium_robotics" in sys.modules:
+        return sys.modules["gymnasium_robotics"]
+    captured = io.StringIO()
+    with contextlib.redirect_stderr(captured):
+        import gymnasium_robotics
+    text = captured.getvalue()
+    try:
+        from farama_notifications import notifications
+
+        notice = notifications.get("gymnasium_robotics", {}).get(gymnasium_robotics.__version__)
+    except Exception:  # noqa: BLE001 - no notifications package: nothing to drop
+        notice = None
+    if notice:
+        text = text.replace(f"{notice}\n", "", 1)
+    if text:
+        sys.stderr.write(text)
+    return gymnasium_robotics
 
 
 @dataclass(frozen=True)
@@ -70,9 +96,7 @@ class FetchPosition(gym.Env):
     def __init__(self, env_id: str = "FetchPickAndPlace-v4", horizon: int = 100,
                  workspace: tuple = ((1.05, 0.4, 0.42), (1.55, 1.1, 0.9)), gripper: GripperSchedule = GripperSchedule(),
                  object_xy: tuple[float, float] | None = None, goal: tuple[float, float, float] | None = None) -> None:
-        import gymnasium_robotics
-
-        gym.register_envs(gymnasium_robotics)
+        gym.register_envs(import_robotics())
         self.env = gym.make(env_id, max_episode_steps=horizon)
         self.horizon = int(horizon)
         self.gripper = gripper
