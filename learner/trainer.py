@@ -224,12 +224,20 @@ class Trainer:
     def ack(self, stream: ActorStream) -> Ack:
         """What the learner holds of one actor's stream, in the actor's own index space.
 
+        ``trained`` inside ``learning_starts`` (no iteration due yet): what is ingested, rounded down to a multiple
+        of ``train_freq`` -- as trained on, since the initial weights are what SB3 acts with there. Not rounded,
+        an episode ending off the grid (Fetch: 100 steps, ``learning_starts`` 100) let the actor run ``max_lead``
+        past its short last batch: past the first due iteration (104) with the initial weights whenever the ack
+        of the batch that made it due came late -- a seeded run that depended on timing. On the grid, the actor
+        waits at the first due step for that iteration as at every later one (``max_lead >= train_freq``: it
+        never waits for an iteration that cannot come).
+
         :param stream: the actor's stream
         """
         if self.training_started:
             trained = min(self.weights_trained.get(stream.actor, 0), stream.index)
-        else:  # inside learning_starts: everything ingested is as good as trained on
-            trained = stream.index
+        else:  # inside learning_starts: what is ingested, down to the training grid (the docstring)
+            trained = stream.index - stream.index % self.train_freq
         return Ack(actor=stream.actor, received=stream.next_seq - 1, durable=stream.durable, trained=int(trained),
                    version=self.version, epoch=self.epoch, stream=stream.stream or None)
 

@@ -6,9 +6,14 @@ from __future__ import annotations
 
 import threading
 import time
+from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from khgrl.actor.weights import PolicyWeights, WeightsReceiver
+from khgrl.common.config.settings import StreamSettings
+from khgrl.common.delivery.actor_side import ActorDelivery
 from khgrl.common.delivery.ingest import FairInbox
 from khgrl.common.delivery.outbox import Outbox
 from khgrl.common.delivery.stream import MAX_RESEND_AFTER_S, TransitionStream
@@ -21,7 +26,7 @@ from khgrl.learner.replay import SIDE_ARRAYS
 from khgrl.learner.resume import open_learner
 
 from test_actor_parts import Clock, collect
-from test_learner_parts import RUN, SMALL, Collect, batch
+from test_learner_parts import RUN, SMALL, Collect, batch, make_loop
 
 
 def _stream(tmp_path, window: int):
@@ -86,6 +91,57 @@ def test_a_new_learner_epoch_gets_the_window_after_what_it_holds(tmp_path):
     assert _seqs(sent) == [1, 2] and stream.resent_batches == 2
     stream.on_ack(_ack(2, durable=0, epoch="e2"))
     assert _seqs(sent) == [1, 2, 3, 4]
+
+
+def test_an_episode_ending_off_the_training_grid_keeps_the_first_iteration_in_lock_step(tmp_path):
+    """Fetch: 100-step episodes, learning_starts 100, train_freq 8. The episode's last, short batch (96..99) made the
+    ack say 100 trained, so the actor ran up to 107 before waiting: step 104, the first due iteration's, took the
+    initial weights whenever the ack of the batch that made it due (100..103) came late. Here: learning_starts 20,
+    an episode of 20 steps, the first iteration due at 24; the real actor stream and learner loop, acks in hand."""
+    loop, pub = make_loop(tmp_path, tqc=replace(SMALL, learning_starts=20))
+    stream, sent, _ = _stream(tmp_path, window=64)
+    weights = PolicyWeights(None, "a0", WeightsReceiver(None, {}, RejectCounter("a0"), "weights"))
+    weights.epoch, weights.version = loop.trainer.epoch, 0  # the actor runs the learner's initial weights
+    inbound = SimpleNamespace(paused=False, learners={"learner"})  # the learner is alive
+    delivery = ActorDelivery("a0", None, None, stream, weights, StreamSettings(), StopFlag(), inbound, print, print)
+
+    def deliver_and_ack() -> None:  # what the actor published reaches the learner, the learner's acks the actor
+        for payload in sent:
+            loop.offer(decode(Transitions, payload))
+        sent.clear()
+        loop.ingest.ack_touched()
+        for msg in pub.of(Ack):
+            stream.on_ack(msg)
+        pub.sent.clear()
+
+    def steps(n: int, episode_end: int | None = None, deliver: bool = True) -> None:  # the actor's loop: cut every
+        # 8 and at episode end
+        for _ in range(n):
+            assert not delivery.must_wait(), f"step {stream.count}"  # inside learning_starts: no waiting
+            i = stream.count
+            obs = np.full(5, i, dtype=np.float32)
+            stream.add(obs, obs + 1, np.array([0.5, -0.5], np.float32), 0.0, False, stream.count + 1 == episode_end,
+                       False, False)
+            if stream.count % 8 == 0 or stream.count == episode_end:
+                stream.cut()
+            if deliver:
+                deliver_and_ack()
+
+    steps(20, episode_end=20)  # episode 1: batches 0..7, 8..15, 16..19
+    assert stream.sent == 20
+    steps(3)
+    steps(1, deliver=False)  # 20..23: the batch that makes the first iteration due (at 24) is out, not yet acked
+    assert stream.sent == 24
+    # its ack comes late: step 24 waits all the same (trained 16, on the grid; 20 let the actor run on to 27)
+    assert delivery.must_wait(), f"step 24 taken with the initial weights: acked trained {stream.trained}"
+    deliver_and_ack()
+    assert [at for at, _ in loop.trainer.due] == [24] and stream.trained == 0 and delivery.must_wait()
+    loop.step()  # the iteration: weights version 1, trained on 24
+    for msg in pub.of(Ack):
+        stream.on_ack(msg)
+    assert stream.trained == 24 and stream.ack_version == 1 and delivery.must_wait()  # until version 1 is loaded
+    weights.version = 1
+    assert not delivery.must_wait()
 
 
 def test_sample_limit_keeps_an_iteration_on_the_data_it_was_due_at(tmp_path):

@@ -224,7 +224,7 @@ def test_loop_orders_stream_and_keeps_sb3_schedule(tmp_path):
     assert loop.offer(batch(0, 0, 8)) == "accepted"
     assert tr.total == 16 and ack().received == 1
     assert loop.offer(batch(0, 0, 8)) == "duplicate" and tr.total == 16
-    # inside learning_starts: no training due, trained = everything ingested
+    # inside learning_starts: no training due, trained = everything ingested, down to a multiple of train_freq
     assert not tr.due and ack().trained == 16
     assert loop.offer(batch(2, 16, 5)) == "accepted" and not tr.due  # 21: the next multiple of 8 is 24
     assert ack().trained == 0  # training started, the initial weights cover nothing
