@@ -168,23 +168,24 @@ class ProgressView:
         if self._live is not None:
             self._live.update(self._table())
 
-    def caption(self, markup: bool = False) -> str:
+    def caption(self, markup: bool = False, final: bool = False) -> str:
         """The learner's line (and a failing checkpoint's).
 
         :param markup: rich markup (the live table's)
+        :param final: the run is over: no current rate (the learner's last status says 0/s once it stopped)
         """
         li = self.learner
         if li is None:
             return "learner: waiting"
-        text = (f"learner: {li.ingested} transitions, {li.gradient_steps} gradient steps "
-                f"({li.grad_steps_per_s:.0f}/s), weights v{li.version}")
+        rate = "" if final else f" ({li.grad_steps_per_s:.0f}/s)"
+        text = f"learner: {li.ingested} transitions, {li.gradient_steps} gradient steps{rate}, weights v{li.version}"
         failing = checkpoint_line(li, markup=markup)
         return f"{text}\n{failing}" if failing else text
 
     def final_text(self) -> str:
         """The table in plain text (stdout not a terminal): every header and cell whole, lines ended."""
         rows = [row.cells(name, self.episodes) for name, row in self.rows.items()]
-        return plain_table("KhGRL run", _COLUMNS, rows, self.caption())
+        return plain_table("KhGRL run", _COLUMNS, rows, self.caption(final=True))
 
     def _table(self):
         from rich.table import Table

@@ -65,3 +65,4 @@ def test_progress_view_reads_the_learner_status_through_its_typed_info():
     view.status(decode(Status, encode(Status(role="learner", info=learner), "learner", 1)))
     assert isinstance(view.learner, LearnerInfo)
     assert view.caption() == "learner: 120 transitions, 96 gradient steps (12/s), weights v3"
+    assert view.caption(final=True) == "learner: 120 transitions, 96 gradient steps, weights v3"  # no rate once over
