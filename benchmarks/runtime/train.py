@@ -119,8 +119,10 @@ def measure_train(procs: BenchProcs, ep: str, work: Path, *, seconds: float, rou
     # enough due iterations that the backlog outlasts the window even at 400 gradient steps/s
     n = LEARNING_STARTS + TRAIN_FREQ * math.ceil(seconds * 400 / TRAIN_FREQ)
     payloads = batches(n, batch, seed + 1)
+    # at this process's priority: khgrl up runs the learner at nice 5 so that training yields the CPU to the actors,
+    # but what is compared here is the code, not the priority (niced, any other load on the machine slows it alone)
     learner = procs.learner(f"learner-{tag}", run, ep, work / tag, "--learning-starts", str(LEARNING_STARTS),
-                            "--checkpoint-every", "0")
+                            "--checkpoint-every", "0", "--learner-nice", "0")
     slice_s = seconds / rounds
     spans: list[tuple[float, int, float, int]] = []
     standalone: list[float] = []

@@ -51,7 +51,10 @@ def test_a_100k_message_flood_does_not_stop_the_actor_loop(tmp_path):
     summary = read_json(run_dir / "actor-a0" / "summary.json")
     assert summary["episodes"] == 3 and summary["unconfirmed_transitions"] == 0
     rejected = sum(summary["rejects"].values())
-    assert rejected > 1000, summary["rejects"]  # the flood arrived (the inbox drops, and counts, the overflow)
+    # the flood arrived: the actor read more than its correction and control/all rings hold (256 + 16 newest; the
+    # rest of a flood overflows them uncounted). How many more depends on how long the sender takes against the
+    # loop's 16 messages a step -- on a fast machine 100,000 puts take well under a second -- so no more is asked.
+    assert rejected > 256 + 16, summary["rejects"]
     log_lines = (run_dir / "actor-a0" / "actor.log").read_text().count("rejected")
     assert log_lines <= 2 * 32 + 10, f"{log_lines} reject lines for {rejected}"  # 32 reasons a kind, then 1 per 10 s
     state, arrays = checkpoint(run_dir)
