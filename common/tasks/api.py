@@ -155,8 +155,9 @@ def scripted_human_inputs(fn: Callable) -> tuple[str, ...]:
     return tuple(n for n in HUMAN_INPUTS if n in params and params[n].kind is not inspect.Parameter.POSITIONAL_ONLY)
 
 
-def call_scripted_human(fn: Callable, mean: np.ndarray, *, step: int, phase: float, position: np.ndarray | None,
-                        obs: np.ndarray | None) -> Any:
+def call_scripted_human(fn: Callable, mean: np.ndarray, *, step: int, phase: float | None,
+                        position: np.ndarray | None, obs: np.ndarray | None,
+                        names: tuple[str, ...] | None = None) -> Any:
     """P_h (or None) from a task's ``scripted_human`` for one step: ``fn(mean)``, plus as keywords what it asks for
     (:func:`scripted_human_inputs`).
 
@@ -167,8 +168,9 @@ def call_scripted_human(fn: Callable, mean: np.ndarray, *, step: int, phase: flo
     :param position: where the robot is before the step, in command coordinates (O,).
     :param obs: the environment's latest observation (None where there is none: the check when a task is built,
         and step 0 of an episode in a distributed run, whose word is given before the episode starts).
+    :param names: ``scripted_human_inputs(fn)`` when the caller keeps it (None: read from the signature now).
     """
-    names = scripted_human_inputs(fn)
+    names = scripted_human_inputs(fn) if names is None else names
     if not names:
         return fn(mean)
     given = {"step": step, "phase": phase, "position": position, "obs": obs}

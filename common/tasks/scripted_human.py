@@ -16,7 +16,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 from khgrl.common.config.settings import PAPER_EPISODES
-from khgrl.common.tasks.api import scripted_human_inputs
+from khgrl.common.tasks.api import call_scripted_human, scripted_human_inputs
 
 __all__ = ["ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper"]
 
@@ -70,12 +70,9 @@ class ScriptedHuman:
         if not self.active_in(episode):
             return None
         mean = np.asarray(mean, dtype=np.float64)
-        if self.inputs:
-            given = {"step": int(step), "phase": phase, "obs": obs,
-                     "position": mean.copy() if position is None else np.asarray(position, dtype=np.float64)}
-            p_h = self.guide(mean, **{n: given[n] for n in self.inputs})
-        else:
-            p_h = self.guide(mean)
+        position = mean.copy() if position is None else np.asarray(position, dtype=np.float64)
+        p_h = call_scripted_human(self.guide, mean, step=int(step), phase=phase, position=position, obs=obs,
+                                  names=self.inputs)
         if p_h is None:
             return None
         p_h = np.asarray(p_h, dtype=np.float64).reshape(-1)

@@ -9,6 +9,8 @@ from pathlib import Path
 
 from khgrl.common.delivery import ZENOH_MODULES
 
+from test_protocol import imports_package
+
 REPO = Path(__file__).resolve().parents[2]
 FOLDERS = ("khgrl", "common", "actor", "learner", "human_bridge", "deploy", "benchmarks")
 ZENOH_CALLS = {"declare_subscriber", "declare_publisher", "declare_queryable", "declare_token", "liveliness"}
@@ -23,12 +25,7 @@ def _sources() -> dict[str, ast.AST]:
 
 
 def _imports_zenoh(tree: ast.AST) -> bool:
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "zenoh" for a in node.names):
-            return True
-        if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").split(".")[0] == "zenoh":
-            return True
-    return False
+    return imports_package(tree, "zenoh")
 
 
 def _attribute_calls(tree: ast.AST, names: set[str]) -> list[str]:

@@ -462,14 +462,18 @@ PACKAGES = ("common", "actor", "learner", "human_bridge", "deploy", "benchmarks"
 THIRD_PARTY = REPO / "deploy" / "examples"  # an example client written without our code: it must use msgpack
 
 
-def _imports_msgpack(path: Path) -> bool:
-    tree = ast.parse(path.read_text(), filename=str(path))
+def imports_package(tree: ast.AST, package: str) -> bool:
+    """Whether a module's syntax tree imports ``package`` (or a module of it) anywhere in the file."""
     for node in ast.walk(tree):
-        if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "msgpack" for a in node.names):
+        if isinstance(node, ast.Import) and any(a.name.split(".")[0] == package for a in node.names):
             return True
-        if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").split(".")[0] == "msgpack":
+        if isinstance(node, ast.ImportFrom) and node.level == 0 and (node.module or "").split(".")[0] == package:
             return True
     return False
+
+
+def _imports_msgpack(path: Path) -> bool:
+    return imports_package(ast.parse(path.read_text(), filename=str(path)), "msgpack")
 
 
 def test_nothing_but_the_wire_protocol_imports_msgpack() -> None:
