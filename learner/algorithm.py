@@ -6,8 +6,11 @@ recorded in the run's ``config.json``). The learner side (:class:`LearnerAlgorit
 spaces, the run's learner settings (``[tqc]``: :class:`~khgrl.common.config.settings.TQCSettings`) and a seed;
 it stores batches in its :class:`~khgrl.learner.replay.StreamReplayBuffer`, trains n gradient steps at a time
 on what a due iteration may sample, exports its policy network's weights for the actors, and saves and loads
-itself together with its replay buffer in a checkpoint directory. The actor side (:class:`ActorPolicy`) is only
-the policy network, on the CPU, in float32, taking the learner's weights by name.
+itself together with its replay buffer in a checkpoint directory. It snapshots and restores its training state
+and names what is not finite, so that the trainer rolls back an iteration that made the loss or parameters NaN
+or infinite (:meth:`LearnerAlgorithm.snapshot`, :meth:`~LearnerAlgorithm.restore`,
+:meth:`~LearnerAlgorithm.fault`). The actor side (:class:`ActorPolicy`) is only the policy network, on the CPU, in
+float32, taking the learner's weights by name.
 
 Implementations: ``tqc`` (:mod:`khgrl.learner.tqc`, sb3-contrib TQC, the paper's, the default); SB3-based ones
 share :class:`khgrl.learner.sb3_offpolicy.SB3OffPolicy`. Adding one: a module with the class and one line in
@@ -108,6 +111,25 @@ class LearnerAlgorithm(Protocol):
         :param timestep: the environment step this iteration belongs to (SB3's ``num_timesteps``)
         :param sample_limit: sample only the first this many stored transitions (None: all)
         """
+        ...
+
+    def snapshot(self) -> Any:
+        """A copy in memory of everything a training iteration changes (networks and target networks, optimiser
+        states, entropy coefficient, update counter), for :meth:`restore`. Each snapshot is restored at most
+        once (restoring may hand its tensors to the optimisers)."""
+        ...
+
+    def restore(self, snapshot: Any) -> None:
+        """Put back what :meth:`snapshot` copied: the algorithm is as it was before the iteration.
+
+        :param snapshot: what :meth:`snapshot` returned
+        """
+        ...
+
+    def fault(self) -> str | None:
+        """What is not finite after a training iteration (or in a loaded checkpoint): the first NaN or infinite
+        training loss of the last iteration or parameter (networks, target networks, entropy coefficient),
+        named; None when everything is finite."""
         ...
 
     def policy_weights(self) -> dict[str, np.ndarray]:

@@ -185,7 +185,8 @@ class LearnerLoop:
                                gradient_steps=tr.gradient_steps, grad_steps_per_s=round(rate, 2), version=tr.version,
                                pending_iterations=len(tr.due), paused=self.paused, checkpoints=self.checkpoints,
                                checkpoint_error=self.saves.error, checkpoint_failures=self.saves.failures,
-                               mode=self.mode, utd=round(tr.utd, 4), rss_mb=rss_mb(), **self.ingest.info())
+                               mode=self.mode, utd=round(tr.utd, 4), rss_mb=rss_mb(), rollbacks=tr.rollbacks,
+                               **self.ingest.info())
 
     def publish_status(self) -> None:
         """Publish :meth:`info` as this learner's status."""
@@ -211,5 +212,6 @@ class LearnerLoop:
         """Totals for the log line at the end."""
         tr = self.trainer
         return {"transitions": tr.total, "iterations": tr.iterations, "gradient_steps": tr.gradient_steps,
-                "train_s": round(self.train_time, 1), "version": tr.version, "rejected": self.rejects.by_kind(),
+                "train_s": round(self.train_time, 1), "version": tr.version, "rollbacks": tr.rollbacks,
+                "rejected": self.rejects.by_kind(),
                 "offers": dict(self.ingest.results), "not_admitted_dropped": self.ingest.dropped}

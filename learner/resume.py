@@ -10,7 +10,7 @@ from pathlib import Path
 from khgrl.common.config.settings import TQCSettings
 from khgrl.common.delivery.ingest import StreamTable
 from khgrl.learner.algorithm import DEFAULT
-from khgrl.learner.checkpoint import CheckpointError, fault_reason, find_checkpoint, load_checkpoint, remove_stale_temps
+from khgrl.learner.checkpoint import fault_reason, load_sound_checkpoint, remove_stale_temps
 from khgrl.learner.trainer import Trainer, build_algorithm, keep_freed_memory, torch_device
 
 __all__ = ["open_learner", "rss_mb"]
@@ -27,7 +27,9 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     :param tqc: the run's TQC settings (schedule: ``learning_starts``, ``train_freq``)
     :param seed: the model's seed (a fresh model only)
     :param learner_dir: ``RUN_DIR/learner`` (checkpoint, SB3 logs under ``tb/``)
-    :param resume: continue from the checkpoint (:class:`CheckpointError` if there is none)
+    :param resume: continue from the checkpoint (:class:`~khgrl.learner.checkpoint.CheckpointError` if there is
+        none, or its parameters are not finite: :func:`~khgrl.learner.checkpoint.load_sound_checkpoint`; stored
+        transitions out of the task's bounds are dropped)
     :param logger_formats: SB3 logger output formats
     :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (None: the passage world's spaces)
     :param checkpoint_dir: where the checkpoints are (None: ``learner_dir``)
@@ -43,10 +45,7 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     if not resume:
         log.info("learner algorithm %s, seed %d", algo, seed)
         return Trainer(build_algorithm(tqc, seed, task, algo), **kw), StreamTable()
-    ckpt = find_checkpoint(ckpt_dir)
-    if ckpt is None:
-        raise CheckpointError(f"--resume: no checkpoint under {ckpt_dir}")
-    model, state = load_checkpoint(ckpt, task, tqc, torch_device(tqc.device), algo)
+    model, state, ckpt = load_sound_checkpoint(ckpt_dir, task, tqc, torch_device(tqc.device), algo)
     trainer, streams = Trainer(model, **kw), StreamTable.from_state(state)
     trainer.restore(state)
     log.info("%s resumed from %s: %d transitions (buffer pos %d), version %d, %d iterations, actors %s", algo, ckpt,

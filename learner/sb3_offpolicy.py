@@ -1,7 +1,7 @@
 """The learner-algorithm interface (:mod:`khgrl.learner.algorithm`) for Stable-Baselines3's off-policy
 algorithms: a subclass names the SB3 class, its policy class and its keyword arguments; everything else --
 the :class:`~khgrl.learner.replay.StreamReplayBuffer`, a due iteration's ``train()``, weights for the actors,
-checkpoint files -- is here once.
+checkpoint files, the snapshot and rollback of a training iteration that went non-finite -- is here once.
 
 The model is ``ALGO("MlpPolicy", SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer)``; the
 buffer draws no random numbers, so a seeded model is SB3's own. The actors get the policy's ``actor`` network
@@ -19,7 +19,9 @@ from khgrl.common.tasks.spaces import SpacesEnv
 from khgrl.learner.algorithm import BUFFER_FILE, MODEL_FILE
 from khgrl.learner.replay import StreamReplayBuffer
 
-__all__ = ["SB3OffPolicy", "SB3ActorPolicy"]
+__all__ = ["SB3OffPolicy", "SB3ActorPolicy", "LOSSES"]
+
+LOSSES = ("train/critic_loss", "train/actor_loss", "train/ent_coef_loss")  # what SB3's SAC and TQC record
 
 
 class SB3ActorPolicy:
@@ -166,12 +168,68 @@ class SB3OffPolicy:
     def train(self, gradient_steps: int, *, timestep: int, sample_limit: int | None) -> None:
         """SB3's ``train(gradient_steps, batch_size)`` at environment step ``timestep``, sampling within
         ``sample_limit``."""
+        for key in LOSSES:  # (the iteration records its own: :meth:`fault` reads them)
+            self.model.logger.name_to_value.pop(key, None)
         self.model.num_timesteps = timestep
         self.buffer.sample_limit = sample_limit
         try:
             self.model.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
         finally:
             self.buffer.sample_limit = None
+
+    def _optimizers(self) -> list[Any]:
+        """The optimisers a training iteration steps: the actor's, the critics' and the entropy coefficient's."""
+        m = self.model
+        found = (m.actor.optimizer, m.critic.optimizer, getattr(m, "ent_coef_optimizer", None))
+        return [opt for opt in found if opt is not None]
+
+    def snapshot(self) -> dict[str, Any]:
+        """The policy's ``state_dict`` (actor, critics, target critics), the optimisers' states, the entropy
+        coefficient and SB3's update counter, copied (see :meth:`LearnerAlgorithm.snapshot`)."""
+        import copy
+
+        m = self.model
+        ent = getattr(m, "log_ent_coef", None)
+        return {"policy": {k: v.detach().clone() for k, v in m.policy.state_dict().items()},
+                "optimizers": [copy.deepcopy(opt.state_dict()) for opt in self._optimizers()],
+                "log_ent_coef": None if ent is None else ent.detach().clone(), "n_updates": m._n_updates}
+
+    def restore(self, snapshot: dict[str, Any]) -> None:
+        """Copy a :meth:`snapshot` back into the networks, optimisers and entropy coefficient (the tensors the
+        optimisers hold stay the same objects).
+
+        :param snapshot: what :meth:`snapshot` returned
+        """
+        import torch
+
+        m = self.model
+        m.policy.load_state_dict(snapshot["policy"])
+        for opt, state in zip(self._optimizers(), snapshot["optimizers"]):
+            opt.load_state_dict(state)
+        if snapshot["log_ent_coef"] is not None:
+            with torch.no_grad():
+                m.log_ent_coef.copy_(snapshot["log_ent_coef"])
+        m._n_updates = snapshot["n_updates"]
+
+    def fault(self) -> str | None:
+        """The first non-finite training loss of the last iteration, or parameter or buffer of the policy
+        (actor, critics, target critics), or the entropy coefficient; None when all are finite."""
+        import torch
+
+        m = self.model
+        logger = getattr(m, "_logger", None)  # (a model loaded from a checkpoint has none yet)
+        values = logger.name_to_value if logger is not None else {}
+        for key in LOSSES:
+            if key in values and not np.isfinite(values[key]):
+                return f"{key.rpartition('/')[2]} {values[key]}"
+        tensors = list(m.policy.state_dict().items())
+        ent = getattr(m, "log_ent_coef", None)
+        if ent is not None:
+            tensors.append(("log_ent_coef", ent))
+        for name, t in tensors:
+            if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+                return f"parameter {name}"
+        return None
 
     def policy_weights(self) -> dict[str, np.ndarray]:
         """The policy's ``actor`` network as CPU float32 arrays."""

@@ -10,6 +10,10 @@ made the iteration due -- the data SB3's policy would have been trained on at th
 iteration samples only the first transitions up to the one that made it due (``sample_limit``), so what it
 learns does not depend on how many more arrived meanwhile (the learner stores batches in another thread).
 
+An iteration that leaves a training loss or a parameter NaN or infinite is rolled back: the algorithm is
+restored from the in-memory snapshot taken before it (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.snapshot`),
+so non-finite weights are never published or checkpointed (status ``rollbacks``).
+
 In ``robot`` mode (actors never wait) there is no schedule: :meth:`Trainer.train_now` trains on everything
 stored so far whenever the learner is free, and the status reports the update-to-data ratio achieved.
 """
@@ -122,6 +126,8 @@ class Trainer:
         self.gradient_steps = 0
         self.version = 0
         self.weights_trained: dict[str, int] = {}
+        self.rollbacks = 0  # iterations rolled back (a loss or parameter went non-finite)
+        self.last_rollback = ""  # what was not finite the last time
         self.schedule = True  # simulation mode: iterations come due with the data; robot mode: train_now
         algo.set_logger(Path(log_dir), logger_formats)
 
@@ -195,11 +201,39 @@ class Trainer:
         return self.gradient_steps / max(1, self.total - self.learning_starts)
 
     def _train(self, at: int, snapshot: dict[str, int], limit: int | None) -> None:
-        self.algo.train(self.algo.gradient_steps, timestep=at, sample_limit=limit)
+        """One iteration; rolled back if it left a loss or a parameter non-finite (:meth:`_iterate`). Either way
+        it counts as done (the weights that follow are the last good ones), so that the schedule and the actors'
+        flow control go on."""
+        fault = self._iterate(at, limit)
+        if fault is not None:
+            self.rollbacks += 1
+            self.last_rollback = fault
+            if self.rollbacks <= 10 or self.rollbacks % 100 == 0:
+                log.warning("training iteration %d (at transition %d) rolled back: %s is not finite; networks and "
+                            "optimisers restored to before it, so no non-finite weights are published or "
+                            "checkpointed (%d rollbacks in this learner)", self.iterations + 1, at, fault,
+                            self.rollbacks)
         self.iterations += 1
         self.gradient_steps += self.algo.gradient_steps
         self.version += 1
         self.weights_trained = dict(snapshot)
+
+    def _iterate(self, at: int, limit: int | None) -> str | None:
+        """``gradient_steps`` gradient steps from a snapshot of the algorithm; if they leave a loss or a parameter
+        non-finite, the snapshot is restored and that is returned (None: the iteration stands). A NaN parameter
+        can also make the iteration raise (torch refuses a distribution of NaN): that is a fault too."""
+        before = self.algo.snapshot()
+        try:
+            self.algo.train(self.algo.gradient_steps, timestep=at, sample_limit=limit)
+            fault = self.algo.fault()
+        except (ValueError, RuntimeError) as exc:
+            fault = self.algo.fault()
+            if fault is None:  # not a numerical fault: a bug, raised
+                raise
+            fault = f"{fault} ({type(exc).__name__} in the iteration)"
+        if fault is not None:
+            self.algo.restore(before)
+        return fault
 
     def record_iteration(self, seconds: float, queue_depth: int) -> None:
         """Training scalars after an iteration (SB3 logger: csv and TensorBoard).

@@ -3,6 +3,7 @@ allow, and the learner's status messages -- typed messages through :mod:`khgrl.c
 
 from __future__ import annotations
 
+import functools
 import math
 import secrets
 import time
@@ -17,7 +18,17 @@ from khgrl.common.wire.messages import Ack, Control, Status, Transitions
 from khgrl.common.wire.protocol import Keys, ProtocolError, decode, encode
 from khgrl.deploy.supervisor import Proc
 
-__all__ = ["batches", "Link"]
+__all__ = ["batches", "Link", "passage_digest"]
+
+
+@functools.cache
+def passage_digest() -> str:
+    """The task digest of the benchmark learner's task (the passage world, as :func:`procs.passage_task_file`
+    writes it): every batch must carry it."""
+    from khgrl.common.config.settings import RunConfig
+    from khgrl.deploy.launcher import check_task
+
+    return check_task(RunConfig()).digest
 
 
 def batches(n: int, batch: int, seed: int) -> list[bytes]:
@@ -39,7 +50,7 @@ def batches(n: int, batch: int, seed: int) -> list[bytes]:
                           next_obs=rng.random((m, OBS_DIM), dtype=np.float32),
                           action=rng.uniform(-1, 1, (m, ACT_DIM)).astype(np.float32),
                           reward=rng.standard_normal(m).astype(np.float32), terminated=zeros, truncated=trunc,
-                          intervened=zeros, clipped=zeros, stream=stream, base_seq=0)
+                          intervened=zeros, clipped=zeros, stream=stream, base_seq=0, task=passage_digest())
         out.append(encode(msg, BENCH_ACTOR, seq))
     return out
 

@@ -20,6 +20,7 @@ from typing import Any, Callable, Protocol
 from khgrl.common.delivery.ingest import FairInbox, StreamTable
 from khgrl.common.delivery.learner_link import Publisher
 from khgrl.common.delivery.senders import read_for_learner
+from khgrl.common.wire.bounds import check_bounds
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
 from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.messages import Ack, Control, Dims, Transitions
@@ -81,6 +82,9 @@ class LearnerIngest:
             message on ``actor/<id>/request``: only ``checkpoint`` from that actor is taken there)
         :param key: the key expression it arrived on
         :param payload: its bytes
+
+        A batch with a value out of the task's bounds (:func:`~khgrl.common.wire.bounds.check_bounds`) is refused
+        whole, counted as ``values`` in the rejects.
         """
         try:
             msg = read_for_learner(kind, key, payload, self.dims, self.task)
@@ -88,6 +92,11 @@ class LearnerIngest:
             self.rejects.reject("control" if kind == "request" else kind, key, exc)
             return
         if isinstance(msg, Transitions):
+            reason = check_bounds(msg, self.task)  # finite, and within the task's value bounds
+            if reason is not None:
+                self.rejects.reject("values", key, ProtocolError(f"actor {msg.actor} batch {msg.envelope.seq}: "
+                                                                 f"{reason}"))
+                return
             self.offer(msg)
             return
         if kind == "control":

@@ -10,6 +10,9 @@ settings
   (:class:`~khgrl.common.kmp.fit.KMPConfig`), the workspace box (always a hard constraint) and optional further hard
   linear constraints ``G P >= c`` (math.md §3);
 * the default exploration scale L0 and whether KhGRL learns it from the human (paper Section III-C);
+* the value bounds the learner holds the task's transitions to: ``reward_bound`` (the largest |reward| of the
+  environment, default 1e6) and ``obs_bound`` (the largest |observation| in any dimension, default 1e6; within it the
+  observation space's own bounds apply): a batch beyond them is refused (:func:`value_bounds`);
 * optionally: ``position`` (where the robot is, in command coordinates, from the environment's observation;
   default: the command last sent), ``scripted_human`` (P_h or None for the step whose KMP mean is given; it may
   also ask for the step, the phase, the robot's position and the observation: :func:`call_scripted_human`),
@@ -33,11 +36,14 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 from khgrl.common.kmp.fit import KMPConfig
+from khgrl.common.wire.descriptor import MAX_BOUND, OBS_BOUND, REWARD_BOUND
 
 __all__ = ["Task", "View", "Cuboid", "Sphere", "Point", "TaskError", "load_task", "BUILTIN_TASKS",
-           "MAX_DIM", "HUMAN_INPUTS", "scripted_human_inputs", "call_scripted_human"]
+           "MAX_DIM", "HUMAN_INPUTS", "scripted_human_inputs", "call_scripted_human", "value_bounds",
+           "MAX_DECLARED_BOUND"]
 
 MAX_DIM = 64  # command (O) and observation sizes a task may have (also the wire's bound)
+MAX_DECLARED_BOUND = 1e9  # the largest reward_bound / obs_bound a task may declare (float32 training stays finite)
 
 
 class TaskError(ValueError):
@@ -114,6 +120,10 @@ class Task:
         ``**kwargs``) gets those too (:func:`call_scripted_human`).
     :param view: drawing hints.
     :param success_key: the ``info`` key that marks a successful episode end.
+    :param reward_bound: the largest |reward| the environment gives (default 1e6); the learner refuses a batch with
+        a reward beyond it plus the largest action cost (:func:`value_bounds`).
+    :param obs_bound: the largest |observation| in any dimension (default 1e6), whatever the observation space
+        says; within it the space's own bounds apply (with a margin of a tenth of their width).
     """
 
     name: str
@@ -130,6 +140,8 @@ class Task:
     scripted_human: Callable[..., np.ndarray | None] | None = None
     view: View = field(default_factory=View)
     success_key: str = "success"
+    reward_bound: float = REWARD_BOUND
+    obs_bound: float = OBS_BOUND
 
     def with_demos(self, demos: Any) -> "Task":
         """This task with other demonstrations (``--demos FILE``)."""
@@ -320,3 +332,32 @@ def check_view(task: Task, o: int) -> View:
         for c in coords:
             vector(task, f"shape {s.name!r} {c}", getattr(s, c), o)
     return replace(v, axes=axes, names=names)
+
+
+def value_bounds(task: Task, workspace: tuple[np.ndarray, np.ndarray],
+                 obs_space: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+    """(reward bound, observation bound) of the task's descriptor: the learner refuses a transition whose |reward|
+    or |observation| is beyond them (or whose observation lies outside its space by more than a tenth of the
+    space's width). The reward bound is the environment's (``task.reward_bound``) plus the largest action cost
+    the workspace allows: ``4 * action_cost * |high - low|^2`` (|P_t - eta0_t| <= twice the workspace's diagonal,
+    even where the KMP mean leaves the box a little).
+
+    :param task: the task (its declared ``reward_bound``, ``obs_bound`` and ``action_cost``).
+    :param workspace: (low, high) of the workspace box.
+    :param obs_space: (low, high) of the policy's observation space (infinite where unbounded).
+    :raises TaskError: a declared bound that is not a number in (0, 1e9], or an observation space that lies
+        entirely beyond +-obs_bound in some dimension.
+    """
+    for what, v in (("reward_bound", task.reward_bound), ("obs_bound", task.obs_bound)):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_DECLARED_BOUND:
+            raise TaskError(f"task {task.name!r}: {what} must be a number in (0, {MAX_DECLARED_BOUND:g}], got {v!r}")
+    bound = float(task.obs_bound)
+    low, high = (np.asarray(x, dtype=np.float64) for x in obs_space)
+    outside = np.flatnonzero((low > bound) | (high < -bound))
+    if outside.size:
+        k = int(outside[0])
+        raise TaskError(f"task {task.name!r}: observation {k}'s space [{low[k]:g}, {high[k]:g}] lies beyond "
+                        f"obs_bound {bound:g}: declare a larger Task(obs_bound=...)")
+    span = np.asarray(workspace[1], dtype=np.float64) - np.asarray(workspace[0], dtype=np.float64)
+    action_cost = 4.0 * float(task.action_cost) * float(span @ span)
+    return min(float(task.reward_bound) + action_cost, MAX_BOUND), bound

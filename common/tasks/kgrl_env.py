@@ -26,7 +26,7 @@ import numpy as np
 from gymnasium import spaces
 from khgrl.common.kmp.mapping import KGRLMapping
 from khgrl.common.kmp.scale import ScaleModel
-from khgrl.common.tasks.api import Task, TaskError
+from khgrl.common.tasks.api import Task, TaskError, value_bounds
 from khgrl.common.tasks.world import TaskWorld, build_task_world
 
 __all__ = ["KGRLEnv", "make_inner_env"]
@@ -201,6 +201,7 @@ class KGRLEnv(gym.Env):
 
         w, ob = self.world, self.observation_space
         big = 1e30
+        reward_bound, obs_bound = value_bounds(self.task, (w.low, w.high), (ob.low, ob.high))
         return TaskDescriptor(
             name=self.task.name[:64] or "task", spec=(spec or self.task.name)[:200], out_dim=w.out_dim,
             obs_dim=int(ob.shape[0]), obs_low=tuple(np.clip(ob.low.astype(float), -big, big).tolist()),
@@ -211,7 +212,8 @@ class KGRLEnv(gym.Env):
             axis_names=tuple(w.view.names), view_axes=tuple(w.view.axes),
             view_third=-1 if w.view.third is None else int(w.view.third),
             shapes=tuple(_shape_dict(s) for s in w.view.shapes), mean=np.asarray(w.model.grid_mean, np.float64),
-            demos=np.asarray(w.demos, np.float64), projector=np.asarray(w.model.grid_projector, np.float64))
+            demos=np.asarray(w.demos, np.float64), projector=np.asarray(w.model.grid_projector, np.float64),
+            reward_bound=reward_bound, obs_bound=obs_bound)
 
     def render(self):
         """An RGB image of the task views (:class:`~khgrl.common.tasks.render.TaskRenderer`), or None without a mode."""

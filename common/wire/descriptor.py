@@ -6,8 +6,13 @@ and monitors draw from it, a third-party client reads sizes from it. It is plain
 lists and two arrays), checked on receipt like every message (docs/protocol.md, ``task``).
 
 ``digest`` identifies the task: it hashes everything a learner and an actor must agree on (names, sizes,
-bounds, constraints, horizon, L0, the demonstrations) but not the fitted KMP (mean and projector), which a
-different BLAS may round differently. A learner and an actor whose digests differ refuse each other.
+bounds, constraints, horizon, L0, the demonstrations, the value bounds) but not the fitted KMP (mean and
+projector), which a different BLAS may round differently. A learner and an actor whose digests differ refuse each
+other.
+
+Value bounds (what the learner accepts in a batch, :mod:`khgrl.common.wire.bounds`): ``reward_bound`` (|reward|
+<= it) and the observation limits :attr:`TaskDescriptor.obs_limits` -- the observation space's bounds, each side
+no further out than ``obs_bound`` (also where the space is unbounded), widened by :data:`OBS_MARGIN` of the width.
 """
 
 from __future__ import annotations
@@ -20,11 +25,15 @@ from functools import cached_property
 import numpy as np
 from khgrl.common.wire.checks import ProtocolError, pack_array, typ, unpack_array
 
-__all__ = ["TaskDescriptor", "MAX_DIM"]
+__all__ = ["TaskDescriptor", "MAX_DIM", "REWARD_BOUND", "OBS_BOUND", "MAX_BOUND", "OBS_MARGIN"]
 
 MAX_DIM = 64
 MAX_CONSTRAINTS = 1024
 MAX_HORIZON = 100_000
+REWARD_BOUND = 1e6  # default |reward| of a task's environment (khgrl.task.Task.reward_bound)
+OBS_BOUND = 1e6  # default |observation| in every dimension, bounded by the space or not (Task.obs_bound)
+MAX_BOUND = 1e12  # the largest bound a descriptor may carry: squares stay far below float32's 3.4e38
+OBS_MARGIN = 0.1  # an observation may lie this fraction of its dimension's width (+ 1e-3) outside the space
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,6 +61,9 @@ class TaskDescriptor:
     :param demos: (M, N, O) the demonstrations.
     :param projector: (N, O, O) the KMP's null-space projector N_t on the grid (the exploration band a viewer
         draws is eta0 +- |N_t| L_t).
+    :param reward_bound: the largest |reward| of a transition (the environment's bound plus the largest action
+        cost the workspace allows).
+    :param obs_bound: the largest |observation| in any dimension (where the space is unbounded, or wider).
     """
 
     name: str
@@ -74,6 +86,18 @@ class TaskDescriptor:
     mean: np.ndarray
     demos: np.ndarray
     projector: np.ndarray
+    reward_bound: float = REWARD_BOUND
+    obs_bound: float = OBS_BOUND
+
+    @cached_property
+    def obs_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) float64 arrays (obs_dim,): where an observation of this task may lie -- the space's bounds
+        clipped to +-``obs_bound``, widened by :data:`OBS_MARGIN` of that width plus 1e-3 (an environment's
+        rounding at its space's edge is not refused)."""
+        low = np.clip(np.asarray(self.obs_low, np.float64), -self.obs_bound, self.obs_bound)
+        high = np.clip(np.asarray(self.obs_high, np.float64), -self.obs_bound, self.obs_bound)
+        margin = OBS_MARGIN * np.maximum(high - low, 0.0) + 1e-3
+        return low - margin, high + margin
 
     @cached_property
     def digest(self) -> str:
@@ -124,7 +148,9 @@ class TaskDescriptor:
                    shapes=tuple(_shape(s, o) for s in shapes),
                    mean=unpack_array(m.get("mean"), "mean", dtype="<f8", shape=(n, o)),
                    demos=unpack_array(m.get("demos"), "demos", dtype="<f8", shape=(None, n, o)),
-                   projector=unpack_array(m.get("projector"), "projector", dtype="<f8", shape=(n, o, o)))
+                   projector=unpack_array(m.get("projector"), "projector", dtype="<f8", shape=(n, o, o)),
+                   reward_bound=_bound("reward_bound", m.get("reward_bound")),
+                   obs_bound=_bound("obs_bound", m.get("obs_bound")))
 
 
 def _lists(v):
@@ -152,6 +178,13 @@ def _floats(name: str, v, n: int, finite: bool = True) -> tuple[float, ...]:
             raise ProtocolError(f"{name}[{i}]: expected a {'finite ' if finite else ''}number")
         out.append(float(x))
     return tuple(out)
+
+
+def _bound(name: str, v) -> float:
+    """A value bound: a number in (0, MAX_BOUND]."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= MAX_BOUND:
+        raise ProtocolError(f"{name}: expected a number in (0, {MAX_BOUND:g}]")
+    return float(v)
 
 
 def _ints(name: str, v, n: int, bound: int) -> tuple[int, ...]:

@@ -83,7 +83,7 @@ class Transitions(Message):
     clipped: np.ndarray
     base_seq: int | None = None  # the oldest batch the actor still holds
     stream: str | None = None  # random id of the actor incarnation
-    task: str | None = None  # the digest of the actor's task descriptor
+    task: str | None = None  # the digest of the actor's task descriptor: required on the wire
 
     @property
     def n(self) -> int:
@@ -113,8 +113,10 @@ class Transitions(Message):
         base = opt(m, "base_seq", typ, int, low=0)
         if base is not None and base > m.get("seq", 0):
             raise ProtocolError(f"base_seq {base} > seq {m.get('seq')}")
+        if m.get("task") is None:
+            raise ProtocolError("task: missing (the digest of the actor's task descriptor is required)")
         return cls(actor=ident("actor", m.get("actor")), first_step=typ("first_step", m.get("first_step"), int, low=0),
-                   base_seq=base, stream=opt(m, "stream", ident), task=opt(m, "task", ident), **arrays)
+                   base_seq=base, stream=opt(m, "stream", ident), task=ident("task", m.get("task")), **arrays)
 
 
 @dataclass(frozen=True)

@@ -96,6 +96,7 @@ class LearnerInfo:
     utd: float = 0.0  # update-to-data ratio achieved: gradient steps per transition ingested after learning_starts
     rss_mb: float = 0.0  # the learner process's resident memory
     not_admitted_dropped: int = 0  # batches of actor ids not admitted yet, dropped over the inbox's caps (re-sent)
+    rollbacks: int = 0  # training iterations rolled back: a loss or parameter went non-finite
 
 
 @dataclass(frozen=True)

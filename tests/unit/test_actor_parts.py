@@ -132,7 +132,7 @@ def make_stream(tmp_path, memory: int = 1000):
     clock = Clock()
     rejects = RejectCounter("actor/a0")
     stream = TransitionStream("a0", "s1", Outbox(memory, tmp_path / "outbox"), sent.append, rejects,
-                              resend_after_s=2.0, clock=clock)
+                              resend_after_s=2.0, clock=clock, task="0123456789abcdef")
     return stream, sent, clock, rejects
 
 

@@ -44,7 +44,8 @@ def _batch(seq: int, n: int = 8) -> Transitions:
     msg = Transitions(actor="a0", first_step=n * seq, obs=obs, next_obs=obs[::-1].copy(),
                       action=rng.uniform(-1, 1, (n, 2)).astype(np.float32), reward=np.ones(n, np.float32),
                       terminated=np.zeros(n, np.uint8), truncated=np.zeros(n, np.uint8),
-                      intervened=np.zeros(n, np.uint8), clipped=np.zeros(n, np.uint8), base_seq=0, stream="s0")
+                      intervened=np.zeros(n, np.uint8), clipped=np.zeros(n, np.uint8), base_seq=0, stream="s0",
+                      task="0123456789abcdef")
     return decode(Transitions, encode(msg, "a0", seq))
 
 

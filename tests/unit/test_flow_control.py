@@ -33,7 +33,7 @@ def _stream(tmp_path, window: int):
     sent: list[bytes] = []
     clock = Clock()
     stream = TransitionStream("a0", "s1", Outbox(1000, tmp_path / "outbox"), sent.append, RejectCounter("a0"),
-                              resend_after_s=2.0, clock=clock, window=window)
+                              resend_after_s=2.0, clock=clock, window=window, task="0123456789abcdef")
     return stream, sent, clock
 
 

@@ -42,7 +42,7 @@ def batch(seq: int, first: int, n: int, actor: str = "a0", base: int = 0, stream
                       action=rng.uniform(-1, 1, (n, 2)).astype(np.float32), reward=np.ones(n, np.float32),
                       terminated=np.zeros(n, np.uint8), truncated=np.zeros(n, np.uint8),
                       intervened=np.full(n, intervened, np.uint8), clipped=np.zeros(n, np.uint8), base_seq=base,
-                      stream=stream)
+                      stream=stream, task="0123456789abcdef")
     return decode(Transitions, encode(msg, actor, seq))
 
 

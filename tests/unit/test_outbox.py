@@ -39,7 +39,8 @@ def make_stream(out_dir, start=None, memory: int = 2):
     rec, sent, clock = start.record, [], Clock()
     stream = TransitionStream("a0", rec.stream, start.outbox, sent.append, RejectCounter("actor/a0"), clock=clock,
                               next_seq=rec.next_seq, next_index=rec.next_index, durable=rec.durable,
-                              journal=lambda pos: StreamRecord(stream=rec.stream, **pos).save(out_dir))
+                              journal=lambda pos: StreamRecord(stream=rec.stream, **pos).save(out_dir),
+                              task="0123456789abcdef")
     return stream, sent, clock
 
 
@@ -152,7 +153,7 @@ def tbatch(seq: int, first: int, stream: str, actor: str = "a0", base: int = 0) 
     msg = Transitions(actor=actor, first_step=first, obs=obs, next_obs=obs, action=np.zeros((n, 2), np.float32),
                       reward=np.zeros(n, np.float32), terminated=np.zeros(n, np.uint8),
                       truncated=np.zeros(n, np.uint8), intervened=np.zeros(n, np.uint8), clipped=np.zeros(n, np.uint8),
-                      base_seq=base, stream=stream)
+                      base_seq=base, stream=stream, task="0123456789abcdef")
     return decode(Transitions, encode(msg, actor, seq))
 
 

@@ -55,6 +55,7 @@ def _transitions(n: int = 4, **over) -> Transitions:
         truncated=np.zeros(n, np.uint8),
         intervened=np.array([1, 0, 0, 1][:n] + [0] * max(0, n - 4), np.uint8),
         clipped=np.zeros(n, np.uint8),
+        task="0123456789abcdef",
     )
     fields.update(over)
     return Transitions(**fields)
@@ -234,6 +235,7 @@ def test_schema_version_1_is_accepted() -> None:
         (_transitions(obs=np.zeros((4, OBS_DIM), np.float64)), "dtype"),
         (_transitions(reward=np.zeros(3, np.float32)), "rows"),
         (_transitions(base_seq=9), "base_seq"),
+        (_transitions(task=None), "task: missing"),
         (_frame(phase=1.5), "phase"),
         (_frame(robot=np.array([0.1, np.nan])), "not finite"),
         (Weights(version=1, trained={}, tensors={"w": np.array([1.0, np.nan], np.float32)}), "NaN"),

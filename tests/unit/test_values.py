@@ -1,0 +1,268 @@
+"""Issue 21, "values are bounded": the task descriptor's value bounds, the learner's check of arriving batches
+(:func:`check_bounds`, counted as ``values`` rejects), the required task digest, the rollback of a training iteration
+that went non-finite, and the checks a resumed learner makes of its checkpoint."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from khgrl.common.config.settings import TQCSettings
+from khgrl.common.process import StopFlag
+from khgrl.common.tasks.api import TaskError, value_bounds
+from khgrl.common.tasks.passage.env import PassageEnv
+from khgrl.common.wire.bounds import bad_rows, check_bounds
+from khgrl.common.wire.checks import ProtocolError
+from khgrl.common.wire.descriptor import TaskDescriptor
+from khgrl.common.wire.messages import TaskInfo, Transitions
+from khgrl.common.wire.protocol import Keys, decode, encode
+from khgrl.learner.checkpoint import MODEL_FILE, CheckpointError, find_checkpoint
+from khgrl.learner.loop import LearnerLoop, open_learner
+
+SMALL = TQCSettings(learning_starts=16, buffer_size=1000, net_arch=(32, 32), batch_size=32)
+KEYS = Keys("unit")
+
+
+@pytest.fixture(scope="module")
+def task() -> TaskDescriptor:
+    return PassageEnv("low_cov").descriptor("passage:low_cov")
+
+
+def _batch(desc: TaskDescriptor | None, seq: int = 0, n: int = 8, actor: str = "a0", **over) -> Transitions:
+    rng = np.random.default_rng(seq)
+    obs = rng.uniform(0, 1, (n, 5)).astype(np.float32)
+    fields = dict(actor=actor, first_step=n * seq, obs=obs, next_obs=obs[::-1].copy(),
+                  action=rng.uniform(-1, 1, (n, 2)).astype(np.float32), reward=rng.normal(size=n).astype(np.float32),
+                  terminated=np.zeros(n, np.uint8), truncated=np.zeros(n, np.uint8), intervened=np.zeros(n, np.uint8),
+                  clipped=np.zeros(n, np.uint8), base_seq=0, stream="s0",
+                  task=desc.digest if desc is not None else "0123456789abcdef")
+    fields.update(over)
+    return Transitions(**fields)
+
+
+def without_digest(payload: bytes) -> bytes:
+    """A batch's payload without its ``task`` field (``encode`` refuses to make one)."""
+    import msgpack
+
+    m = msgpack.unpackb(payload, raw=False)
+    del m["task"]
+    return msgpack.packb(m, use_bin_type=True)
+
+
+class _Pub:
+    queries = 0
+
+    def __init__(self) -> None:
+        self.sent: list = []
+
+    def _keep(self, msg) -> None:
+        self.sent.append(msg)
+
+    weights = ack = status = _keep
+
+
+def _loop(tmp_path: Path, task, *, resume: bool = False, algo: str = "tqc") -> LearnerLoop:
+    trainer, streams = open_learner(SMALL, 1, tmp_path / "learner", resume=resume, logger_formats=("csv",),
+                                    task=task, algo=algo)
+    loop = LearnerLoop(trainer, streams, _Pub(), learner_id="learner", learner_dir=tmp_path / "learner",
+                       checkpoint_every=0, flag=StopFlag())
+    if task is not None:
+        loop.set_task(task)
+    return loop
+
+
+# ------------------------------------------------------------------------------------ the descriptor's bounds
+def test_the_descriptor_carries_value_bounds_that_survive_the_wire(task):
+    # passage world: |r| <= 200 (goal) + 10 + 10 (obstacle, wall) + 10 |dp|^2 <= 20: the default is 5,000 times that
+    assert 1e6 < task.reward_bound < 1e6 + 100 and task.obs_bound == 1e6
+    low, high = task.obs_limits
+    assert np.allclose(low, [-0.101] * 3 + [-1.201] * 2) and np.allclose(high, [1.101] * 3 + [1.201] * 2)
+    back = decode(TaskInfo, encode(TaskInfo(sender_id="a0", descriptor=task), "a0", 0)).descriptor
+    assert (back.reward_bound, back.obs_bound, back.digest) == (task.reward_bound, task.obs_bound, task.digest)
+    assert dataclasses.replace(task, reward_bound=10.0).digest != task.digest  # learner and actor agree on it
+    wire = task.to_wire()
+    for bad in (0.0, -1.0, float("inf"), 1e13, True, "1e6", None):
+        with pytest.raises(ProtocolError, match="reward_bound"):
+            TaskDescriptor.from_wire({**wire, "reward_bound": bad})
+
+
+def test_a_task_declares_its_bounds_and_bad_declarations_are_one_error():
+    from khgrl.deploy.examples.own_task import make_task
+
+    t = make_task()
+    box, space = ((0.0,) * 3, (1.0,) * 3), (np.full(7, -np.inf), np.full(7, np.inf))
+    reward, obs = value_bounds(t, box, space)
+    assert reward == pytest.approx(1e6 + 4 * t.action_cost * 3) and obs == 1e6
+    assert value_bounds(dataclasses.replace(t, reward_bound=5.0, obs_bound=2.0), box, space) == (
+        pytest.approx(5.0 + 4 * t.action_cost * 3), 2.0)
+    for field, v in (("reward_bound", 0), ("reward_bound", float("nan")), ("obs_bound", 1e10), ("obs_bound", "x")):
+        with pytest.raises(TaskError, match=field):
+            value_bounds(dataclasses.replace(t, **{field: v}), box, space)
+    with pytest.raises(TaskError, match="obs_bound"):  # a space that lies wholly beyond the bound
+        value_bounds(t, box, (np.full(7, 2e6), np.full(7, 3e6)))
+
+
+# ------------------------------------------------------------------------------------ check_bounds, bad_rows
+def test_check_bounds_refuses_what_overflows_and_names_it(task):
+    assert check_bounds(_batch(task), task) is None
+    edge = _batch(task, obs=np.full((8, 5), 1.05, np.float32))  # an environment rounding at its space's edge
+    assert check_bounds(edge, task) is None
+    r = np.zeros(8, np.float32)
+    r[3] = 3e38
+    why = check_bounds(_batch(task, reward=r), task)
+    assert why.startswith("reward[3] = 3e+38 is outside [-1.00007e+06, 1.00007e+06]")
+    obs = np.zeros((8, 5), np.float32)
+    obs[[2, 5], 1] = -3e38
+    why = check_bounds(_batch(task, next_obs=obs), task)
+    assert why.startswith("next_obs[2, 1] = -3e+38 is outside [-0.101, 1.101]") and "(2 of 8 rows" in why
+    obs[2, 1] = np.nan  # (the wire refuses NaN; a stored row is checked with the same function)
+    assert "next_obs[2, 1] is not finite" in check_bounds(_batch(task, next_obs=obs), task)
+    assert check_bounds(_batch(task, obs=np.full((8, 5), 2.0, np.float32)), task).startswith("obs[0, 0] = 2")
+    # a dimension the space leaves unbounded is still held to +-obs_bound
+    open_task = dataclasses.replace(task, obs_low=(-1e30,) * 5, obs_high=(1e30,) * 5)
+    assert check_bounds(_batch(open_task, obs=np.full((8, 5), 5e5, np.float32)), open_task) is None
+    assert "outside [-1.2e+06, 1.2e+06]" in check_bounds(_batch(open_task, obs=np.full((8, 5), 3e38, np.float32)),
+                                                         open_task)
+    # without a task: finite and within +-1e12
+    assert check_bounds(_batch(None, reward=np.full(8, 1e9, np.float32)), None) is None
+    assert check_bounds(_batch(None, reward=r), None) is not None
+
+
+def test_bad_rows_marks_rows_in_sb3_shapes(task):
+    n = 6
+    obs = np.full((n, 1, 5), 0.5, np.float32)
+    reward = np.zeros((n, 1), np.float32)
+    obs[1, 0, 4] = 1e20
+    reward[3, 0] = -np.inf
+    action = np.zeros((n, 1, 2), np.float32)
+    action[5, 0, 0] = 2.0
+    mask = bad_rows({"obs": obs, "next_obs": obs.copy(), "reward": reward, "action": action}, task)
+    assert mask.tolist() == [False, True, False, True, False, True]
+    assert bad_rows({"obs": obs, "next_obs": obs, "reward": reward}, task).tolist() == [0, 1, 0, 1, 0, 0]
+
+
+# ------------------------------------------------------------------------------------ the learner refuses
+def test_the_learner_refuses_out_of_bound_batches_and_batches_without_a_digest(tmp_path, task, caplog):
+    loop = _loop(tmp_path, task)
+    r = np.full(8, 3e38, np.float32)
+    with caplog.at_level(logging.WARNING, logger="khgrl.protocol"):
+        loop.receive("transitions", KEYS.transitions("x9"), encode(_batch(task, actor="x9", reward=r), "x9", 0))
+        loop.receive("transitions", KEYS.transitions("x9"), without_digest(encode(_batch(task, actor="x9"), "x9", 1)))
+    assert loop.rejects.by_kind() == {"values": 1, "transitions": 1}
+    assert "actor x9 batch 0: reward[0] = 3e+38 is outside" in caplog.text and "task: missing" in caplog.text
+    assert loop.trainer.total == 0 and "x9" not in loop.streams
+    loop.receive("transitions", KEYS.transitions("a0"), encode(_batch(task), "a0", 0))
+    assert loop.trainer.total == 8 and loop.info().rejects == {"values": 1, "transitions": 1}
+
+
+# ------------------------------------------------------------------------------------ rollback
+def _train_ready(loop: LearnerLoop, task, seqs=range(4)) -> None:
+    """Batches past learning_starts stored: iterations at 24 and 32 due."""
+    for seq in seqs:
+        loop.offer(decode(Transitions, encode(_batch(task, seq), "a0", seq)))
+
+
+def _state(algo) -> dict[str, torch.Tensor]:
+    snap = algo.snapshot()
+    flat = {f"policy.{k}": v for k, v in snap["policy"].items()}
+    for i, opt in enumerate(snap["optimizers"]):
+        for p, st in opt["state"].items():
+            flat.update({f"opt{i}.{p}.{k}": v for k, v in st.items()})
+    return flat
+
+
+@pytest.mark.parametrize("algo", ["tqc", "sac"])
+def test_an_iteration_with_a_non_finite_loss_is_rolled_back(tmp_path, task, algo, caplog):
+    loop = _loop(tmp_path, task, algo=algo)
+    _train_ready(loop, task)
+    assert loop.work() and loop.trainer.rollbacks == 0  # one good iteration: optimiser states exist
+    before = _state(loop.trainer.algo)
+    version = loop.trainer.version
+    loop.trainer.buffer.rewards[:32, 0] = 3e38  # stored without the check (e.g. by an older learner)
+    with caplog.at_level(logging.WARNING, logger="khgrl.learner"):
+        while loop.trainer.rollbacks == 0 and loop.trainer.due:
+            assert loop.work()
+    assert loop.trainer.rollbacks >= 1 and "rolled back" in caplog.text, "the poisoned rows were never sampled"
+    after = _state(loop.trainer.algo)
+    assert loop.trainer.algo.fault() is None and before.keys() == after.keys()
+    if loop.trainer.rollbacks == loop.trainer.iterations - 1:  # every iteration since was rolled back
+        assert all(torch.equal(before[k], after[k]) for k in before)
+    weights = [m for m in loop.pub.sent if hasattr(m, "tensors")][-1]
+    assert weights.version > version and all(np.isfinite(v).all() for v in weights.tensors.values())
+    assert loop.info().rollbacks == loop.trainer.rollbacks
+
+
+def test_an_iteration_that_leaves_a_nan_parameter_is_rolled_back_exactly(tmp_path, task, monkeypatch):
+    loop = _loop(tmp_path, task)
+    _train_ready(loop, task)
+    assert loop.work()
+    model = loop.trainer.algo.model
+    before = _state(loop.trainer.algo)
+    train = model.train
+
+    def poisoned(*args, **kwargs):
+        train(*args, **kwargs)
+        with torch.no_grad():
+            next(model.critic.parameters()).view(-1)[0] = float("nan")
+
+    monkeypatch.setattr(model, "train", poisoned)
+    assert loop.work() and loop.trainer.rollbacks == 1
+    after = _state(loop.trainer.algo)
+    assert all(torch.equal(before[k], after[k]) for k in before), "not restored to before the iteration"
+    assert loop.trainer.last_rollback.startswith("parameter critic.")
+    monkeypatch.undo()
+    _train_ready(loop, task, [4])
+    assert loop.work() and loop.trainer.rollbacks == 1  # training goes on from the restored state
+    assert not all(torch.equal(before[k], v) for k, v in _state(loop.trainer.algo).items())
+
+
+def test_a_bug_in_training_is_not_taken_for_a_numerical_fault(tmp_path, task, monkeypatch):
+    loop = _loop(tmp_path, task)
+    _train_ready(loop, task)
+
+    def broken(*args, **kwargs):
+        raise ValueError("a bug")
+
+    monkeypatch.setattr(loop.trainer.algo.model, "train", broken)
+    with pytest.raises(ValueError, match="a bug"):
+        loop.work()
+
+
+# ------------------------------------------------------------------------------------ resume checks
+def test_a_resumed_learner_drops_stored_rows_out_of_bounds(tmp_path, task, caplog):
+    loop = _loop(tmp_path, task)
+    _train_ready(loop, task)
+    rb = loop.trainer.buffer
+    rb.rewards[[3, 17], 0] = 3e38  # as an older learner stored them
+    rb.next_observations[20, 0, 2] = np.inf
+    loop.checkpoint()
+    with caplog.at_level(logging.WARNING, logger="khgrl.learner"):
+        again = _loop(tmp_path, task, resume=True)
+    rb = again.trainer.buffer
+    assert rb.pos == 29 and not rb.full and "dropped 3 of the stored transitions (by actor code: {0: 3})" in caplog.text
+    assert rb.provenance_step[:29].tolist() == [s for s in range(32) if s not in (3, 17, 20)]
+    assert (rb.provenance_actor[29:] == -1).all() and np.abs(rb.rewards[:29]).max() < 10
+    assert again.trainer.total == 32  # what the streams and acks say is unchanged
+
+
+def test_a_checkpoint_with_a_nan_parameter_is_refused_or_the_previous_one_taken(tmp_path, task):
+    loop = _loop(tmp_path, task)
+    _train_ready(loop, task)
+    loop.checkpoint()
+    ckpt = find_checkpoint(tmp_path / "learner")
+    good = ckpt.parent / "good"
+    import shutil
+
+    shutil.copytree(ckpt, good)
+    with torch.no_grad():
+        next(loop.trainer.algo.model.actor.parameters()).view(-1)[0] = float("nan")
+    loop.checkpoint()
+    with pytest.raises(CheckpointError, match=f"{ckpt / MODEL_FILE}: parameter actor.* is not finite"):
+        _loop(tmp_path, task, resume=True)
+    good.rename(ckpt.parent / "checkpoint.old")  # a save cut short after the new one was in place
+    again = _loop(tmp_path, task, resume=True)
+    assert again.trainer.algo.fault() is None and again.trainer.total == 32
