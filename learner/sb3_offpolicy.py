@@ -222,14 +222,14 @@ class SB3OffPolicy:
         for key in LOSSES:
             if key in values and not np.isfinite(values[key]):
                 return f"{key.rpartition('/')[2]} {values[key]}"
-        tensors = list(m.policy.state_dict().items())
+        tensors = [(k, v) for k, v in m.policy.state_dict().items() if v.is_floating_point()]
         ent = getattr(m, "log_ent_coef", None)
         if ent is not None:
             tensors.append(("log_ent_coef", ent))
-        for name, t in tensors:
-            if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-                return f"parameter {name}"
-        return None
+        finite = torch.stack([torch.isfinite(t).all() for _, t in tensors])  # (one device sync, below)
+        if bool(finite.all()):
+            return None
+        return f"parameter {tensors[int(torch.nonzero(~finite)[0, 0])][0]}"
 
     def policy_weights(self) -> dict[str, np.ndarray]:
         """The policy's ``actor`` network as CPU float32 arrays."""

@@ -40,8 +40,7 @@ def limits(task: Any, obs_dim: int) -> dict[str, tuple[np.ndarray | float, np.nd
 def _outside(arr: np.ndarray, low, high) -> np.ndarray:
     """(n, width) bool: the values outside [low, high] or not finite (NaN compares false)."""
     a = np.asarray(arr).reshape(len(arr), -1)
-    with np.errstate(invalid="ignore"):
-        return ~((a >= low) & (a <= high))
+    return ~((a >= low) & (a <= high))  # (comparisons with NaN are false, and numpy does not warn of them)
 
 
 def bad_rows(arrays: Mapping[str, np.ndarray], task: Any) -> np.ndarray:
@@ -71,6 +70,8 @@ def check_bounds(batch: Any, task: Any) -> str | None:
         +-1e12)
     """
     for name, (low, high) in limits(task, batch.obs.shape[1]).items():
+        if name == "action":  # (the wire's own check: finite and within [-1, 1])
+            continue
         arr = getattr(batch, name)
         out = _outside(arr, low, high)
         if not out.any():
