@@ -30,7 +30,7 @@ from launch import KGRL, Launcher, _run
 
 pytestmark = pytest.mark.integration
 
-ARGS = [*KGRL, "--seed", "5", "--secure"]
+ARGS = [*KGRL, "--seed", "5", "--rate", "40", "--secure"]  # (40 Hz: the attack's 9 s lie inside part 2 anywhere)
 EXTREME = 3e38
 
 
@@ -76,7 +76,9 @@ def _attack(up: Launcher, runtime: dict, task) -> tuple[list, int]:
     sub = s.declare_subscriber(keys.status("learner"), lambda m: infos.append(decode(Status, m.payload.to_bytes())))
     try:
         wait_for(lambda: infos, 120, "the learner's status", interval=0.2)
-        learner_pid = read_json(up.run_dir / "pids.json")["children"]["learner"]
+        pids = wait_for(lambda: (p := read_json(up.run_dir / "pids.json"))["launcher"] == up.proc.pid and p, 60,
+                        "this part's pids.json")
+        learner_pid = pids["children"]["learner"]
         s.put(keys.transitions("x9"), _batch(task, 0, reward=EXTREME))  # (a)
         s.put(keys.request("x9"), encode(Control(command="checkpoint"), "x9", 0))
         time.sleep(2.5)
@@ -131,11 +133,11 @@ def test_extreme_values_from_an_authenticated_actor_are_refused(tmp_path):
     assert part1.returncode == 0, f"part 1 exited {part1.returncode}\n{part1.stdout}\n{part1.stderr}"
     issue_identities(run_dir / "certs", [("actor", "x9")])  # the run's certificates include actor-x9
     task = load_task_file(run_dir / "learner" / "task.msgpack")
-    up = Launcher(tmp_path, run_dir, "--resume", "--secure", "--episodes", "4", "--no-progress")
+    up = Launcher(tmp_path, run_dir, "--resume", "--secure", "--episodes", "3", "--no-progress")
     try:
-        up.wait_line("[a0] episode 2:", 300)
-        runtime = read_json(run_dir / "config.json")["runtime"]
-        assert runtime["secure"] and runtime["resumed"]
+        runtime = wait_for(lambda: (r := read_json(run_dir / "config.json")["runtime"])["resumed"] and r, 120,
+                           "part 2's config.json")
+        assert runtime["secure"]
         infos, extreme = _attack(up, runtime, task)
         rc = up.proc.wait(timeout=400)
         assert rc == 0, f"the run exited {rc}\n{up.stdout}\n{up.stderr}"
