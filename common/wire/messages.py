@@ -113,10 +113,11 @@ class Transitions(Message):
         base = opt(m, "base_seq", typ, int, low=0)
         if base is not None and base > m.get("seq", 0):
             raise ProtocolError(f"base_seq {base} > seq {m.get('seq')}")
+        actor, first = ident("actor", m.get("actor")), typ("first_step", m.get("first_step"), int, low=0)
         if m.get("task") is None:
             raise ProtocolError("task: missing (the digest of the actor's task descriptor is required)")
-        return cls(actor=ident("actor", m.get("actor")), first_step=typ("first_step", m.get("first_step"), int, low=0),
-                   base_seq=base, stream=opt(m, "stream", ident), task=ident("task", m.get("task")), **arrays)
+        return cls(actor=actor, first_step=first, base_seq=base, stream=opt(m, "stream", ident),
+                   task=ident("task", m.get("task")), **arrays)
 
 
 @dataclass(frozen=True)

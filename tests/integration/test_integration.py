@@ -428,7 +428,7 @@ def _transitions_fields(n: int = 4) -> dict:
 
     rng = np.random.default_rng(1)
     return {
-        "actor": "a0", "first_step": 0,
+        "actor": "a0", "first_step": 0, "task": "0123456789abcdef",
         "obs": pack_array(rng.uniform(0, 1, (n, 5)).astype(np.float32)),
         "next_obs": pack_array(rng.uniform(0, 1, (n, 5)).astype(np.float32)),
         "action": pack_array(rng.uniform(-1, 1, (n, 2)).astype(np.float32)),
@@ -464,6 +464,7 @@ def _hostile_transitions() -> list[tuple[str, bytes, str]]:
     v("base_seq > seq", "base_seq 9 > seq 1", base_seq=9)
     v("missing field", "clipped: not an array map", clipped=None)
     v("negative first_step", "first_step: -1 < 0", first_step=-1)
+    v("no task digest", "task: missing", task=None)
     return bad
 
 

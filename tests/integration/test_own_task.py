@@ -86,7 +86,7 @@ def test_learner_and_actor_of_different_tasks_refuse_each_other(tmp_path: Path) 
                          next_obs=np.zeros((2, 5), np.float32), action=np.zeros((2, 2), np.float32),
                          reward=np.zeros(2, np.float32), terminated=np.zeros(2, np.uint8),
                          truncated=np.zeros(2, np.uint8), intervened=np.zeros(2, np.uint8),
-                         clipped=np.zeros(2, np.uint8))
+                         clipped=np.zeros(2, np.uint8), task="0123456789abcdef")
         with open_client(ep, 3000) as s:
             s.put(Keys(run).transitions("x1"), encode(tr, "x1", 0))
             time.sleep(1.0)
