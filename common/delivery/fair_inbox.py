@@ -49,6 +49,7 @@ class FairInbox:
         self.turns: deque[str] = deque()  # slots with messages, in the order they are served
         self.barrier: tuple | None = None  # a control message, served when the batches before it are
         self.buffered = 0
+        self.waiting_new = 0  # of them, batches of ids not admitted yet (in ``pending``)
         self.dropped = 0  # batches of not-yet-admitted ids dropped (over the caps)
 
     def qsize(self) -> int:
@@ -101,6 +102,7 @@ class FairInbox:
             if not self.pending:
                 self.turns.append(_PENDING)
             self.pending.setdefault(slot, deque()).append(item)
+            self.waiting_new += 1
         else:
             q = self.queues.get(slot)
             if q is None:
@@ -110,7 +112,10 @@ class FairInbox:
         self.buffered += 1
 
     def _next(self) -> tuple | None:
-        if self.barrier is not None and self.buffered == 1:  # every batch that came before it is served
+        # every batch of an admitted actor that came before it is served (not those of ids not admitted yet: they
+        # trickle in at the admission rate, and a control message -- a checkpoint request, a stop -- is about the
+        # admitted streams; a request of an id not admitted is refused anyway)
+        if self.barrier is not None and self.buffered - self.waiting_new == 1:
             item, self.barrier = self.barrier, None
             self.buffered -= 1
             return item
@@ -140,6 +145,7 @@ class FairInbox:
         move to their own turn)."""
         for actor in [a for a in self.pending if self.admitted(a)]:
             self.queues[actor] = self.pending.pop(actor)
+            self.waiting_new -= len(self.queues[actor])
             self.turns.append(actor)
         if not self.pending:
             return None
@@ -152,6 +158,7 @@ class FairInbox:
         actor = next(iter(self.pending))
         q = self.pending[actor]
         item = q.popleft()
+        self.waiting_new -= 1
         if not q:
             del self.pending[actor]
         return item
