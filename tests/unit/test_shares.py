@@ -129,7 +129,9 @@ def _loop(tmp_path, cap: int | None, learning_starts: int = 16):
 
     class Pub:
         queries = 0
-        acks: list[Ack] = []
+
+        def __init__(self) -> None:
+            self.acks: list[Ack] = []
 
         def ack(self, msg: Ack) -> None:
             self.acks.append(msg)
@@ -250,3 +252,27 @@ def test_loop_honours_requests_of_admitted_streams_only(tmp_path):
 def test_batch_bytes_counts_every_array(n):
     m = batch(0, 0, n)
     assert batch_bytes(m) == n * (5 * 4 * 2 + 2 * 4 + 4 + 4)
+
+
+def test_honest_actors_in_flow_control_are_never_deferred(tmp_path):
+    """Three actors, each sending a batch of 8 whenever (sent - its last ack's trained) < max_lead 8, batches cut
+    off the global training grid (an end-of-episode batch of 3 now and then): the learner never defers one."""
+    loop, trainer = _loop(tmp_path, 24)
+    pub = loop.pub
+    sent = {a: 0 for a in ("a0", "a1", "a2")}
+    seq = {a: 0 for a in sent}
+
+    def trained(a: str) -> int:
+        acks = [m for m in pub.acks if m.actor == a]
+        return acks[-1].trained if acks else 0
+
+    for rnd in range(60):
+        for a in sent:
+            if sent[a] - trained(a) < 8:
+                n = 3 if (rnd + seq[a]) % 7 == 0 else 8
+                assert loop.offer(batch(seq[a], sent[a], n, actor=a, stream=a)) == "accepted", (rnd, a)
+                loop.ingest.ack_touched()
+                sent[a] += n
+                seq[a] += 1
+        loop.step()
+    assert loop.ingest.results["deferred"] == 0 and trainer.total == sum(sent.values()) > 400
