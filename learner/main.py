@@ -134,7 +134,8 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         link = LearnerLink(session, keys, learner_id, task)
         loop = LearnerLoop(trainer, streams, link.publisher, learner_id=learner_id, learner_dir=learner_dir,
                            checkpoint_every=cfg.stream.checkpoint_every, flag=flag,
-                           checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode)
+                           checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode,
+                           lead_cap=lead_cap(cfg.stream))
         loop.set_task(task)
         loop.start()
         link.announce(trainer.epoch)
@@ -148,6 +149,17 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
             link.close()
     log.info("learner %s done: %s; inbox dropped %s", learner_id, loop.summary(), link.inbox.dropped)
     return 0 if saved else _final_checkpoint_failed(loop)
+
+
+def lead_cap(stream) -> int:
+    """Simulation mode: how many transitions of an actor the learner stores ahead of what its trained weights cover.
+    An actor waits once it has ``max_lead`` out beyond the ack's ``trained``, so with the batch it is cutting it never
+    has more than ``max_lead + batch`` out; the learner counts a batch that an iteration covered in part as not
+    covered: one batch more.
+
+    :param stream: the run's :class:`~khgrl.common.config.settings.StreamSettings`
+    """
+    return int(stream.max_lead) + 2 * int(stream.batch)
 
 
 def _final_checkpoint_failed(loop: LearnerLoop) -> int:

@@ -6,11 +6,18 @@ stream it came from (a code into the learner's stream table, ``-1`` for an empty
 running index in that actor's stream. :meth:`StreamReplayBuffer.add` writes them in the same slot as SB3's
 fields, so they can never drift apart, and they travel inside the buffer: TQC builds this class through
 ``replay_buffer_class`` and ``save_replay_buffer``/``load_replay_buffer`` save and load them with the rest.
+
+Shares: until the buffer is full it fills first in, first out, exactly as SB3's. Once full, each actor id holding
+slots (plus one that adds) has a share of ``buffer_size // owners`` slots: a batch overwrites the oldest slots of
+its own actor while that actor holds at least its share, and otherwise the oldest slots of the actor most over its
+share. So one actor cannot evict another's data below its share, however much it sends. With one actor that actor
+always holds every slot (at least its share), so it overwrites its own oldest slot: SB3's first in, first out.
 """
 
 from __future__ import annotations
 
 import threading
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -53,16 +60,21 @@ class StreamReplayBuffer(ReplayBuffer):
         self.clipped = np.zeros(n, dtype=np.uint8)
         self.lock = threading.RLock()
         self.sample_limit: int | None = None
+        # the learner's stream table's codes (code -> {"actor", "stream"}): shares are per actor id, not per stream
+        self.stream_codes: list[dict[str, str]] | None = None
+        self._queues: dict[str, deque] | None = None  # once full: actor id -> its slots, oldest first
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state.pop("lock", None)  # not picklable; a loaded buffer gets a new one
+        for name in ("lock", "stream_codes", "_queues"):  # a loaded buffer gets a new lock, the learner's codes,
+            state.pop(name, None)  # and rebuilds the slot queues (so old checkpoints load as new ones do)
         return state
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self.lock = threading.RLock()
         self.__dict__.setdefault("sample_limit", None)
+        self.stream_codes, self._queues = None, None
 
     def sample(self, batch_size: int, env: Any = None):
         """SB3's ``sample`` (uniform over the stored slots), under ``lock`` and within ``sample_limit``.
@@ -94,6 +106,7 @@ class StreamReplayBuffer(ReplayBuffer):
         """
         with self.lock:
             slot = self.pos
+            self._queues = None  # (first in, first out here: the shares' queues are rebuilt when next needed)
             super().add(obs, next_obs, action, reward, done, infos)
             self.provenance_actor[slot] = actor
             self.provenance_step[slot] = step
@@ -103,8 +116,9 @@ class StreamReplayBuffer(ReplayBuffer):
     def add_batch(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: np.ndarray,
                   done: np.ndarray, timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int,
                   first_step: int) -> None:
-        """``len(obs)`` transitions at once, into the same slots and with the same values as that many calls of
-        :meth:`add` (wrapping around a full buffer the same way), without a Python call per transition.
+        """``len(obs)`` transitions at once: until the buffer is full into the same slots and with the same values as
+        that many calls of :meth:`add`, without a Python call per transition; once full, into the slots the actor's
+        share gives (see the module docstring: with one actor, the same slots as :meth:`add`).
 
         :param obs: observations, shape (n, obs_dim)
         :param next_obs: next observations, shape (n, obs_dim)
@@ -119,26 +133,89 @@ class StreamReplayBuffer(ReplayBuffer):
         """
         if self.optimize_memory_usage:
             raise ValueError("StreamReplayBuffer.add_batch does not support optimize_memory_usage")
+        cols = (obs, next_obs, action, reward, done, timeout, intervened, clipped)
         n, i = len(obs), 0
         with self.lock:
-            while i < n:
+            while i < n and not self.full:  # first in, first out until full
                 k = min(n - i, self.buffer_size - self.pos)
-                dst, src = slice(self.pos, self.pos + k), slice(i, i + k)
-                self.observations[dst, 0] = obs[src]
-                self.next_observations[dst, 0] = next_obs[src]
-                self.actions[dst, 0] = action[src]
-                self.rewards[dst, 0] = reward[src]
-                self.dones[dst, 0] = done[src]
-                if self.handle_timeout_termination:
-                    self.timeouts[dst, 0] = timeout[src]
-                self.provenance_actor[dst] = actor
-                self.provenance_step[dst] = first_step + np.arange(i, i + k)
-                self.intervened[dst] = intervened[src]
-                self.clipped[dst] = clipped[src]
+                self._write(slice(self.pos, self.pos + k), cols, i, k, actor, first_step)
                 self.pos += k
                 i += k
                 if self.pos == self.buffer_size:
                     self.full, self.pos = True, 0
+            if i < n:
+                self._add_shared(cols, i, n, actor, first_step)
+
+    def _write(self, dst: slice | np.ndarray, cols: tuple, i: int, k: int, actor: int, first_step: int) -> None:
+        """Write transitions ``i .. i+k`` of a batch into the slots ``dst``."""
+        obs, next_obs, action, reward, done, timeout, intervened, clipped = cols
+        src = slice(i, i + k)
+        self.observations[dst, 0] = obs[src]
+        self.next_observations[dst, 0] = next_obs[src]
+        self.actions[dst, 0] = action[src]
+        self.rewards[dst, 0] = reward[src]
+        self.dones[dst, 0] = done[src]
+        if self.handle_timeout_termination:
+            self.timeouts[dst, 0] = timeout[src]
+        self.provenance_actor[dst] = actor
+        self.provenance_step[dst] = first_step + np.arange(i, i + k)
+        self.intervened[dst] = intervened[src]
+        self.clipped[dst] = clipped[src]
+
+    def owner(self, code: int) -> str:
+        """The actor id a provenance code stands for (``#code`` without the learner's stream table).
+
+        :param code: a provenance code (-1: unknown)
+        """
+        codes = self.stream_codes
+        return codes[code]["actor"] if codes is not None and 0 <= code < len(codes) else f"#{code}"
+
+    def queues(self) -> dict[str, deque]:
+        """Once full: each actor id's slots, oldest first (built from the provenance when first needed: by stream
+        code, then the actor's running index -- the order a full buffer was written in)."""
+        if self._queues is None:
+            order = np.lexsort((self.provenance_step, self.provenance_actor))
+            codes = self.provenance_actor[order]
+            queues: dict[str, deque] = {}
+            bounds = np.flatnonzero(np.diff(codes)) + 1
+            for part in np.split(order, bounds):
+                queues.setdefault(self.owner(int(self.provenance_actor[part[0]])), deque()).extend(part.tolist())
+            self._queues = queues
+        return self._queues
+
+    def _add_shared(self, cols: tuple, i: int, n: int, actor: int, first_step: int) -> None:
+        """Transitions ``i .. n`` of a batch into a full buffer, by the shares (the module docstring)."""
+        queues = self.queues()
+        me = self.owner(actor)
+        mine = queues.setdefault(me, deque())
+        slots = np.empty(0, dtype=np.int64)
+        while i < n:
+            share = self.buffer_size // len(queues)  # (``me`` among them)
+            if len(mine) >= share:
+                victim, k = mine, min(n - i, len(mine))
+            else:
+                other = max((a for a in queues if a != me), key=lambda a: len(queues[a]))
+                victim = queues[other]
+                k = max(1, min(n - i, share - len(mine), len(victim) - share))
+            slots = np.fromiter((victim.popleft() for _ in range(k)), dtype=np.int64, count=k)
+            self._write(slots, cols, i, k, actor, first_step)
+            mine.extend(slots.tolist())
+            i += k
+            for a in [a for a, q in queues.items() if not q]:
+                del queues[a]
+        self.pos = int(slots[-1] + 1) % self.buffer_size
+
+    def shares(self) -> dict[str, int]:
+        """Slots held per actor id (all stored transitions)."""
+        with self.lock:
+            if not self.full:
+                slots = self.provenance_actor[:self.pos]
+                codes, counts = np.unique(slots, return_counts=True)
+                out: dict[str, int] = {}
+                for c, m in zip(codes.tolist(), counts.tolist()):
+                    out[self.owner(c)] = out.get(self.owner(c), 0) + m
+                return out
+            return {a: len(q) for a, q in self.queues().items()}
 
     def side_arrays(self) -> dict[str, np.ndarray]:
         """The per-slot arrays by name (:data:`SIDE_ARRAYS`), whole buffer (empty slots: provenance -1)."""

@@ -98,9 +98,10 @@ class TQCSettings:
 class StreamSettings:
     """The transition stream from actors to the learner (docs/protocol.md, "Flow control")."""
 
-    batch: int = _opt(8, "transitions per batch (cut at multiples of the actor's running index)", roles=(ACTOR,))
+    batch: int = _opt(8, "transitions per batch (cut at multiples of the actor's running index; the learner stores "
+                         "no more than max_lead + 2 batches of an actor ahead of training)", roles=_LA)
     max_lead: int = _opt(8, "transitions an actor may run ahead of what the learner trained on "
-                            "(8 = the train frequency: step-for-step single-process SB3)", roles=(ACTOR,))
+                            "(8 = the train frequency: step-for-step single-process SB3)", roles=_LA)
     window: int = _opt(64, "batches an actor has out beyond what the learner acknowledged (the rest wait)",
                        roles=(ACTOR,))
     mode: str = _opt("simulation", "simulation: actors wait for the learner (max_lead, the paper's update-to-data "

@@ -9,27 +9,48 @@ the one before for good: its batches are refused from then on ('superseded', see
 two processes with one actor id are never interleaved. ``base_seq`` (the oldest batch the actor still holds)
 lets a learner that lost its state skip batches nobody holds any more instead of waiting for them forever.
 
-:class:`FairInbox` takes the learner's messages in per actor (round robin), so that batches of actor ids the
-learner has not admitted yet (no stream in the table) cannot starve the admitted ones: they share one slot of
-the rotation, at most :data:`PENDING_IDS` of them wait, and new ones are admitted at a bounded rate.
+Shares: :meth:`StreamTable.offer` and :meth:`StreamTable.release` take the ``room`` the learner gives an actor
+(transitions it may store now, see :class:`~khgrl.common.delivery.learner_side.LearnerIngest`): a batch in order
+that does not fit is *deferred* -- kept with the held ones, neither stored nor acked -- and released when the room
+has grown. Held and deferred batches are capped in bytes per actor (:data:`PENDING_BYTES_PER_ACTOR`) and over all
+actors (:data:`PENDING_BYTES_TOTAL`); what is over the caps is dropped and counted (the actor re-sends it).
+
+:class:`FairInbox` (:mod:`khgrl.common.delivery.fair_inbox`, re-exported here) takes the learner's messages in per
+actor (round robin), so that batches of actor ids the learner has not admitted yet cannot starve the admitted ones.
 """
 
 from __future__ import annotations
 
 import logging
-import time
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from khgrl.common.delivery.senders import owner
+from khgrl.common.delivery.fair_inbox import PENDING_IDS, PENDING_PER_ID, FairInbox
 from khgrl.common.wire.protocol import Transitions
 
-__all__ = ["ActorStream", "StreamTable", "Offer", "MAX_PENDING", "FairInbox", "PENDING_IDS", "PENDING_PER_ID"]
+__all__ = ["ActorStream", "StreamTable", "Offer", "MAX_PENDING", "FairInbox", "PENDING_IDS", "PENDING_PER_ID",
+           "PENDING_BYTES_PER_ACTOR", "PENDING_BYTES_TOTAL", "batch_bytes"]
 
 log = logging.getLogger("khgrl.learner")
 
 MAX_PENDING = 4096  # out-of-order batches held per actor; beyond that they are dropped (the actor re-sends them)
+# Bytes of held (out of order) and deferred (over the actor's room) batches. An honest actor has at most its window
+# (default 64) batches out beyond what was acked: 64 batches of 8 transitions are tens of kB, and even 64 batches of
+# 64 transitions of a 100-dimensional observation are 3.4 MB. 16 MiB is four maximum-size batches (4,096
+# transitions of a 240-dimensional observation each), so an honest actor is never cut, while 4,096 held maximum-size
+# batches (1.1 GB measured before this cap) are not possible. The total bounds many actor ids together: 128 MiB.
+PENDING_BYTES_PER_ACTOR = 16 * 2**20
+PENDING_BYTES_TOTAL = 128 * 2**20
+
+
+def batch_bytes(msg: Transitions) -> int:
+    """The bytes of a batch's arrays (what holding it costs).
+
+    :param msg: the batch
+    """
+    return sum(int(a.nbytes) for a in (msg.obs, msg.next_obs, msg.action, msg.reward, msg.terminated, msg.truncated,
+                                       msg.intervened, msg.clipped))
 
 
 @dataclass
@@ -49,7 +70,14 @@ class ActorStream:
     dropped_pending: int = 0
     skipped: int = 0  # batches the actor no longer holds (see base_seq): lost, logged
     superseded: int = 0  # batches of earlier streams of this actor id refused since this stream began
+    deferred: int = 0  # in-order batches kept back because they did not fit the actor's room
     pending: dict[int, Transitions] = field(default_factory=dict)
+    pending_bytes: int = 0  # bytes of the batches in ``pending``
+    # the learner's count of this stream's transitions that trained weights cover (see LearnerIngest.lead): marks
+    # are (running index after a stored batch, never decreasing; ``ingested`` then) not yet covered
+    covered: int = 0
+    marks: deque = field(default_factory=deque)
+    mark_index: int = 0
 
     def stored(self, step: int, n: int = 1) -> None:
         """``n`` transitions of this stream, the last being the actor's transition ``step``, went into the replay
@@ -73,16 +101,34 @@ class ActorStream:
 
         :param s: the saved map
         """
+        ingested = int(s["ingested"])  # (all of it counts as covered: the resumed learner trains what is due)
         return cls(actor=s["actor"], code=int(s["code"]), stream=s.get("stream", ""), next_seq=int(s["next_seq"]),
-                   ingested=int(s["ingested"]), index=int(s.get("index", s["ingested"])), durable=int(s["durable"]),
-                   duplicates=int(s.get("duplicates", 0)), skipped=int(s.get("skipped", 0)))
+                   ingested=ingested, index=int(s.get("index", s["ingested"])), durable=int(s["durable"]),
+                   duplicates=int(s.get("duplicates", 0)), skipped=int(s.get("skipped", 0)), covered=ingested,
+                   mark_index=int(s.get("index", s["ingested"])))
+
+    def mark(self) -> None:
+        """After a stored batch: note how many transitions this stream has in, against its running index (a rewound
+        index does not lower the mark, so rewinding never makes stored transitions look trained)."""
+        self.mark_index = max(self.mark_index, self.index)
+        self.marks.append((self.mark_index, self.ingested))
+
+    def lead(self, trained: int) -> int:
+        """Transitions stored from this stream that no trained weights cover yet.
+
+        :param trained: the stream's running index the latest weights cover (its ack's ``trained``)
+        """
+        while self.marks and self.marks[0][0] <= trained:
+            self.covered = self.marks.popleft()[1]
+        return self.ingested - self.covered
 
 
 @dataclass(frozen=True)
 class Offer:
-    """What became of an offered batch: ``result`` ('accepted', 'duplicate', 'held' or 'superseded': a stream
-    of the actor that another one replaced) and, in order, the batches now ready for the replay buffer (the
-    offered one and those it unblocked; empty unless accepted)."""
+    """What became of an offered batch: ``result`` ('accepted', 'duplicate', 'held', 'deferred': in order but over
+    the actor's room, 'dropped': over the pending caps, or 'superseded': a stream of the actor that another one
+    replaced) and, in order, the batches now ready for the replay buffer (the offered one and those it unblocked;
+    empty unless accepted)."""
 
     result: str
     stream: ActorStream
@@ -97,6 +143,8 @@ class StreamTable:
     def __init__(self) -> None:
         self.streams: dict[str, ActorStream] = {}
         self.codes: list[dict[str, str]] = []  # provenance code -> {"actor", "stream"}
+        self.pending_bytes = 0  # held and deferred batches, all actors
+        self.dropped_pending = 0  # batches dropped over the pending caps, all actors
 
     def __contains__(self, actor: str) -> bool:
         return actor in self.streams
@@ -111,10 +159,12 @@ class StreamTable:
         """Each actor's running index after its last stored transition."""
         return {a: st.index for a, st in self.streams.items()}
 
-    def offer(self, msg: Transitions) -> Offer:
+    def offer(self, msg: Transitions, room: Callable[[ActorStream], int | None] | None = None) -> Offer:
         """Order one decoded batch into its actor's stream.
 
         :param msg: the batch (its ``envelope.seq`` is the batch number)
+        :param room: transitions the batch's stream may store now (None, or a None answer: no limit); a batch in
+            order that does not fit is deferred
         """
         st = self._stream_for(msg)
         if st is None:
@@ -124,15 +174,32 @@ class StreamTable:
         if seq < st.next_seq:
             st.duplicates += 1
             return Offer("duplicate", st, [])
-        if seq > st.next_seq:
-            self._hold(st, seq, msg)
-            return Offer("held", st, [])
-        ready = [msg]
+        free = room(st) if room is not None else None
+        if seq > st.next_seq or (free is not None and msg.n > free):
+            kept = self._hold(st, seq, msg)
+            if seq == st.next_seq and kept:
+                st.deferred += 1
+            return Offer(("deferred" if seq == st.next_seq else "held") if kept else "dropped", st, [])
         st.next_seq += 1
-        while st.next_seq in st.pending:
-            ready.append(st.pending.pop(st.next_seq))
+        return Offer("accepted", st, [msg] + self._unblocked(st, None if free is None else free - msg.n))
+
+    def release(self, actor: str, room: int | None) -> list[Transitions]:
+        """The actor's held batches that are now in order and fit ``room`` (taken out of pending, in order).
+
+        :param actor: the actor id
+        :param room: transitions its stream may store now (None: no limit)
+        """
+        st = self.streams[actor]
+        return self._unblocked(st, room) if st.next_seq in st.pending else []
+
+    def _unblocked(self, st: ActorStream, room: int | None) -> list[Transitions]:
+        ready = []
+        while st.next_seq in st.pending and (room is None or st.pending[st.next_seq].n <= room):
+            msg = self._unhold(st, st.next_seq)
+            ready.append(msg)
             st.next_seq += 1
-        return Offer("accepted", st, ready)
+            room = None if room is None else room - msg.n
+        return ready
 
     def _stream_for(self, msg: Transitions) -> ActorStream | None:
         """The actor's stream; a new one for an actor not seen yet or one that announces a new stream id; None for
@@ -149,6 +216,8 @@ class StreamTable:
             if st is not None:
                 log.warning("actor %s: new stream %s replaces stream %s (from seq %d); the old one is refused from now "
                             "on", a, stream, st.stream, base)
+            if st is not None:  # its held batches go with it
+                self.pending_bytes -= st.pending_bytes
             st = ActorStream(actor=a, code=len(self.codes), stream=stream, next_seq=base)
             self.codes.append({"actor": a, "stream": stream})
             self.streams[a] = st
@@ -166,8 +235,7 @@ class StreamTable:
         return bool(stream) and (cur is None or cur.stream != stream) and \
             any(c["actor"] == actor and c["stream"] == stream for c in self.codes)
 
-    @staticmethod
-    def _skip_to(st: ActorStream, base: int) -> None:
+    def _skip_to(self, st: ActorStream, base: int) -> None:
         """The actor holds nothing before ``base``: stop waiting for those batches."""
         if base <= st.next_seq:
             return
@@ -176,18 +244,34 @@ class StreamTable:
         st.skipped += base - st.next_seq
         st.next_seq = base
         for s in [s for s in st.pending if s < base]:
-            del st.pending[s]
+            self._unhold(st, s)
 
-    @staticmethod
-    def _hold(st: ActorStream, seq: int, msg: Transitions) -> None:
-        """Keep a batch that arrived before the gap in front of it was filled (bounded)."""
+    def _hold(self, st: ActorStream, seq: int, msg: Transitions) -> bool:
+        """Keep a batch that arrived before the gap in front of it was filled, or that does not fit the actor's room
+        yet (bounded in batches and bytes, per actor and in all); whether it is kept (False: dropped, counted)."""
         if seq in st.pending:
-            return
-        if len(st.pending) >= MAX_PENDING:
+            return True
+        size = batch_bytes(msg)
+        if len(st.pending) >= MAX_PENDING or st.pending_bytes + size > PENDING_BYTES_PER_ACTOR \
+                or self.pending_bytes + size > PENDING_BYTES_TOTAL:
             st.dropped_pending += 1  # the actor re-sends it
-            return
+            self.dropped_pending += 1
+            if self.dropped_pending == 1 or self.dropped_pending % 1000 == 0:
+                log.warning("actor %s: batch %d not held (%d kB held for it, %d kB in all: over the caps); %d dropped",
+                            st.actor, seq, st.pending_bytes // 1024, self.pending_bytes // 1024, self.dropped_pending)
+            return False
         st.pending[seq] = msg
+        st.pending_bytes += size
+        self.pending_bytes += size
         st.held += 1
+        return True
+
+    def _unhold(self, st: ActorStream, seq: int) -> Transitions:
+        msg = st.pending.pop(seq)
+        size = batch_bytes(msg)
+        st.pending_bytes -= size
+        self.pending_bytes -= size
+        return msg
 
     def state(self) -> dict[str, Any]:
         """Codes and stream positions for a checkpoint (``durable``: what this checkpoint will hold)."""
@@ -209,144 +293,3 @@ class StreamTable:
         table.codes = [dict(c) for c in state["codes"]]
         table.streams = {a: ActorStream.from_state(dict(s, actor=a)) for a, s in state["actors"].items()}
         return table
-
-
-PENDING_IDS = 64  # actor ids not admitted yet whose batches wait; batches of further new ids are dropped
-PENDING_PER_ID = 64  # batches that wait per such id (the actor re-sends what was dropped)
-ADMIT_PER_S = 10.0  # new actor ids admitted per second (after a burst of ADMIT_BURST)
-ADMIT_BURST = 32
-PULL_MAX = 20_000  # messages moved from the inbox into the per-actor queues per call
-_PENDING = "\0pending"  # the one rotation slot that all not-yet-admitted ids share
-
-
-class FairInbox:
-    """The learner's inbox, served per actor: each admitted actor takes turns (one batch each), and all actor ids
-    not admitted yet share one turn. Taking messages out of the inbox is cheap (no decoding), so a backlog of
-    other ids' batches never stands in front of an admitted actor's. A not-yet-admitted id is admitted when the
-    loop takes its first batch (which makes its stream); at most ``admit_per_s`` new ids are, after a burst.
-    A control message keeps its place: it is served once the batches that arrived before it are (and nothing
-    after it is taken in before). Same interface as :class:`khgrl.common.delivery.transport.Inbox` for :meth:`get` and
-    :meth:`qsize`.
-
-    :param inbox: where the Zenoh callbacks file ``(kind, key, payload, arrival)``
-    :param admitted: whether an actor id is admitted (the learner has its stream)
-    :param admit_per_s: new ids admitted per second
-    :param clock: monotonic seconds
-    """
-
-    def __init__(self, inbox, admitted: Callable[[str], bool], *, admit_per_s: float = ADMIT_PER_S,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        self.inbox, self.admitted, self.clock = inbox, admitted, clock
-        self.rate = float(admit_per_s)
-        self.tokens, self._t = float(ADMIT_BURST), clock()
-        self.queues: dict[str, deque] = {}  # admitted actor id -> its batches
-        self.pending: dict[str, deque] = {}  # not-yet-admitted actor id -> messages (oldest id first)
-        self.turns: deque[str] = deque()  # slots with messages, in the order they are served
-        self.barrier: tuple | None = None  # a control message, served when the batches before it are
-        self.buffered = 0
-        self.dropped = 0  # batches of not-yet-admitted ids dropped (over the caps)
-
-    def qsize(self) -> int:
-        """Messages waiting here and in the inbox."""
-        return self.buffered + self.inbox.qsize()
-
-    def get(self, timeout: float = 0.0) -> tuple | None:
-        """The next message by turn, waiting up to ``timeout`` s for one to arrive when none waits.
-
-        :param timeout: seconds to wait (0: don't)
-        """
-        self._pull()
-        item = self._next()
-        if item is None and timeout > 0:
-            if self.barrier is not None:  # waits for ids to be admitted: don't spin
-                time.sleep(min(timeout, 0.02))
-                return self._next()
-            first = self.inbox.get(timeout)
-            if first is not None:
-                self._file(first)
-                self._pull()
-                item = self._next()
-        return item
-
-    def _pull(self) -> None:
-        """Take in what has arrived, up to the next control message."""
-        for _ in range(PULL_MAX):
-            if self.barrier is not None:
-                return
-            item = self.inbox.get(0.0)
-            if item is None:
-                return
-            self._file(item)
-
-    def _file(self, item: tuple) -> None:
-        """Put one message in its queue (or drop it: a not-yet-admitted id over the caps)."""
-        if item[0] != "transitions":
-            self.barrier = item
-            self.buffered += 1
-            return
-        slot = owner(item[1])
-        q = self.pending.get(slot)
-        if q is not None or (slot not in self.queues and not self.admitted(slot)):
-            if (q is None and len(self.pending) >= PENDING_IDS) or (q is not None and len(q) >= PENDING_PER_ID):
-                self.dropped += 1
-                if self.dropped == 1 or self.dropped % 1000 == 0:
-                    log.warning("batches of actor ids not admitted yet: %d dropped (%d ids wait)", self.dropped,
-                                len(self.pending))
-                return
-            if not self.pending:
-                self.turns.append(_PENDING)
-            self.pending.setdefault(slot, deque()).append(item)
-        else:
-            q = self.queues.get(slot)
-            if q is None:
-                q = self.queues[slot] = deque()
-                self.turns.append(slot)
-            q.append(item)
-        self.buffered += 1
-
-    def _next(self) -> tuple | None:
-        if self.barrier is not None and self.buffered == 1:  # every batch that came before it is served
-            item, self.barrier = self.barrier, None
-            self.buffered -= 1
-            return item
-        for _ in range(len(self.turns) + 1):  # (+1: an id that the pending turn moved to its own turn)
-            if not self.turns:
-                return None
-            slot = self.turns.popleft()
-            item = self._from_pending() if slot == _PENDING else self._from_queue(slot)
-            if slot == _PENDING and self.pending:
-                self.turns.append(_PENDING)
-            if item is not None:
-                self.buffered -= 1
-                return item
-        return None
-
-    def _from_queue(self, slot: str) -> tuple:
-        q = self.queues[slot]
-        item = q.popleft()
-        if q:
-            self.turns.append(slot)
-        else:
-            del self.queues[slot]
-        return item
-
-    def _from_pending(self) -> tuple | None:
-        """The oldest waiting id's next batch, if a new id may be admitted now (ids admitted meanwhile first
-        move to their own turn)."""
-        for actor in [a for a in self.pending if self.admitted(a)]:
-            self.queues[actor] = self.pending.pop(actor)
-            self.turns.append(actor)
-        if not self.pending:
-            return None
-        now = self.clock()
-        self.tokens = min(float(ADMIT_BURST), self.tokens + (now - self._t) * self.rate)
-        self._t = now
-        if self.tokens < 1.0:
-            return None
-        self.tokens -= 1.0
-        actor = next(iter(self.pending))
-        q = self.pending[actor]
-        item = q.popleft()
-        if not q:
-            del self.pending[actor]
-        return item

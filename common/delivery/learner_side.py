@@ -6,6 +6,15 @@ they arrive -- served per actor (:class:`~khgrl.common.delivery.ingest.FairInbox
 step; the learner loop trains on the calling thread and shares :attr:`LearnerIngest.lock` with it (streams,
 counters and acks), and :attr:`LearnerIngest.wake` tells it that there may be something to train.
 
+Shares (docs/protocol.md, "Trust model"): with a :attr:`LearnerIngest.lead_cap` (simulation mode) an actor's batches
+are stored only while the transitions of its stream that no trained weights cover yet stay within that cap -- what
+flow control lets an honest actor have out (``max_lead`` plus a batch) -- and the rest is deferred until training
+catches up, so an actor cannot queue more than ``lead_cap / train_freq`` training iterations ahead of the others'.
+A batch larger than the cap can never fit: it is dropped (``rejects.over_lead``). A batch whose content was stored
+recently (from any stream) is not stored again (``rejects.replayed``,
+:class:`~khgrl.common.delivery.guards.ReplayGuard`),
+and checkpoint requests are limited (:class:`~khgrl.common.delivery.guards.RequestLimiter`).
+
 Unit tests drive it in one thread: :meth:`LearnerIngest.offer` with decoded batches, or
 :meth:`LearnerIngest.receive` with payload bytes.
 """
@@ -17,9 +26,10 @@ import threading
 from collections import Counter
 from typing import Any, Callable, Protocol
 
-from khgrl.common.delivery.ingest import FairInbox, StreamTable
+from khgrl.common.delivery.guards import ReplayGuard, RequestLimiter
+from khgrl.common.delivery.ingest import ActorStream, FairInbox, StreamTable
 from khgrl.common.delivery.learner_link import Publisher
-from khgrl.common.delivery.senders import read_for_learner
+from khgrl.common.delivery.senders import owner, read_for_learner
 from khgrl.common.wire.bounds import check_bounds
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
 from khgrl.common.wire.descriptor import TaskDescriptor
@@ -65,6 +75,17 @@ class LearnerIngest:
         self.dims: Dims = ANY_DIMS
         self.lock = threading.RLock()  # streams, counters and acks between the ingest and training threads
         self.wake = threading.Event()  # set when there may be something to train
+        self.lead_cap: int | None = None  # transitions of an actor not yet covered by trained weights (None: no cap)
+        self.replay = ReplayGuard()
+        self.requests = RequestLimiter(self.admitted)
+
+    def admitted(self, actor: str) -> bool:
+        """Whether the learner has stored batches of ``actor`` (its current stream).
+
+        :param actor: an actor id
+        """
+        st = self.streams.streams.get(actor)
+        return st is not None and st.ingested > 0
 
     def set_task(self, task: TaskDescriptor) -> None:
         """The run's task descriptor: batches are checked against its sizes and digest, acks carry its digest.
@@ -101,28 +122,86 @@ class LearnerIngest:
             return
         if kind == "control":
             attribute_control(msg, key, log)
+        elif kind == "request":  # only checkpoint requests from their own actor get here (read_for_learner)
+            with self.lock:
+                why = self.requests.refuse(owner(key))
+            if why:
+                self.rejects.reject("control", key, ProtocolError(why))
+            self.forward_request()
+            return
         self.on_control(msg)
+
+    def forward_request(self) -> None:
+        """Hand a taken checkpoint request to ``on_control`` once the gap since the last one has passed."""
+        if self.requests.due():
+            self.on_control(Control(command="checkpoint"))
 
     def offer(self, msg: Transitions) -> str:
         """A decoded batch: ordered into its actor's stream and, when accepted, stored (with any batches it
-        unblocked). Returns 'accepted', 'duplicate', 'held' or 'superseded'; the actor is acked by the next
-        :meth:`ack_touched` (a superseded stream at once, with ``superseded`` set: its process stops).
+        unblocked). Returns 'accepted', 'duplicate', 'held', 'deferred' (in order, over the actor's room: kept until
+        training makes room), 'dropped' (over the held-bytes caps), 'over_lead' (larger than :attr:`lead_cap`) or
+        'superseded'; the actor is acked by the next :meth:`ack_touched` (a superseded stream at once, with
+        ``superseded`` set: its process stops).
 
         :param msg: the batch
         """
         with self.lock:
-            res = self.streams.offer(msg)
+            if self.lead_cap is not None and msg.n > self.lead_cap:
+                self.results["over_lead"] += 1
+                self.rejects.reject("over_lead", f"actor/{msg.actor}", ProtocolError(
+                    f"batch of {msg.n} transitions: more than flow control lets an actor have out ({self.lead_cap})"))
+                return "over_lead"
+            res = self.streams.offer(msg, self.room)
             self.results[res.result] += 1
             if res.result == "superseded":  # a later stream of this actor id was taken: this one is refused
                 self.pub.ack(self.ack(msg.actor).replace(received=-1, durable=-1, trained=0, stream=msg.stream,
                                                          superseded=True))
                 return res.result
-            for batch in res.ready:
-                self.store(batch, res.stream, self.streams.positions)
+            if res.result == "dropped":
+                self.rejects.reject("pending", f"actor/{msg.actor}", ProtocolError(
+                    "batch not held: the actor's held batches are over the learner's byte caps"))
+            self._store(res.ready, res.stream)
             self.touched.add(msg.actor)
         if res.ready:
             self.wake.set()
         return res.result
+
+    def room(self, st: ActorStream) -> int | None:
+        """Transitions ``st`` may store now: :attr:`lead_cap` less those no trained weights cover (None: no cap).
+
+        :param st: an actor stream
+        """
+        return None if self.lead_cap is None else self.lead_cap - st.lead(self.ack_of(st).trained)
+
+    def _store(self, batches: list[Transitions], st: ActorStream) -> None:
+        """Store batches in order (call with :attr:`lock`); one whose content was stored recently is not (its
+        stream moves past it)."""
+        for batch in batches:
+            digest, first = self.replay.check(batch)
+            if first is not None:
+                st.stored(batch.first_step + batch.n - 1, 0)
+                self.replay.replayed += 1
+                self.results["replayed"] += 1
+                self.rejects.reject("replayed", f"actor/{batch.actor}", ProtocolError(
+                    f"batch identical to one of actor {first} stored recently: not stored again"))
+                continue
+            self.store(batch, st, self.streams.positions)
+            st.mark()
+            self.replay.stored(digest, batch.actor)
+
+    def release(self) -> bool:
+        """Store the deferred batches that fit their actors' room now (after training made room); whether any
+        was. Call with :attr:`lock`."""
+        if self.lead_cap is None:
+            return False
+        moved = False
+        for st in [st for st in self.streams.streams.values() if st.next_seq in st.pending]:
+            ready = self.streams.release(st.actor, self.room(st))
+            if ready:
+                self._store(ready, st)
+                self.touched.add(st.actor)
+                moved = True
+        return moved
 
     # ------------------------------------------------------------------------------------ acks
     def ack(self, actor: str) -> Ack:
@@ -131,8 +210,10 @@ class LearnerIngest:
         return ack if self.task is None else ack.replace(task=self.task.digest)
 
     def ack_all(self) -> None:
-        """Ack every known actor stream."""
+        """Store what training made room for (:meth:`release`), then ack every known actor stream."""
         with self.lock:
+            if self.release():
+                self.wake.set()
             for actor in list(self.streams):
                 self.pub.ack(self.ack(actor))
 
@@ -166,6 +247,7 @@ class LearnerIngest:
                     n += 1
                     item = inbox.get(0.0) if n < MAX_DRAIN else None
                 self.ack_touched()
+                self.forward_request()
         except Exception:  # noqa: BLE001 - a bug here must stop the learner, not leave it training on nothing
             log.exception("ingest thread failed")
             self.flag.set("ingest thread failed")
