@@ -66,7 +66,8 @@ def _batch(task, seq: int, *, reward: float = 0.0, obs: float | None = None, dig
 
 def _attack(up: Launcher, runtime: dict, task) -> tuple[list, int]:
     """(a), (b), (c) from actor-x9's session; returns the learner's status infos seen meanwhile and how many
-    extreme batches were sent. Asserts the learner is alive 2.5 s after (a) (before the fix it was dead by then)."""
+    extreme batches were sent. Asserts the learner is alive after two training iterations that follow (a) (before
+    the fix the first one made the policy NaN and the learner exit 1)."""
     from khgrl.common.wire.messages import Control, Status
     from khgrl.common.wire.protocol import Keys, decode, encode
 
@@ -79,10 +80,15 @@ def _attack(up: Launcher, runtime: dict, task) -> tuple[list, int]:
         pids = wait_for(lambda: (p := read_json(up.run_dir / "pids.json"))["launcher"] == up.proc.pid and p, 60,
                         "this part's pids.json")
         learner_pid = pids["children"]["learner"]
+        at = infos[-1].info.iterations
         s.put(keys.transitions("x9"), _batch(task, 0, reward=EXTREME))  # (a)
         s.put(keys.request("x9"), encode(Control(command="checkpoint"), "x9", 0))
-        time.sleep(2.5)
-        assert pid_alive(learner_pid) and up.proc.poll() is None, "the learner died of one batch of reward 3e38"
+
+        def trained_on() -> bool:  # two more training iterations (which would sample the batch had it been stored)
+            assert pid_alive(learner_pid) and up.proc.poll() is None, "the learner died of one batch of reward 3e38"
+            return infos[-1].info.iterations >= at + 2
+
+        wait_for(trained_on, 120, "two training iterations after (a)", interval=0.2)
         seq, t_end = 1, time.monotonic() + 3.0  # (b)
         while time.monotonic() < t_end:
             sign = 1.0 if seq % 2 else -1.0
