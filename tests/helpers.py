@@ -112,8 +112,11 @@ class ProcGroup(ProcessGroup):
 
     def learner(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
         run_dir = Path(run_dir or self.base / "run")
+        # the learner stores no more of an actor than its own --max-lead allows (docs/protocol.md, "Flow control");
+        # the tests' actors mostly run with --max-lead 100000: so does their learner unless a test says otherwise
+        lead = [] if "--max-lead" in extra else ["--max-lead", "100000"]
         return self.start("learner", python_main("khgrl.learner.main") + [
-            "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
+            "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *lead, *extra])
 
     def actor(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
         run_dir = Path(run_dir or self.base / "run")

@@ -21,7 +21,7 @@ from khgrl.common.wire.messages import Ack, Control, Dims, Weights
 from khgrl.common.wire.protocol import Keys, encode
 
 from test_actor_parts import Clock, collect, make_stream
-from test_learner_parts import make_loop
+from test_learner_parts import batch, make_loop
 
 K = Keys("unit")
 TOKEN = K.learner_alive("learner", "e1")
@@ -219,6 +219,7 @@ def test_a_stop_or_pause_is_attributed(tmp_path, caplog, sender, level):
 # ------------------------------------------------------------------------------------ the learner
 def test_learner_takes_only_a_checkpoint_request_from_the_actor_on_its_request_key(tmp_path, caplog):
     loop, _ = make_loop(tmp_path)
+    loop.offer(batch(0, 0, 8))  # a0 is admitted (its batches are stored): its requests count (test_shares.py)
     loop.receive("request", K.request("a0"), encode(Control(command="checkpoint"), "a0", 0))
     assert loop.checkpoint_requested
     loop.checkpoint_requested = False
