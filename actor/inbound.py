@@ -122,7 +122,8 @@ class Inbound:
                 self.learners.add(key)
                 log.info("learner %s appeared (outbox: %d batches)", key, len(self.p.stream.outbox))
                 self.check_learner_task()
-                self.p.stream.learner_appeared()
+                if key in self.learners:  # (not a learner of another task)
+                    self.p.stream.learner_appeared()
         else:
             self.learners.discard(key)
             self.p.weights.receiver.learner_gone(key)

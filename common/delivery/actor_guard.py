@@ -6,7 +6,10 @@ another task. Pure logic, no Zenoh: :class:`~khgrl.actor.inbound.Inbound` and
 * **Another process publishes as this actor** (:attr:`ActorGuard.fatal`; the actor stops, exit
   :data:`SPLIT_EXIT`): :data:`BEYOND_ACKS` acks in a row, over at least :data:`BEYOND_SPAN_S`, from a live learner
   epoch, each claiming a batch of this stream that this process never sent (someone else published it with this
-  stream id: the learner holds it, so every later ack claims it; one forged or raced ack is not enough), or acks of
+  stream id: the learner holds it, so every later ack claims it; one forged ack is not enough). After such an ack
+  the actor asks the learner again every :data:`BEYOND_PROBE_S` (:meth:`ActorGuard.probe_due`: it re-sends its
+  newest batch, which the learner acks): a frozen actor gets no acks otherwise, and a forged ack is answered by a
+  genuine one that breaks the run. Or acks of
   this actor id for *another* stream whose ``received`` moves forward :data:`OTHER_ADVANCES` times (someone else
   publishes a stream of this id). With the run's key only authentic acks count.
 * **Two learners** (:attr:`ActorGuard.alarm`, in the actor's status; ``khgrl up`` ends the run): two learner epochs
@@ -25,13 +28,16 @@ from typing import Any, Callable
 
 from khgrl.common.delivery import run_key
 
-__all__ = ["ActorGuard", "SPLIT_EXIT", "BEYOND_ACKS", "BEYOND_SPAN_S", "OTHER_ADVANCES", "TWO_LEARNERS_S"]
+__all__ = ["ActorGuard", "SPLIT_EXIT", "BEYOND_ACKS", "BEYOND_SPAN_S", "BEYOND_PROBE_S", "OTHER_ADVANCES",
+           "TWO_LEARNERS_S"]
 
 log = logging.getLogger("khgrl.actor")
 
 SPLIT_EXIT = 4  # the actor's exit code when another process publishes as it
 BEYOND_ACKS = 3  # acks in a row claiming batches never sent ...
 BEYOND_SPAN_S = 0.5  # ... over at least this long
+BEYOND_PROBE_S = 0.5  # after such an ack: ask the learner again this often ...
+BEYOND_PROBE_FOR_S = 3.0  # ... while the last one is at most this old
 OTHER_ADVANCES = 2  # times the acks of another stream of this actor id moved forward
 TWO_LEARNERS_S = 2.0  # two learner epochs alive this long: two learners in one run
 MAX_OTHER_STREAMS = 16  # other stream ids followed at most
@@ -52,6 +58,7 @@ class ActorGuard:
         self.fatal: str | None = None  # another process publishes as this actor: why, in one line
         self.alarm: str | None = None  # the line for the status (fatal, or two learners)
         self._beyond: list[float] = []  # when each ack of the current run of "beyond" acks came
+        self._probed = -1e9
         self._others: dict[str, list[int]] = {}  # other stream id -> [highest received, advances]
         self._two_since: float | None = None
         self.wrong: dict[str, str] = {}  # learner liveliness key ignored -> why (another task)
@@ -95,6 +102,16 @@ class ActorGuard:
             if seen[1] >= OTHER_ADVANCES:
                 self._stop(f"with another stream id {ack.stream} (this process: stream {self.stream}): the learner "
                            f"took its batches up to seq {ack.received}")
+
+    def probe_due(self) -> bool:
+        """Whether to ask the learner for a new ack now: an ack claimed batches never sent, lately, and no ack was
+        taken since (the caller re-sends its newest batch)."""
+        now = self.clock()
+        if self.fatal or not self._beyond or now - self._beyond[-1] > BEYOND_PROBE_FOR_S \
+                or now - self._probed < BEYOND_PROBE_S:
+            return False
+        self._probed = now
+        return True
 
     def accepted(self) -> None:
         """An ack for this stream was taken: a run of "beyond" acks is broken."""

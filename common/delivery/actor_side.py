@@ -111,6 +111,12 @@ class ActorDelivery:
             return
         gate, before = self.inbound.gate, guard.alarm
         guard.learners(gate.alive_now(), gate.vouched)
+        if guard.probe_due():  # an ack claimed batches never sent: the learner's next ack says whether it was forged
+            newest = self.stream.outbox.newest()
+            if newest is None:
+                self.link.request_checkpoint()  # (acked after the checkpoint)
+            else:
+                self.stream.resend(newest - 1, "an ack claims batches this actor never sent: asking the learner again")
         if guard.fatal and not self.flag:
             self.flag.set("another process publishes as this actor")
         if self.inbound.wrong_task is None and (why := guard.wrong_task(bool(self.inbound.learners),
