@@ -6,8 +6,9 @@ Here too are the actor's checks that hold without access control (docs/protocol.
 are alive
 (weights only from those, with plausible versions); an ack whose weights version is implausible is refused like
 one that claims batches never sent, and with the run's key (:mod:`~khgrl.common.delivery.run_key`) so is one
-without the learner's ``mac``; a ``superseded`` ack is obeyed only when authenticated (an actor without the key
-finds another process of its id by that process's acks: :class:`~khgrl.common.delivery.actor_guard.ActorGuard`);
+without the learner's ``mac``; a ``superseded`` ack is obeyed only when authenticated (without the key: once an
+ack of another stream of this id came; that stream's acks also stop the actor:
+:class:`~khgrl.common.delivery.actor_guard.ActorGuard`);
 a learner of another task is ignored (the actor stops only if none of its own task comes); a ``stop`` or ``pause``
 that does not come from the launcher is obeyed but logged as such (a warning with its sender and key).
 """
@@ -32,7 +33,7 @@ log = logging.getLogger("khgrl.actor")
 
 class Inbound:
     """Handles the actor's incoming messages and keeps what they tell: the learners alive, paused, and why the
-    actor must stop with exit code 2 (a learner of another task, or its stream superseded).
+    actor must stop with exit code 2 (no learner of its task) or 4 (its ``guard``: another process as its id).
 
     :param parts: the loop's :class:`~khgrl.actor.parts.ActorParts`.
     :param flag: the process's stop flag.
@@ -93,7 +94,8 @@ class Inbound:
     def _on_ack(self, msg: Ack, key: str) -> None:
         stream, guard = self.p.stream, self.guard
         if msg.superseded and msg.stream == stream.stream and msg.actor == stream.actor:
-            why = guard.authentic(msg) if guard.key is not None else "superseded ack ignored without the run's key"
+            why = guard.authentic(msg) if guard.key is not None else None if guard.corroborated() else \
+                "superseded ack ignored: not signed (no run key) and no ack of another stream of this id seen"
             if why:  # (a forged one would stop this actor)
                 self.p.rejects.reject("ack", key, ProtocolError(why))
                 return
@@ -104,8 +106,8 @@ class Inbound:
         if stream.on_ack(msg, key, check=lambda a: self.gate.implausible(a.epoch, a.version) or guard.authentic(a)):
             self.gate.note(msg.epoch, msg.version)
             guard.accepted()
-        elif stream.superseded:
-            self.wrong_task = stream.superseded  # another process runs this actor id: stop (exit 2)
+        elif stream.superseded:  # another process runs this actor id: stop (exit 4)
+            guard.superseded()
             self.flag.set("stream superseded")
 
     def on_alive(self, key: str, put: bool) -> None:

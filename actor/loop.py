@@ -100,7 +100,7 @@ class ActorLoop:
         if self.guard.fatal:  # another process publishes as this actor id: nothing more goes out on its stream
             return self.delivery.split_exit()
         self.p.stream.cut()  # a partial batch after a stop
-        if self.inbound.wrong_task:  # a learner of another task, or this actor id's stream taken by another process
+        if self.inbound.wrong_task:  # only a learner of another task (and none of this one)
             print(f"khgrl actor {self.id}: error: {self.inbound.wrong_task}", file=sys.stderr, flush=True)
             return 2
         if self.flag:

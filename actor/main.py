@@ -17,11 +17,12 @@ continues its transition stream (:mod:`khgrl.common.delivery.restart`): after a 
 re-sends
 what the learner has not confirmed and appends to its episode and correction files.
 
-Exit codes: 0 done (or stopped); 1 failed (e.g. no router); 2 a refused start, no learner of this actor's task
-(only one of another task), or this actor's stream superseded by the learner (an authenticated ack); 3 the final
-flush timed out; 4 another process publishes as this actor id (:data:`~khgrl.common.delivery.actor_guard.SPLIT_EXIT`:
-one line naming the id and both stream ids, also in the actor's status). With ``RUN_DIR/run.key``
-(:mod:`~khgrl.common.delivery.run_key`) the actor takes only acks and weights the learner signed with it.
+Exit codes: 0 done (or stopped); 1 failed (e.g. no router); 2 a refused start, or no learner of this actor's task
+(only one of another task); 3 the final flush timed out; 4 another process publishes as this actor id: acks claim
+batches it never sent, acks of another stream of its id move on, or the learner superseded its stream
+(:data:`~khgrl.common.delivery.actor_guard.SPLIT_EXIT`: one line with the id and stream ids, also in its status).
+With ``RUN_DIR/run.key`` (:mod:`~khgrl.common.delivery.run_key`) the actor takes only acks and weights the learner
+signed with it.
 """
 
 from __future__ import annotations

@@ -11,7 +11,8 @@ another task. Pure logic, no Zenoh: :class:`~khgrl.actor.inbound.Inbound` and
   newest batch, which the learner acks): a frozen actor gets no acks otherwise, and a forged ack is answered by a
   genuine one that breaks the run. Or acks of
   this actor id for *another* stream whose ``received`` moves forward :data:`OTHER_ADVANCES` times (someone else
-  publishes a stream of this id). With the run's key only authentic acks count.
+  publishes a stream of this id), or the learner's ``superseded`` ack for this stream (signed, or -- without the
+  key -- after an ack of another stream of this id). With the run's key only authentic acks count.
 * **Two learners** (:attr:`ActorGuard.alarm`, in the actor's status; ``khgrl up`` ends the run): two learner epochs
   alive at once for :data:`TWO_LEARNERS_S` -- with the run's key, only epochs that signed an ack or weights this
   actor took (a token alone, which anyone can declare in plain mode, is not enough). A restarted learner waits for
@@ -113,9 +114,20 @@ class ActorGuard:
         self._probed = now
         return True
 
+    def corroborated(self) -> bool:
+        """Whether an ack of another stream of this actor id came from a live learner (what makes an unauthenticated
+        ``superseded`` believable)."""
+        return bool(self._others)
+
     def accepted(self) -> None:
         """An ack for this stream was taken: a run of "beyond" acks is broken."""
         self._beyond.clear()
+
+    def superseded(self) -> None:
+        """The learner said (authenticated, or corroborated: :meth:`corroborated`) that it took another stream of this
+        actor id after this one: the same conclusion as the acks'."""
+        self._stop(f"(the learner took another stream of this id after this one, stream {self.stream}, and refuses "
+                   f"it)")
 
     def _stop(self, evidence: str) -> None:
         if self.fatal is None:

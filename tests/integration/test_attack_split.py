@@ -180,7 +180,7 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
 
     def on_ack(sample) -> None:
         msg = decode(Ack, sample.payload.to_bytes())
-        if msg.mac is not None:
+        if msg.envelope.seq < 10**6:  # the learner's (this test's forgeries are numbered from 10**6)
             seen["ack"] = msg
 
     def on_transitions(sample) -> None:
@@ -213,7 +213,7 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
                 time.sleep(4.0)
                 assert all(a.poll() is None for a in actors), [a.tail() for a in actors]
                 # (c) a forged superseded ack
-                ack = seen["ack"].replace(mac=None)
+                ack = dataclasses.replace(seen["ack"], **({"mac": None} if hasattr(seen["ack"], "mac") else {}))
                 for i in range(3):
                     s.put(keys.ack("a0"), encode(ack.replace(received=-1, durable=-1, superseded=True,
                                                              stream=seen["stream"]), "learner", 10**6 + i))

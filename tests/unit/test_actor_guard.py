@@ -136,3 +136,93 @@ def test_a_learner_of_another_task_stops_the_actor_only_if_none_of_its_own_comes
     clock.t += 6
     why = g.wrong_task(False, 10.0)
     assert why and "task 'other'" in why and "no learner of this actor's task came within 10 s" in why
+
+
+def test_after_an_ack_beyond_what_was_sent_the_learner_is_asked_again_for_a_while():
+    clock = Clock()
+    g = ActorGuard("a0", "s1", None, clock)
+    assert not g.probe_due()
+    g.on_ack(ACK.replace(received=9), 8, {"e1"})
+    assert g.probe_due() and not g.probe_due()  # at most every BEYOND_PROBE_S
+    clock.t += 0.6
+    assert g.probe_due()
+    clock.t += 5.0  # the last such ack is old: no more asking
+    assert not g.probe_due()
+    g.on_ack(ACK.replace(received=9), 8, {"e1"})
+    g.accepted()  # a genuine ack answered: the run is broken
+    clock.t += 1.0
+    assert not g.probe_due()
+
+
+# ------------------------------------------------------------------------------------ the actor's inbound
+def _inbound(tmp_path, key=None, tasks=None):
+    from types import SimpleNamespace
+
+    from khgrl.actor.inbound import Inbound
+    from khgrl.common.process import StopFlag
+    from khgrl.common.wire.messages import Dims
+
+    from test_trust_checks import CorrectionArbiter, _policy_weights, make_stream
+
+    stream, _, _, rejects = make_stream(tmp_path)
+    w, rx, _ = _policy_weights(Clock())
+    rx.rejects = rejects
+    link = SimpleNamespace(other_tasks=lambda mine: dict(tasks or {}))
+    parts = SimpleNamespace(stream=stream, weights=w, rejects=rejects, env=SimpleNamespace(t=0), task=tasks and "t",
+                            link=link, arbiter=CorrectionArbiter("a0", 0.5, enabled=True))
+    flag = StopFlag()
+    guard = ActorGuard("a0", stream.stream, key)
+    return Inbound(parts, flag, Dims(out=2), guard=guard), parts, flag
+
+
+TOKEN = "khgrl/unit/alive/learner/learner/e1"
+
+
+@pytest.mark.parametrize("key", [None, KEY])
+def test_a_forged_superseded_or_durable_ack_stops_nothing_and_drops_nothing(tmp_path, key):
+    from khgrl.common.wire.protocol import Keys
+
+    from test_trust_checks import collect
+
+    inbound, parts, flag = _inbound(tmp_path, key)
+    inbound.handle("alive", TOKEN, True, 0.0, episode=1)
+    collect(parts.stream, 16)
+    k = Keys("unit").ack("a0")
+    sup = Ack(actor="a0", received=-1, durable=-1, trained=0, version=0, epoch="e1", stream="s1", superseded=True)
+    inbound.handle("ack", k, encode(sup, "learner", 0), 0.0, episode=1)
+    assert not flag and parts.rejects.by_kind() == {"ack": 1}
+    durable = Ack(actor="a0", received=1, durable=1, trained=0, version=0, epoch="e1", stream="s1")
+    inbound.handle("ack", k, encode(durable, "learner", 1), 0.0, episode=1)
+    assert parts.stream.durable == (-1 if key else 1)  # without the key it is taken (plain mode trusts the router)
+    if key is None:
+        return
+    assert len(parts.stream.outbox) == 2 and parts.stream.refused_acks == 1
+    inbound.handle("ack", k, encode(run_key.sign(sup, KEY), "learner", 2), 0.0, episode=1)
+    assert flag and inbound.guard.fatal and "the learner took another stream of this id" in inbound.guard.fatal
+
+
+def test_an_unsigned_superseded_is_taken_once_another_stream_of_this_id_was_acked(tmp_path):
+    from khgrl.common.wire.protocol import Keys
+
+    from test_trust_checks import collect
+
+    inbound, parts, flag = _inbound(tmp_path)
+    inbound.handle("alive", TOKEN, True, 0.0, episode=1)
+    collect(parts.stream, 16)
+    k = Keys("unit").ack("a0")
+    other = Ack(actor="a0", received=3, durable=-1, trained=0, version=0, epoch="e1", stream="s2")
+    inbound.handle("ack", k, encode(other, "learner", 0), 0.0, episode=1)
+    assert not flag
+    sup = Ack(actor="a0", received=-1, durable=-1, trained=0, version=0, epoch="e1", stream="s1", superseded=True)
+    inbound.handle("ack", k, encode(sup, "learner", 1), 0.0, episode=1)
+    assert flag and "another process publishes as actor a0" in inbound.guard.fatal
+
+
+def test_a_learner_of_another_task_is_ignored_not_followed(tmp_path):
+    inbound, parts, flag = _inbound(tmp_path, tasks={"evil": "learner evil was built for task 'other'"})
+    evil = "khgrl/unit/alive/learner/evil/x"
+    inbound.handle("alive", evil, True, 0.0, episode=1)
+    assert not flag and not inbound.learners and evil in inbound.guard.wrong and inbound.gate.epochs == set()
+    assert parts.rejects.by_kind() == {"task": 1}
+    inbound.handle("alive", evil, True, 0.0, episode=1)  # again: still ignored, counted once
+    assert not inbound.learners and parts.rejects.by_kind() == {"task": 1}
