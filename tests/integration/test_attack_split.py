@@ -161,7 +161,8 @@ def test_one_learner_per_run_a_second_is_refused_an_impostor_ends_the_run(tmp_pa
 
 
 # ------------------------------------------------------------------------------------ plain mode
-PLAIN = ["--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "16", "--rate", "60", "--episodes", "3"]
+# no training (learning_starts beyond the run): the attacks need acks, not weights, and the run stays cheap
+PLAIN = ["--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "100000", "--rate", "50", "--episodes", "2"]
 
 
 @pytest.mark.timeout(400)
@@ -176,7 +177,7 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
     run, run_dir = unique_run("split"), tmp_path / "run"
     keys = Keys(run)
     run_key.create(run_dir)  # as khgrl up does; hand-started processes read it from their --run-dir
-    seen: dict = {"version": {}}
+    seen: dict = {"received": {}}
 
     def on_ack(sample) -> None:
         msg = decode(Ack, sample.payload.to_bytes())
@@ -189,9 +190,9 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
 
     def on_status(sample) -> None:
         info = decode(Status, sample.payload.to_bytes()).info
-        seen["version"][info.id] = info.weights_version
+        seen["received"][info.id] = info.received
 
-    learner_args = ["--learning-starts", "16", "--checkpoint-every", "0"]
+    learner_args = ["--learning-starts", "100000", "--checkpoint-every", "0"]
     with ProcGroup(tmp_path) as g:
         ep = g.router()
         learner = g.learner(run, ep, *learner_args)
@@ -201,8 +202,8 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
                     s.declare_subscriber(keys.transitions("a0"), on_transitions),
                     s.declare_subscriber(keys.status("actor", "*"), on_status)]
             try:
-                wait_for(lambda: "ack" in seen and min(seen["version"].get(a, -1) for a in ("a0", "a1")) >= 1, 120,
-                         "both actors on trained weights", procs=[learner, *actors])
+                wait_for(lambda: "ack" in seen and min(seen["received"].get(a, -1) for a in ("a0", "a1")) >= 1, 120,
+                         "both actors acked", procs=[learner, *actors])
                 s.put(keys.control("learner"), encode(Control(command="checkpoint"), "tester", 0))
                 wait_for(lambda: (run_dir / "learner" / "checkpoint" / "state.json").is_file(), 60,
                          "a learner checkpoint", procs=[learner, *actors])
@@ -210,14 +211,14 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
                 real = fetch_tasks(s, keys, "learner", timeout=5.0)["learner"]
                 fake_task = TaskAnnouncer(s, keys, "learner", "evil", dataclasses.replace(real, name="other"))
                 fake_token = s.liveliness().declare_token(keys.learner_alive("evil", "e666"))
-                time.sleep(4.0)
+                time.sleep(3.0)
                 assert all(a.poll() is None for a in actors), [a.tail() for a in actors]
                 # (c) a forged superseded ack
                 ack = dataclasses.replace(seen["ack"], **({"mac": None} if hasattr(seen["ack"], "mac") else {}))
                 for i in range(3):
                     s.put(keys.ack("a0"), encode(ack.replace(received=-1, durable=-1, superseded=True,
                                                              stream=seen["stream"]), "learner", 10**6 + i))
-                time.sleep(2.0)
+                time.sleep(1.5)
                 assert actors[0].poll() is None, actors[0].tail()
                 # (a) a forged ack: durable = a0's highest sent seq; then the learner is killed and resumed
                 h = seen["last_seq"]
@@ -241,7 +242,7 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
         log = (run_dir / f"actor-{a}" / "actor.log").read_text()
         assert "ignoring learner khgrl/" in log and "/alive/learner/evil/e666" in log
     summary = read_json(run_dir / "actor-a0" / "summary.json")
-    assert summary["episodes"] == 3 and summary["rejects"]["ack"] >= 4, summary["rejects"]
+    assert summary["episodes"] == 2 and summary["rejects"]["ack"] >= 4, summary["rejects"]
     assert "ack without a mac" in (run_dir / "actor-a0" / "actor.log").read_text()
     check = provenance_check(run_dir)
     assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] > 0, check
