@@ -189,7 +189,7 @@ class ActorDelivery:
             self.service(block=0.05)
             if s.checkpoint_due(self.learner_alive):
                 self.link.request_checkpoint()
-        if self.inbound.guard.fatal:  # another process publishes as this actor: it stopped flushing
+        if getattr(getattr(self.inbound, "guard", None), "fatal", None):  # another process as this actor stopped it
             return self.split_exit()
         self.status()
         if s.durable < last:
