@@ -42,7 +42,7 @@ def _session(run_dir, cn: str, endpoint: str):
 def _secure_run(tmp_path, name: str, seed: str) -> tuple[Launcher, dict]:
     up = Launcher(tmp_path, tmp_path / name, *KGRL, "--secure", "--episodes", "40", "--seed", seed,
                   "--timeout", "400")
-    up.wait_line("[a0] episode 1:", 300)
+    up.wait_line("khgrl up: run ", 120)  # its processes are starting
     return up, read_json(up.run_dir / "config.json")["runtime"]
 
 
@@ -51,6 +51,9 @@ def _ended(up: Launcher, timeout: float) -> int:
         return up.proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
         raise AssertionError(f"khgrl up did not end {timeout:.0f} s after the attack\n{up.stdout[-3000:]}") from None
+
+
+FORGE_FROM = 10  # KGRL's learning_starts 64 = 8 batches of 8
 
 
 @pytest.mark.timeout(600)
@@ -67,7 +70,7 @@ def test_another_process_publishing_as_a0_stops_it_and_ends_the_run(tmp_path):
     def on_batch(sample) -> None:  # right after a0's batch h (a0 waits for its training): batch h + 1, forged
         msg = decode(Transitions, sample.payload.to_bytes())
         forged["stream"] = msg.stream
-        if forged["armed"]:
+        if forged["armed"] and msg.envelope.seq >= FORGE_FROM:  # (past learning_starts: a0 waits after each batch)
             forged["armed"] = False
             seq = msg.envelope.seq + 1
             attacker.put(keys.transitions("a0"), encode(msg.replace(first_step=msg.first_step + msg.n), "a0", seq))
@@ -76,7 +79,7 @@ def test_another_process_publishing_as_a0_stops_it_and_ends_the_run(tmp_path):
     sub = watcher.declare_subscriber(keys.transitions("a0"), on_batch)
     try:
         for _ in range(3):  # a0 freezes unless its own batch h + 1 raced ahead of the learner's ack: then again
-            wait_for(lambda: not forged["armed"], 60, "a0 to publish a batch")
+            wait_for(lambda: not forged["armed"], 60 if forged["sent"] else 180, "a0 to publish a batch")
             if up.proc.poll() is not None or _wait(up, 15):
                 break
             forged["armed"] = True
@@ -117,6 +120,11 @@ def test_one_learner_per_run_a_second_is_refused_an_impostor_ends_the_run(tmp_pa
     up, runtime = _secure_run(tmp_path, "impostor", "6")
     keys, ep = Keys(runtime["run"]), runtime["endpoint"]
     try:
+        with _session(up.run_dir, "monitor", ep) as watcher:  # the learner is up (its token is declared first)
+            got: list = []
+            sub = watcher.declare_subscriber(keys.status("learner", "learner"), lambda s: got.append(1))
+            wait_for(lambda: got, 180, "the learner's status")
+            sub.undeclare()
         second = subprocess.run(
             [sys.executable, "-m", "khgrl.deploy.cli", "learner", "--config", str(up.run_dir / "config.json"),
              "--zenoh-config", str(up.run_dir / "certs" / "zenoh" / "learner.json5")],
