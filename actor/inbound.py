@@ -5,8 +5,12 @@ Here too are the actor's checks that hold without access control (docs/protocol.
 :class:`~khgrl.common.delivery.trust.WeightsGate` is installed in the weights receiver and told which learner epochs
 are alive
 (weights only from those, with plausible versions); an ack whose weights version is implausible is refused like
-one that claims batches never sent; a ``stop`` or ``pause`` that does not come from the launcher is obeyed but
-logged as such (a warning with its sender and key).
+one that claims batches never sent, and with the run's key (:mod:`~khgrl.common.delivery.run_key`) so is one
+without the learner's ``mac``; a ``superseded`` ack is obeyed only when authenticated (without the key: once an
+ack of another stream of this id came; that stream's acks also stop the actor:
+:class:`~khgrl.common.delivery.actor_guard.ActorGuard`);
+a learner of another task is ignored (the actor stops only if none of its own task comes); a ``stop`` or ``pause``
+that does not come from the launcher is obeyed but logged as such (a warning with its sender and key).
 """
 
 from __future__ import annotations
@@ -14,8 +18,9 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from khgrl.common.delivery.actor_guard import ActorGuard
 from khgrl.common.delivery.senders import HUMAN_COMMANDS, read_for_actor
-from khgrl.common.delivery.trust import WeightsGate
+from khgrl.common.delivery.trust import WeightsGate, learner_of
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.checks import ProtocolError
 from khgrl.common.wire.messages import Ack, Control, Dims
@@ -28,20 +33,24 @@ log = logging.getLogger("khgrl.actor")
 
 class Inbound:
     """Handles the actor's incoming messages and keeps what they tell: the learners alive, paused, and why the
-    actor must stop with exit code 2 (a learner of another task, or its stream superseded).
+    actor must stop with exit code 2 (no learner of its task) or 4 (its ``guard``: another process as its id).
 
     :param parts: the loop's :class:`~khgrl.actor.parts.ActorParts`.
     :param flag: the process's stop flag.
     :param dims: the sizes corrections must have.
     :param gate: the weights gate (default: a new one), installed in ``parts.weights.receiver``.
+    :param guard: the actor's :class:`~khgrl.common.delivery.actor_guard.ActorGuard` (default: one with the gate's
+        key, the run's).
     """
 
-    def __init__(self, parts: Any, flag: StopFlag, dims: Dims, gate: WeightsGate | None = None) -> None:
+    def __init__(self, parts: Any, flag: StopFlag, dims: Dims, gate: WeightsGate | None = None,
+                 guard: ActorGuard | None = None) -> None:
         self.p, self.flag, self.dims = parts, flag, dims
         self.learners: set[str] = set()
         self.paused = False
         self.wrong_task: str | None = None
-        self.gate = gate or WeightsGate()
+        self.guard = guard or ActorGuard(parts.stream.actor, parts.stream.stream, getattr(gate, "key", None))
+        self.gate = gate or WeightsGate(key=self.guard.key)
         parts.weights.receiver.use_gate(self.gate)
 
     def join(self, learners: set[str]) -> None:
@@ -83,11 +92,22 @@ class Inbound:
             self._on_control(msg, key)
 
     def _on_ack(self, msg: Ack, key: str) -> None:
-        stream = self.p.stream
-        if stream.on_ack(msg, key, check=lambda a: self.gate.implausible(a.epoch, a.version)):
+        stream, guard = self.p.stream, self.guard
+        if msg.superseded and msg.stream == stream.stream and msg.actor == stream.actor:
+            why = guard.authentic(msg) if guard.key is not None else None if guard.corroborated() else \
+                "superseded ack ignored: not signed (no run key) and no ack of another stream of this id seen"
+            if why:  # (a forged one would stop this actor)
+                self.p.rejects.reject("ack", key, ProtocolError(why))
+                return
+        guard.on_ack(msg, stream.max_published, self.gate.epochs)
+        if guard.fatal:
+            self.flag.set("another process publishes as this actor")
+            return
+        if stream.on_ack(msg, key, check=lambda a: self.gate.implausible(a.epoch, a.version) or guard.authentic(a)):
             self.gate.note(msg.epoch, msg.version)
-        elif stream.superseded:
-            self.wrong_task = stream.superseded  # another process runs this actor id: stop (exit 2)
+            guard.accepted()
+        elif stream.superseded:  # another process runs this actor id: stop (exit 4)
+            guard.superseded()
             self.flag.set("stream superseded")
 
     def on_alive(self, key: str, put: bool) -> None:
@@ -97,23 +117,34 @@ class Inbound:
         :param put: appeared.
         """
         if put:
+            if key in self.guard.wrong:  # a learner of another task: not followed
+                return
             self.p.weights.receiver.learner_appeared(key)
             if key not in self.learners:
                 self.learners.add(key)
                 log.info("learner %s appeared (outbox: %d batches)", key, len(self.p.stream.outbox))
                 self.check_learner_task()
-                self.p.stream.learner_appeared()
+                if key in self.learners:  # (not a learner of another task)
+                    self.p.stream.learner_appeared()
         else:
             self.learners.discard(key)
             self.p.weights.receiver.learner_gone(key)
             log.warning("learner %s gone: acting on with weights version %d", key, self.p.weights.version)
 
     def check_learner_task(self) -> None:
-        """Refuse a learner built for another task: stop with a clear error (exit code 2)."""
-        if self.p.task is not None and (why := self.p.link.other_task(self.p.task)):
-            self.wrong_task = why
-            log.error("%s", why)
-            self.flag.set("learner of another task")
+        """Ignore the learners built for another task (counted, logged, not followed); the actor stops (exit 2) only
+        when none of its own task comes (:meth:`~khgrl.common.delivery.actor_guard.ActorGuard.wrong_task`)."""
+        if self.p.task is None:
+            return
+        wrong = self.p.link.other_tasks(self.p.task)
+        ignored = {k: wrong[who[0]] for k in self.learners if (who := learner_of(k)) and who[0] in wrong}
+        for k, why in ignored.items():
+            self.learners.discard(k)
+            self.p.weights.receiver.learner_gone(k)
+            if k not in self.guard.wrong:
+                self.p.rejects.reject("task", k, ProtocolError(f"learner ignored: {why}"))
+        for k, why in ignored.items():
+            self.guard.ignore(k, why, ours_alive=bool(self.learners))
 
     def _on_control(self, msg: Control, key: str) -> None:
         attribute_control(msg, key, log)

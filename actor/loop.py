@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from khgrl.actor.inbound import Inbound
@@ -70,7 +70,8 @@ class ActorLoop:
         tf = cfg.tqc.train_freq
         self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
         self.dims = Dims(out=parts.env.mapping.model.out_dim)  # corrections carry O coordinates
-        self.inbound = Inbound(parts, flag, self.dims)  # acks, corrections, control, learner liveliness
+        self.inbound = Inbound(parts, flag, self.dims, parts.weights.receiver.gate)  # acks, corrections, liveliness
+        self.guard = self.inbound.guard  # another process publishes as this actor id, two learners
         self.delivery = ActorDelivery(actor, parts.link, parts.inbox, parts.stream, parts.weights, cfg.stream, flag,
                                       self.inbound, lambda item: self.inbound.handle(*item, episode=self.episode),
                                       self._publish_status)
@@ -85,7 +86,7 @@ class ActorLoop:
 
     # ------------------------------------------------------------------ episodes
     def run(self) -> int:
-        """All remaining episodes, then the flush; returns the exit code (3: flush timed out)."""
+        """All remaining episodes, then the flush; returns the exit code (2, 3, 4: actor/main.py's docstring)."""
         acc = EpisodeAccumulator()
         acc.episode = self.episode  # a resumed run continues the numbering
         todo = self.cfg.episodes - self.episode
@@ -96,13 +97,15 @@ class ActorLoop:
         while len(self.p.episodes.new) < todo and not self.flag:
             if not self._episode(acc):
                 break  # stopped mid-episode: no statistics for a partial episode
+        if self.guard.fatal:  # another process publishes as this actor id: nothing more goes out on its stream
+            return self.delivery.split_exit()
         self.p.stream.cut()  # a partial batch after a stop
-        if self.inbound.wrong_task:  # a learner of another task, or this actor id's stream taken by another process
+        if self.inbound.wrong_task:  # only a learner of another task (and none of this one)
             print(f"khgrl actor {self.id}: error: {self.inbound.wrong_task}", file=sys.stderr, flush=True)
             return 2
         if self.flag:
             return self.delivery.finish_on_signal()
-        return self.delivery.flush(len(self.p.episodes.new))
+        return self.delivery.flush(len(self.p.episodes.new))  # (4 if another process as this actor stopped it)
 
     def _episode(self, acc: EpisodeAccumulator) -> bool:
         env = self.p.env
@@ -192,6 +195,7 @@ class ActorLoop:
                            arbiter=p.arbiter, rejects=p.rejects, waits=self.waits,
                            learner_alive=self.delivery.learner_alive, paused=self.inbound.paused,
                            periods=self.pacer.periods)
+        info = replace(info, alarm=self.guard.alarm or "")  # another process as this actor, two learners
         p.link.publish(Status(role="actor", info=info))
 
     def rate_limit(self) -> None:

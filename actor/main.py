@@ -16,6 +16,13 @@ one elsewhere by the liveliness token of the live one (exit code 2, one line on 
 continues its transition stream (:mod:`khgrl.common.delivery.restart`): after a kill, without ``--resume`` too, it
 re-sends
 what the learner has not confirmed and appends to its episode and correction files.
+
+Exit codes: 0 done (or stopped); 1 failed (e.g. no router); 2 a refused start, or no learner of this actor's task
+(only one of another task); 3 the final flush timed out; 4 another process publishes as this actor id: acks claim
+batches it never sent, acks of another stream of its id move on, or the learner superseded its stream
+(:data:`~khgrl.common.delivery.actor_guard.SPLIT_EXIT`: one line with the id and stream ids, also in its status).
+With ``RUN_DIR/run.key`` (:mod:`~khgrl.common.delivery.run_key`) the actor takes only acks and weights the learner
+signed with it.
 """
 
 from __future__ import annotations
@@ -36,11 +43,13 @@ from khgrl.actor.results import EpisodeLog
 from khgrl.actor.telemetry import TensorBoard
 from khgrl.actor.weights import PolicyWeights, WeightsReceiver
 from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
+from khgrl.common.delivery import run_key
 from khgrl.common.delivery.actor_link import ActorLink, actor_alive
 from khgrl.common.delivery.restart import AlreadyRunning, StreamRecord, StreamStart, lock_actor_dir, open_stream
 from khgrl.common.delivery.stream import TransitionStream
 from khgrl.common.delivery.task_link import TaskAnnouncer
 from khgrl.common.delivery.transport import Inbox, open_client
+from khgrl.common.delivery.trust import WeightsGate
 from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
 from khgrl.common.tasks.api import TaskError, load_task
 from khgrl.common.wire.checks import RejectCounter, ident
@@ -64,14 +73,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, start: StreamStart,
-                 resume: bool, task=None) -> ActorParts:
+                 resume: bool, task=None, key: bytes | None = None) -> ActorParts:
     """Declare everything on the session and wire the loop's parts (declaration order as the protocol expects:
     subscribers, publishers, the weights receiver, then the liveliness token)."""
     cfg, keys = pc.cfg, Keys(pc.run)
     rejects = RejectCounter(f"actor/{actor}")
     inbox = Inbox(maxsize=10_000, overflow="drop_oldest")
     link = ActorLink(session, keys, actor, inbox, rejects)
-    receiver = WeightsReceiver(link.weights_subscriber(), policy.weights_template(), rejects, keys.weights)
+    receiver = WeightsReceiver(link.weights_subscriber(), policy.weights_template(), rejects, keys.weights,
+                               gate=WeightsGate(key=key))
     receiver.start()
     announcer = TaskAnnouncer(session, keys, "actor", actor, task) if task is not None else None
     link.announce()
@@ -132,6 +142,10 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         print(f"khgrl actor {actor}: error: actor {actor} is already running: {exc}", file=sys.stderr, flush=True)
         return 2
     setup_process_logging(out_dir / "actor.log")
+    try:
+        key = run_key.load(cfg.run_dir)  # acks and weights must carry the learner's mac when the run has a key
+    except run_key.RunKeyError as exc:
+        return _error(actor, exc)
     torch.set_num_threads(1)
     flag = StopFlag()
     install_stop_handlers(flag)
@@ -168,7 +182,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
                                  f"this id is refused (give it another --id)")
         start = open_stream(out_dir, cfg.stream.outbox_memory, actor, resume)
         resume = resume or start.continued
-        parts = _build_parts(pc, actor, session, env, policy, out_dir, start, resume, task)
+        parts = _build_parts(pc, actor, session, env, policy, out_dir, start, resume, task, key)
         loop = ActorLoop(cfg, actor, parts, flag)
         loop.join()
         loop.realtime = set_realtime(cfg.actor_rt_priority) if cfg.actor_rt_priority > 0 else False

@@ -86,6 +86,8 @@ class WeightsReceiver:
         import torch
 
         msg = decode(Weights, payload)
+        if self.gate is not None:
+            self.gate.authentic(msg)  # with the run's key: the learner's mac, before anything is copied
         tensors = msg.tensors
         if set(tensors) != set(self.template):
             raise ProtocolError(f"tensors: names {sorted(tensors)} do not match the actor network")

@@ -10,8 +10,12 @@ and die with the launcher (parent-death signal), even if it is killed. ``--secur
 TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mod:`khgrl.deploy.secure`);
 ``--zenoh-config FILE`` gives every process a Zenoh configuration file.
 
-Exit codes: 0 the actors finished; 1 a process failed, the router was unreachable, ``--timeout`` or a stop
-command from elsewhere; 2 a bad configuration or run directory; 128 + signal number on SIGINT/SIGTERM.
+``RUN_DIR/run.key`` gets a new secret first (0600; kept on ``--resume``): the learner signs acks and weights with it,
+actors check them (:mod:`khgrl.common.delivery.run_key`). An actor's alarm in its status (another process publishes
+as it, two learners) ends the run with that line as its error (:mod:`khgrl.deploy.outcome`).
+
+Exit codes: 0 the actors finished; 1 a process failed, an actor's alarm, the router was unreachable, ``--timeout``
+or a stop command from elsewhere; 2 a bad configuration or run directory; 128 + signal number on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from khgrl.common.config.settings import RunConfig, add_config_flags, resolve, write_run_config
+from khgrl.common.delivery import run_key
 from khgrl.common.delivery.declare import put, subscribe
 from khgrl.common.delivery.task_link import TASK_FILE, save_task
 from khgrl.common.delivery.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
@@ -34,18 +39,10 @@ from khgrl.common.delivery.zenoh_config import config_file
 from khgrl.common.process import StopFlag, install_stop_handlers
 from khgrl.common.wire.messages import Control, EpisodeReport, Status
 from khgrl.common.wire.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from khgrl.deploy import outcome, rundir
 from khgrl.deploy.outcome import Outcome, ending, exit_code, final_line, report_failures, write_summary
 from khgrl.deploy.progress import ProgressView
-from khgrl.deploy.rundir import (
-    RunDirError,
-    archive_part,
-    clear_run,
-    has_checkpoint,
-    make_run_id,
-    previous_runtime,
-    results_in,
-    write_pids,
-)
+from khgrl.deploy.rundir import RunDirError
 from khgrl.deploy.secure import SecureRun, prepare_secure_run, run_identities
 from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 from khgrl.learner.algorithm import check_algorithm
@@ -130,11 +127,11 @@ def _resolve_config(args: argparse.Namespace) -> RunConfig:
 
 
 def _check_run_dir(run_dir: Path, args: argparse.Namespace, checkpoint_dir: str = "") -> None:
-    found = results_in(run_dir)
+    found = rundir.results_in(run_dir)
     if args.resume:
         if not (run_dir / "config.toml").is_file():
             raise RunDirError(f"--resume: nothing to resume in {run_dir}: it has no config.toml")
-        if not has_checkpoint(run_dir, checkpoint_dir):
+        if not rundir.has_checkpoint(run_dir, checkpoint_dir):
             raise RunDirError(f"--resume: nothing to resume in {run_dir}: no learner checkpoint "
                               f"(learner/checkpoint/state.json); start it again with --overwrite")
     elif found and not args.overwrite:
@@ -157,8 +154,8 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     _check_run_dir(run_dir, args, cfg.checkpoint_dir)
     check_algorithm(cfg.algo)
     task = check_task(cfg)
-    previous = previous_runtime(run_dir) if args.resume else {}
-    run_id = cfg.run or str(previous.get("run") or "") or make_run_id(run_dir)
+    previous = rundir.previous_runtime(run_dir) if args.resume else {}
+    run_id = cfg.run or str(previous.get("run") or "") or rundir.make_run_id(run_dir)
     Keys(run_id)  # a valid key chunk (ValueError otherwise)
     if args.secure and cfg.connect:
         raise ValueError("--secure starts its own router with certificates made for the run; to join a router "
@@ -196,18 +193,19 @@ def prepare_run_dir(plan: RunPlan) -> None:
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     part = 1
     if plan.overwrite:
-        deleted = clear_run(plan.run_dir)
+        deleted = rundir.clear_run(plan.run_dir)
         if deleted:
             print(f"khgrl up: --overwrite: deleted the earlier run in {plan.run_dir} ({', '.join(deleted)})",
                   flush=True)
     if plan.resume:
         part = int(plan.previous.get("part", 1)) + 1
-        archive_part(plan.run_dir, part - 1)
+        rundir.archive_part(plan.run_dir, part - 1)
     if plan.cfg.demos and not plan.resume:  # the run keeps the demonstrations it was trained from
         kept = plan.run_dir / f"demos{Path(plan.cfg.demos).suffix}"
         kept.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(plan.cfg.demos, kept)
         plan.cfg = dataclasses.replace(plan.cfg, demos=str(kept.resolve()))
+    run_key.create(plan.run_dir, fresh=not plan.resume)  # the learner signs acks and weights, actors check
     if plan.secure:
         plan.secure_run = prepare_secure_run(plan.run_dir, plan.endpoint, run_identities(plan.cfg))
     runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "cwd": os.getcwd(), "actor_ids": plan.cfg.actor_ids(),
@@ -285,11 +283,12 @@ class Run:
         if self.cfg.method == "khgrl" and self.cfg.human != "none":
             h = self.cfg.human
             self.group.start(f"human-{h}", khgrl_argv("human", h, "--config", config, "--id", h, *zargs("human", h)))
-        write_pids(self.plan.run_dir, os.getpid(), {p.name: p.pid for p in self.group.procs})
+        rundir.write_pids(self.plan.run_dir, os.getpid(), {p.name: p.pid for p in self.group.procs})
 
     def _supervise(self, session) -> None:
         subs = [subscribe(session, self.keys.episode("*"), self.inbox.callback("episode")),
                 subscribe(session, self.keys.status("learner", "*"), self.inbox.callback("status")),
+                subscribe(session, self.keys.status("actor", "*"), self.inbox.callback("status")),
                 # only other sessions' commands: this launcher's own stop never counts as one from elsewhere
                 subscribe(session, self.keys.control("**"), self.inbox.callback("control"), remote_only=True)]
         try:
@@ -305,7 +304,7 @@ class Run:
             item = self.inbox.get(timeout=0.25)
             if item is not None:
                 self._handle(item, view)
-            if self._finished() or self.out.stopped_by:
+            if self._finished() or self.out.stopped_by or self.out.error:
                 return
             if deadline is not None and time.monotonic() > deadline:
                 print(f"khgrl up: timeout after {self.cfg.timeout:g} s", flush=True)
@@ -318,7 +317,9 @@ class Run:
             if kind == "episode":
                 view.episode(decode(EpisodeReport, payload))
             elif kind == "status":
-                view.status(decode(Status, payload))
+                status = decode(Status, payload)
+                view.status(status)
+                outcome.actor_alarm(self.out, status, key)
             else:
                 self._control(decode(Control, payload), key)
         except ProtocolError as exc:
@@ -338,6 +339,7 @@ class Run:
         for p in self.group.procs:
             if p.essential and p.poll() not in (None, 0) and p.name not in self.out.failed:
                 self.out.failed.append(p.name)
+                outcome.process_error(self.out, p)
         return bool(self.out.failed) or all(p.poll() == 0 for p in self.actors)
 
     def _stop_children(self, session) -> None:

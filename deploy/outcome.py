@@ -1,4 +1,8 @@
-"""How a ``khgrl up`` ended: the :class:`Outcome`, ``RUN_DIR/summary.json``, the failure report and the exit code."""
+"""How a ``khgrl up`` ended: the :class:`Outcome`, ``RUN_DIR/summary.json``, the failure report and the exit code.
+
+An actor's alarm in its status (:func:`actor_alarm`: another process publishes as it, two learners run) and an
+actor that exits because another process publishes as it (:func:`process_error`) end the run with that line as its
+``error`` (exit 1)."""
 
 from __future__ import annotations
 
@@ -6,10 +10,12 @@ import json
 import sys
 from dataclasses import dataclass, field
 
+from khgrl.common.delivery.actor_guard import SPLIT_EXIT
 from khgrl.common.process import StopFlag
-from khgrl.deploy.supervisor import ProcessGroup
+from khgrl.deploy.supervisor import Proc, ProcessGroup
 
-__all__ = ["Outcome", "write_summary", "report_failures", "exit_code", "ending", "final_line"]
+__all__ = ["Outcome", "write_summary", "report_failures", "exit_code", "ending", "final_line", "actor_alarm",
+           "process_error"]
 
 
 @dataclass
@@ -20,6 +26,34 @@ class Outcome:
     stopped_by: str = ""  # a stop command from elsewhere
     error: str = ""  # e.g. the router unreachable
     rejects: dict = field(default_factory=dict)
+
+
+def actor_alarm(out: Outcome, status, key: str) -> None:
+    """An actor's status with an alarm ends the run: the alarm becomes the run's error (once, said on stderr).
+
+    :param out: how the run ends
+    :param status: a decoded status message
+    :param key: the key it came on
+    """
+    alarm = getattr(status.info, "alarm", "")
+    if status.role != "actor" or not alarm or out.error:
+        return
+    out.error = f"actor {status.info.id}: {alarm}"
+    print(f"khgrl up: error: {out.error} (status on {key}); ending the run", file=sys.stderr, flush=True)
+
+
+def process_error(out: Outcome, proc: Proc) -> None:
+    """An actor that exited because another process publishes as it: its error line becomes the run's error.
+
+    :param out: how the run ends
+    :param proc: the process that exited
+    """
+    if proc.returncode != SPLIT_EXIT or out.error:
+        return
+    lines = [ln for ln in proc.text().splitlines() if ln.startswith(f"khgrl actor {proc.name}: error:")]
+    if lines:
+        out.error = lines[-1].split(": error: ", 1)[1]
+        out.error = f"actor {proc.name}: {out.error}"
 
 
 def ending(out: Outcome, flag: StopFlag) -> str:

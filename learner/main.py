@@ -15,6 +15,11 @@ decodes and checks it, orders it into its actor's stream (:mod:`khgrl.common.del
 ``CHECKPOINT_DIR/checkpoint`` with ``--checkpoint-dir``). A checkpoint that fails on a full or unwritable disk is
 logged, shown in the status and retried while training goes on; if the final one fails the learner says so and exits
 with 1. A router not reached within ``--connect-timeout`` is one error line naming it (exit 1).
+
+One learner per run: a learner whose id is alive on the router (its liveliness token ``alive/learner/<id>/*``,
+waited for up to the lease plus :data:`START_CHECK_S` to go, as a killed learner's does) refuses to start (one
+error line, exit 2). With ``RUN_DIR/run.key`` (:mod:`~khgrl.common.delivery.run_key`) its acks and weights carry a
+``mac``.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import argparse
 import logging
 import os
 import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,10 +43,11 @@ from khgrl.learner.checkpoint import CheckpointError, find_checkpoint
 if TYPE_CHECKING:
     from khgrl.learner.loop import LearnerLoop
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "START_CHECK_S"]
 
 log = logging.getLogger("khgrl.learner")
 
+START_CHECK_S = 2.0  # beyond the lease: how long a live learner of this id has to go before this one refuses
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -95,6 +102,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     :param resume: continue from the checkpoint
     """
     import torch  # (imported here: --help and flag errors answer at once)
+    from khgrl.common.delivery import run_key
     from khgrl.common.delivery.learner_link import LearnerLink
     from khgrl.learner.loop import LearnerLoop
     from khgrl.learner.resume import open_learner
@@ -102,6 +110,10 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
 
     cfg = pc.cfg
     setup_process_logging(learner_dir / "learner.log")
+    try:
+        key = run_key.load(cfg.run_dir)  # acks and weights carry a mac when the run has a key
+    except run_key.RunKeyError as exc:
+        return _fail(exc)
     torch.set_num_threads(max(1, cfg.learner_threads))
     try:
         device = torch_device(cfg.tqc.device)
@@ -124,6 +136,8 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         print(f"khgrl learner: error: {exc}", file=sys.stderr)
         return 1
     with session:
+        if why := _other_learner(session, keys, learner_id, cfg.stream.lease_ms / 1000 + START_CHECK_S, flag):
+            return _fail(why)
         task = run_task(session, keys, learner_dir, flag)
         if task is None:
             return 0
@@ -131,7 +145,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
                                         task=task, checkpoint_dir=cfg.checkpoint_dir or None, algo=cfg.algo)
         log.info("task %s (O = %d, %d observations, digest %s); epoch %s, learning_starts %d, training on %s",
                  task.name, task.out_dim, task.obs_dim, task.digest, trainer.epoch, trainer.learning_starts, device)
-        link = LearnerLink(session, keys, learner_id, task)
+        link = LearnerLink(session, keys, learner_id, task, key=key)
         loop = LearnerLoop(trainer, streams, link.publisher, learner_id=learner_id, learner_dir=learner_dir,
                            checkpoint_every=cfg.stream.checkpoint_every, flag=flag,
                            checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode,
@@ -179,6 +193,29 @@ def _final_checkpoint_failed(loop: LearnerLoop) -> int:
     log.error("%s", message)
     print(f"khgrl learner: error: {message}", file=sys.stderr, flush=True)
     return 1
+
+
+def _other_learner(session, keys: Keys, learner_id: str, wait_s: float, flag: StopFlag) -> str | None:
+    """Why this learner must not start: a learner with its id is alive on the router (asked before anything is
+    declared), and its token did not go within ``wait_s`` s (None: there is none).
+
+    :param session: the open Zenoh session
+    :param keys: the run's key expressions
+    :param learner_id: this learner's id
+    :param wait_s: how long a live token has to go (a killed learner's goes within the lease)
+    :param flag: the stop flag
+    """
+    from khgrl.common.delivery.learner_link import learner_alive
+
+    deadline = time.monotonic() + wait_s
+    alive = learner_alive(session, keys, learner_id)
+    while alive and time.monotonic() < deadline and not flag:
+        time.sleep(0.2)
+        alive = learner_alive(session, keys, learner_id)
+    if not alive:
+        return None
+    return (f"learner {learner_id} is already alive on the router ({', '.join(alive)}): one learner per run; a second "
+            f"one with this id is refused (stop the other first)")
 
 
 def run_task(session, keys: Keys, learner_dir: Path, flag: StopFlag):

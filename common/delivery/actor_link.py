@@ -119,21 +119,22 @@ class ActorLink:
             log.warning("liveliness query failed: %s", exc)
             return set()
 
-    def other_task(self, mine, timeout: float = 1.0) -> str | None:
-        """Why a learner alive now cannot train this actor (it was built for another task), or None.
+    def other_tasks(self, mine, timeout: float = 1.0) -> dict[str, str]:
+        """The learners answering now that cannot train this actor: {learner id: why} for each id that answers only
+        tasks other than ``mine`` (an id that also answers ``mine`` is this actor's learner).
 
         :param mine: this actor's :class:`~khgrl.common.wire.descriptor.TaskDescriptor`.
         :param timeout: seconds to wait for the learners' answers.
         """
-        from khgrl.common.delivery.task_link import fetch_tasks
+        from khgrl.common.delivery.task_link import task_answers
 
-        for lid, theirs in fetch_tasks(self.session, self.keys, "learner", timeout=timeout).items():
-            if theirs.digest != mine.digest:
-                return (f"learner {lid} was built for task {theirs.name!r} ({theirs.out_dim} outputs, "
-                        f"{theirs.obs_dim} observations, digest {theirs.digest}); this actor runs {mine.name!r} "
-                        f"({mine.out_dim} outputs, {mine.obs_dim} observations, digest {mine.digest}): start them "
-                        f"with one task")
-        return None
+        answers = task_answers(self.session, self.keys, "learner", timeout=timeout)
+        ours = {lid for lid, theirs in answers if theirs.digest == mine.digest}
+        return {lid: (f"learner {lid} was built for task {theirs.name!r} ({theirs.out_dim} outputs, "
+                      f"{theirs.obs_dim} observations, digest {theirs.digest}); this actor runs {mine.name!r} "
+                      f"({mine.out_dim} outputs, {mine.obs_dim} observations, digest {mine.digest}): start them "
+                      f"with one task")
+                for lid, theirs in answers if lid not in ours}
 
     def query_weights(self, timeout: float) -> list[bytes]:
         """The payloads the learner's weights queryable answers (empty on failure).

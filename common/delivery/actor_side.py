@@ -96,10 +96,36 @@ class ActorDelivery:
                 break
             self.handle(item)
         self.weights.swap()
+        self._guard()
         self.stream.check_resend(self.learner_alive)
         now = time.monotonic()
         if now - self._t_status >= STATUS_EVERY_S:
             self._t_status = now
+            self.status()
+
+    def _guard(self) -> None:
+        """What the actor's :class:`~khgrl.common.delivery.actor_guard.ActorGuard` concludes: another process as this
+        actor (stop), two learners (the status says so at once), no learner of this actor's task (stop, exit 2)."""
+        guard = getattr(self.inbound, "guard", None)
+        if guard is None:
+            return
+        gate, before = self.inbound.gate, guard.alarm
+        guard.learners(gate.alive_now(), gate.vouched)
+        if guard.probe_due():  # an ack claimed batches never sent: the learner's next ack says whether it was forged
+            newest = self.stream.outbox.newest()
+            if newest is None:
+                self.link.request_checkpoint()  # (acked after the checkpoint)
+            else:
+                self.stream.resend(newest - 1, "an ack claims batches this actor never sent: asking the learner again")
+        if guard.fatal and not self.flag:
+            self.flag.set("another process publishes as this actor")
+        if self.inbound.wrong_task is None and (why := guard.wrong_task(bool(self.inbound.learners),
+                                                                        self.settings.learner_wait)):
+            self.inbound.wrong_task = why
+            log.error("%s", why)
+            self.flag.set("no learner of this actor's task")
+        if guard.alarm != before:
+            self._t_status = time.monotonic()
             self.status()
 
     def _arrivals(self, block: float) -> list[tuple]:
@@ -149,8 +175,8 @@ class ActorDelivery:
 
     # ------------------------------------------------------------------ the end
     def flush(self, episodes: int) -> int:
-        """Wait until the learner holds every batch in a checkpoint (or ``flush_timeout``); the exit code (0, or 3
-        when it timed out).
+        """Wait until the learner holds every batch in a checkpoint (or ``flush_timeout``); the exit code (0, 3 when
+        it timed out, 4 when another process publishes as this actor).
 
         :param episodes: episodes this process ran (for the log)
         """
@@ -163,6 +189,8 @@ class ActorDelivery:
             self.service(block=0.05)
             if s.checkpoint_due(self.learner_alive):
                 self.link.request_checkpoint()
+        if getattr(getattr(self.inbound, "guard", None), "fatal", None):  # another process as this actor stopped it
+            return self.split_exit()
         self.status()
         if s.durable < last:
             n = s.unconfirmed()
@@ -173,6 +201,15 @@ class ActorDelivery:
             return 3
         log.info("flushed: every batch up to seq %d is in a learner checkpoint", last)
         return 0
+
+    def split_exit(self) -> int:
+        """Another process publishes as this actor id: say so (stderr, status); the exit code
+        (:data:`~khgrl.common.delivery.actor_guard.SPLIT_EXIT`)."""
+        from khgrl.common.delivery.actor_guard import SPLIT_EXIT
+
+        print(f"khgrl actor {self.actor}: error: {self.inbound.guard.fatal}", file=sys.stderr, flush=True)
+        self.status()
+        return SPLIT_EXIT
 
     def finish_on_signal(self) -> int:
         """Stopped mid-episode (a signal or a stop command): publish what was collected since the last batch, then

@@ -6,7 +6,9 @@
 * :class:`ZenohPublisher` -- the :class:`Publisher` the learner loop sends through: weights (published, and
   answered to queries), per-actor acks and status, each typed message encoded with this learner's id and a
   per-kind sequence number. The latest weights payload is kept for the weights queryable, so a late or restarted
-  actor gets the current network at once.
+  actor gets the current network at once. With the run's key (:mod:`~khgrl.common.delivery.run_key`) every ack
+  and weights message carries its ``mac``.
+* :func:`learner_alive` -- the live processes of a learner id (a second learner with that id refuses to start).
 """
 
 from __future__ import annotations
@@ -14,13 +16,14 @@ from __future__ import annotations
 import threading
 from typing import Any, Protocol
 
-from khgrl.common.delivery.declare import publisher, queryable, subscribe, token
+from khgrl.common.delivery import run_key
+from khgrl.common.delivery.declare import alive_now, publisher, queryable, subscribe, token
 from khgrl.common.delivery.task_link import TaskAnnouncer
 from khgrl.common.delivery.transport import Inbox, undeclare_all
 from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.protocol import Ack, Keys, Status, Weights, encode
 
-__all__ = ["Publisher", "ZenohPublisher", "LearnerLink", "INBOX_SIZE", "INBOX_BYTES"]
+__all__ = ["Publisher", "ZenohPublisher", "LearnerLink", "learner_alive", "INBOX_SIZE", "INBOX_BYTES"]
 
 # Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
 # batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
@@ -43,12 +46,13 @@ class Publisher(Protocol):
 class ZenohPublisher:
     """Publishers of one learner; :meth:`answer` is the weights queryable's handler."""
 
-    def __init__(self, session: Any, keys: Keys, sender: str) -> None:
+    def __init__(self, session: Any, keys: Keys, sender: str, key: bytes | None = None) -> None:
         """:param session: an open Zenoh session
         :param keys: the run's key expressions
         :param sender: this learner's id (envelope ``sender``)
+        :param key: the run's key: acks and weights carry a ``mac`` (None: they do not)
         """
-        self.session, self.keys, self.sender = session, keys, sender
+        self.session, self.keys, self.sender, self.key = session, keys, sender, key
         self.weights_pub = publisher(session, keys.weights, congestion="block", priority="data")
         self.status_pub = publisher(session, keys.status("learner", sender), congestion="drop", priority="data_low")
         self.ack_pubs: dict[str, Any] = {}
@@ -70,7 +74,7 @@ class ZenohPublisher:
 
         :param msg: the weights
         """
-        blob = self._encode(msg)
+        blob = self._encode(run_key.sign(msg, self.key))
         with self._lock:
             self._latest = blob
         self.weights_pub.put(blob)
@@ -85,7 +89,7 @@ class ZenohPublisher:
             if pub is None:
                 pub = self.ack_pubs[msg.actor] = publisher(self.session, self.keys.ack(msg.actor), congestion="block",
                                                            priority="interactive_low")
-        pub.put(self._encode(msg))
+        pub.put(self._encode(run_key.sign(msg, self.key)))
 
     def status(self, msg: Status) -> None:
         """Publish a status (dropped under congestion: the next one follows in a second).
@@ -119,12 +123,14 @@ class LearnerLink:
     :param keys: the run's key expressions
     :param learner_id: this learner's id
     :param task: the run's task descriptor (announced on ``task/learner/<id>``)
+    :param key: the run's key (acks and weights carry a ``mac``; None: they do not)
     """
 
-    def __init__(self, session: Any, keys: Keys, learner_id: str, task: TaskDescriptor) -> None:
+    def __init__(self, session: Any, keys: Keys, learner_id: str, task: TaskDescriptor,
+                 key: bytes | None = None) -> None:
         self.session, self.keys, self.id = session, keys, learner_id
         self.announcer = TaskAnnouncer(session, keys, "learner", learner_id, task)
-        self.publisher = ZenohPublisher(session, keys, learner_id)
+        self.publisher = ZenohPublisher(session, keys, learner_id, key)
         self.inbox = Inbox(maxsize=INBOX_SIZE, overflow="drop_newest", max_bytes=INBOX_BYTES)
         cb = self.inbox.callback
         self.decls = [subscribe(session, keys.transitions("*"), cb("transitions")),
@@ -146,3 +152,17 @@ class LearnerLink:
         undeclare_all(*self.decls)
         self.announcer.undeclare()
         self.publisher.close()
+
+
+def learner_alive(session: Any, keys: Keys, learner_id: str, timeout: float = 1.0) -> list[str]:
+    """The liveliness keys ``alive/learner/<id>/*`` alive on the router now (empty: none, or the query failed).
+
+    :param session: an open Zenoh session
+    :param keys: the run's key expressions
+    :param learner_id: the learner id
+    :param timeout: seconds to wait for replies
+    """
+    try:
+        return sorted(alive_now(session, keys.learner_alive(learner_id, "**"), timeout))
+    except Exception:  # noqa: BLE001 - no answer is no learner
+        return []

@@ -14,7 +14,7 @@ from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.messages import TaskInfo
 from khgrl.common.wire.protocol import Keys, decode, encode
 
-__all__ = ["TaskAnnouncer", "fetch_task", "fetch_tasks", "TASK_FILE", "save_task", "load_task_file"]
+__all__ = ["TaskAnnouncer", "fetch_task", "fetch_tasks", "task_answers", "TASK_FILE", "save_task", "load_task_file"]
 
 TASK_FILE = "task.msgpack"  # RUN_DIR/learner/task.msgpack: the run's task as the learner builds from it
 
@@ -50,9 +50,10 @@ class TaskAnnouncer:
             pass
 
 
-def fetch_tasks(session: Any, keys: Keys, role: str = "actor", timeout: float = 1.0,
-                rejects: RejectCounter | None = None) -> dict[str, TaskDescriptor]:
-    """The descriptors the processes of ``role`` answer right now: {sender id: descriptor}.
+def task_answers(session: Any, keys: Keys, role: str = "actor", timeout: float = 1.0,
+                 rejects: RejectCounter | None = None) -> list[tuple[str, TaskDescriptor]]:
+    """Every answer of the processes of ``role`` right now, ``(sender id, descriptor)`` (one id may answer twice:
+    two processes, e.g. a forged queryable beside the real one).
 
     :param session: an open Zenoh session.
     :param keys: the run's key expressions.
@@ -60,7 +61,7 @@ def fetch_tasks(session: Any, keys: Keys, role: str = "actor", timeout: float = 
     :param timeout: seconds to wait for replies.
     :param rejects: where a malformed reply is counted (default: logged).
     """
-    out: dict[str, TaskDescriptor] = {}
+    out: list[tuple[str, TaskDescriptor]] = []
     try:
         replies = list(session.get(keys.task(role, "*"), timeout=timeout))
     except Exception as exc:  # noqa: BLE001
@@ -74,10 +75,23 @@ def fetch_tasks(session: Any, keys: Keys, role: str = "actor", timeout: float = 
             info = decode(TaskInfo, r.ok.payload.to_bytes())
             if info.sender_id != Keys.chunk(key, 4):
                 raise ProtocolError(f"sender {info.sender_id!r} answered on {key}")
-            out[info.sender_id] = info.descriptor
+            out.append((info.sender_id, info.descriptor))
         except ProtocolError as exc:
             (rejects or RejectCounter("task")).reject("task", key, exc)
     return out
+
+
+def fetch_tasks(session: Any, keys: Keys, role: str = "actor", timeout: float = 1.0,
+                rejects: RejectCounter | None = None) -> dict[str, TaskDescriptor]:
+    """The descriptors the processes of ``role`` answer right now: {sender id: descriptor}.
+
+    :param session: an open Zenoh session.
+    :param keys: the run's key expressions.
+    :param role: ``actor`` or ``learner``.
+    :param timeout: seconds to wait for replies.
+    :param rejects: where a malformed reply is counted (default: logged).
+    """
+    return dict(task_answers(session, keys, role, timeout, rejects))
 
 
 def fetch_task(session: Any, keys: Keys, role: str = "actor", timeout: float = 30.0,

@@ -19,6 +19,10 @@ appears (a learner publishes version 0 just before it declares its token). A hel
 after :data:`HOLD_S`. Weights without an epoch are refused while a learner with an epoch is alive (and taken only
 from a learner whose token has no epoch chunk).
 
+With the run's key (:mod:`~khgrl.common.delivery.run_key`), weights without the learner's ``mac`` are refused
+(:meth:`WeightsGate.authentic`, checked as they are parsed, before anything is copied), and the epochs noted
+(:attr:`WeightsGate.vouched`) are those of signed messages only.
+
 Pure logic, no Zenoh: the weights receiver's thread and the control loop both call it (it locks).
 """
 
@@ -28,6 +32,7 @@ import threading
 import time
 from typing import Any, Callable
 
+from khgrl.common.delivery import run_key
 from khgrl.common.wire.checks import ProtocolError
 
 __all__ = ["WeightsGate", "learner_of", "MAX_VERSIONS_PER_S", "VERSION_SLACK", "HOLD_S", "MAX_EPOCHS"]
@@ -57,11 +62,13 @@ class WeightsGate:
     :param rate: versions per second a learner can make at most.
     :param slack: versions allowed above the last seen at once.
     :param hold_s: seconds a held message waits for its learner's token.
+    :param key: the run's key (weights must carry the learner's ``mac``; None: not checked).
     """
 
     def __init__(self, clock: Callable[[], float] = time.monotonic, *, rate: float = MAX_VERSIONS_PER_S,
-                 slack: int = VERSION_SLACK, hold_s: float = HOLD_S) -> None:
+                 slack: int = VERSION_SLACK, hold_s: float = HOLD_S, key: bytes | None = None) -> None:
         self.clock, self.rate, self.slack, self.hold_s = clock, float(rate), int(slack), float(hold_s)
+        self.key = key
         self.alive: dict[str, str | None] = {}  # liveliness key -> its epoch
         self._floor: dict[str | None, float] = {}  # epoch -> min(version - rate * time) over the versions seen
         self._held: tuple[Any, float] | None = None  # (weights of an epoch not alive, when they came)
@@ -73,6 +80,27 @@ class WeightsGate:
         """The epochs of the learners alive now."""
         with self._lock:
             return set(self.alive.values())
+
+    def alive_now(self) -> dict[str, str | None]:
+        """The learner tokens followed now: liveliness key -> epoch (a copy)."""
+        with self._lock:
+            return dict(self.alive)
+
+    @property
+    def vouched(self) -> set[str | None]:
+        """The epochs of the messages taken so far (weights admitted, acks noted; with the key: signed ones)."""
+        with self._lock:
+            return set(self._floor)
+
+    def authentic(self, msg: Any) -> None:
+        """Raise :class:`ProtocolError` if ``msg`` (a decoded weights message) lacks the learner's ``mac`` under the
+        run's key (nothing is checked without one).
+
+        :param msg: a :class:`~khgrl.common.wire.messages.Weights`.
+        """
+        why = run_key.check(msg, self.key)
+        if why:
+            raise ProtocolError(why)
 
     # ------------------------------------------------------------------ learners
     def learner_appeared(self, key: str) -> Any | None:

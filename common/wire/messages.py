@@ -47,6 +47,17 @@ def _any_vec(name: str, value: Any, most: int) -> np.ndarray:
     return vec(name, value, n)
 
 
+MAC_BYTES = 32  # the ``mac`` of acks and weights
+
+
+def _mac(name: str, value: Any) -> bytes:
+    """A ``mac`` field: exactly :data:`MAC_BYTES` bytes."""
+    typ(name, value, bytes)
+    if len(value) != MAC_BYTES:
+        raise ProtocolError(f"{name}: {len(value)} bytes, expected {MAC_BYTES}")
+    return value
+
+
 @dataclass(frozen=True)
 class Message:
     KIND: ClassVar[str] = ""
@@ -134,6 +145,7 @@ class Ack(Message):
     stream: str | None = None  # the actor stream the ack is about
     task: str | None = None  # the digest of the learner's task descriptor
     superseded: bool | None = None  # true: the learner took another stream of this actor id; it refuses this one
+    mac: bytes | None = None  # keyed BLAKE2b of the other fields under the run's key (khgrl.common.delivery.run_key)
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Ack":
@@ -142,7 +154,7 @@ class Ack(Message):
                    trained=typ("trained", m.get("trained"), int, low=0),
                    version=typ("version", m.get("version"), int, low=0), epoch=typ("epoch", m.get("epoch"), str),
                    stream=opt(m, "stream", ident), task=opt(m, "task", ident),
-                   superseded=opt(m, "superseded", typ, bool))
+                   superseded=opt(m, "superseded", typ, bool), mac=opt(m, "mac", _mac))
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,6 +167,7 @@ class Weights(Message):
     trained: dict  # {actor id: transitions covered}
     tensors: dict  # {name: float32 array}
     epoch: str | None = None
+    mac: bytes | None = None  # keyed BLAKE2b of the other fields under the run's key (khgrl.common.delivery.run_key)
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Weights":
@@ -171,7 +184,7 @@ class Weights(Message):
             ndim = len(arr.get("shape", [])) if isinstance(arr, dict) and isinstance(arr.get("shape"), list) else 0
             out[name] = unpack_array(arr, f"tensors[{name}]", dtype="<f4", shape=(None,) * ndim)
         return cls(version=typ("version", m.get("version"), int, low=0), trained=dict(trained), tensors=out,
-                   epoch=opt(m, "epoch", ident))
+                   epoch=opt(m, "epoch", ident), mac=opt(m, "mac", _mac))
 
 
 @dataclass(frozen=True, eq=False)

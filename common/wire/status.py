@@ -68,6 +68,7 @@ class ActorInfo:
     rejects: _COUNTS
     paused: bool
     period_ms_p50: float | None
+    alarm: str = ""  # another process publishes as this actor, or two learners run: in one line ("" when neither)
 
 
 @dataclass(frozen=True)

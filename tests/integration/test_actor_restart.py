@@ -143,7 +143,8 @@ def test_second_process_with_a_live_actor_id_is_refused(tmp_path):
 def test_paused_actor_replaced_by_a_second_process_is_refused_when_it_wakes(tmp_path):
     """The race the liveliness check cannot close: a0 is stopped (SIGSTOP) long enough for its liveliness token
     to lapse, a second a0 (another run directory) starts and streams, then the first wakes up. The learner
-    keeps to the later stream -- never back and forth -- and tells the first it was superseded: it exits 2."""
+    keeps to the later stream -- never back and forth; the first, seeing the acks of the second's stream of its id
+    move on or its own stream superseded, says another process publishes as it and exits 4."""
     import signal
 
     run, run_dir, run2 = unique_run("pause"), tmp_path / "run", tmp_path / "run2"
@@ -157,13 +158,13 @@ def test_paused_actor_replaced_by_a_second_process_is_refused_when_it_wakes(tmp_
         wait_for(lambda: len(batch_files(run2 / "actor-a0")) >= 4, 180, "the second a0 streaming",
                  procs=[learner, second])
         first.signal(signal.SIGCONT)
-        assert first.wait(120) == 2, first.tail()
+        assert first.wait(120) == 4, first.tail()
         assert second.wait(180) == 0, second.tail()
         assert learner.stop(60) == 0, learner.tail()
         text = first.text()
 
     lines = [ln for ln in text.splitlines() if ln.startswith("khgrl actor")]
-    assert len(lines) == 1 and "another process runs this actor id" in lines[0], text
+    assert len(lines) == 1 and "another process publishes as actor a0" in lines[0], text
     s1 = read_json(run_dir / "actor-a0" / "config.json")["runtime"]["stream"]
     s2 = read_json(run2 / "actor-a0" / "summary.json")
     state, _ = buffer_steps(run_dir, "a0")

@@ -1,0 +1,141 @@
+"""The run's secret and the ``mac`` of acks and weights (docs/protocol.md, "Trust model": plain mode).
+
+``khgrl up`` writes 32 random bytes to ``RUN_DIR/run.key`` (:data:`KEY_FILE`, mode 0600) before it starts any
+process; a process started by hand reads the key from its ``--run-dir`` when the file is there (create one with
+:func:`create` or ``head -c 32 /dev/urandom > RUN_DIR/run.key; chmod 600 RUN_DIR/run.key``). A learner with the
+key puts a ``mac`` (keyed BLAKE2b, 32 bytes) over the canonical fields of every ack and weights message; an actor
+with the key takes only acks and weights whose ``mac`` is right. A process on the router without the key --
+another user of the machine reaching the loopback port, which cannot read a 0600 file -- can then no longer make
+an actor drop its outbox (a forged ``durable``), stop it (a forged ``superseded``) or load other weights. A process
+without the key behaves as before (no ``mac`` sent, none checked).
+
+A ``mac`` binds the message's fields, not its time: a genuine earlier ack replayed says nothing new (``durable``
+never moves back, and an ack of a stale epoch is refused by the actor's checks).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import secrets
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["KEY_FILE", "KEY_BYTES", "MAC_BYTES", "RunKeyError", "create", "load", "mac_of", "sign", "check"]
+
+log = logging.getLogger("khgrl.trust")
+
+KEY_FILE = "run.key"
+KEY_BYTES = 32
+MAC_BYTES = 32
+
+
+class RunKeyError(ValueError):
+    """``RUN_DIR/run.key`` exists but is not a key (not 32 bytes, or unreadable)."""
+
+
+def create(run_dir: str | Path, *, fresh: bool = False) -> bytes:
+    """Write a new key to ``RUN_DIR/run.key`` (mode 0600, atomically) unless one is there and ``fresh`` is false;
+    returns the key now in the file.
+
+    :param run_dir: the run directory (made if missing).
+    :param fresh: replace an existing key (a new run in the directory).
+    """
+    path = Path(run_dir) / KEY_FILE
+    if path.is_file() and not fresh:
+        key = load(run_dir)
+        if key is not None:
+            return key
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{KEY_FILE}.{os.getpid()}.tmp")
+    key = secrets.token_bytes(KEY_BYTES)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.write(fd, key)
+    finally:
+        os.close(fd)
+    os.chmod(tmp, 0o600)
+    os.replace(tmp, path)
+    return key
+
+
+def load(run_dir: str | Path | None) -> bytes | None:
+    """The key in ``RUN_DIR/run.key`` (None: no such file). A file readable by other users is used, with a warning.
+
+    :param run_dir: the run directory (None: no key).
+    :raises RunKeyError: the file is there but is not a key.
+    """
+    if not run_dir:
+        return None
+    path = Path(run_dir) / KEY_FILE
+    if not path.is_file():
+        return None
+    try:
+        key = path.read_bytes()
+        mode = path.stat().st_mode & 0o077
+    except OSError as exc:
+        raise RunKeyError(f"{path}: {exc}") from None
+    if len(key) != KEY_BYTES:
+        raise RunKeyError(f"{path}: {len(key)} bytes, expected a key of {KEY_BYTES}")
+    if mode:
+        log.warning("%s is readable by other users (mode %o): anyone who reads it can forge acks and weights", path,
+                    path.stat().st_mode & 0o777)
+    return key
+
+
+def _canonical(fields: list) -> bytes:
+    """The fields as bytes that only these values give (JSON: ids are strings without quotes or escapes)."""
+    return json.dumps(fields, separators=(",", ":"), ensure_ascii=True).encode()
+
+
+def _ack_fields(msg: Any) -> list:
+    return ["ack", msg.actor, msg.received, msg.durable, msg.trained, msg.version, msg.epoch, msg.stream, msg.task,
+            msg.superseded]
+
+
+def mac_of(msg: Any, key: bytes) -> bytes:
+    """The ``mac`` of an ack or weights message under ``key`` (its own ``mac`` field left out).
+
+    :param msg: an :class:`~khgrl.common.wire.messages.Ack` or :class:`~khgrl.common.wire.messages.Weights`.
+    :param key: the run's key.
+    """
+    h = hashlib.blake2b(key=key, digest_size=MAC_BYTES, person=f"khgrl-{msg.KIND}".encode()[:16])
+    if msg.KIND == "ack":
+        h.update(_canonical(_ack_fields(msg)))
+        return h.digest()
+    names = sorted(msg.tensors)
+    arrays = [np.ascontiguousarray(msg.tensors[n], dtype="<f4") for n in names]
+    head = [msg.KIND, msg.version, msg.epoch, sorted(msg.trained.items()),
+            [[n, list(a.shape)] for n, a in zip(names, arrays)]]
+    h.update(_canonical(head))
+    for a in arrays:
+        h.update(a.data if a.size else b"")
+    return h.digest()
+
+
+def sign(msg: Any, key: bytes | None) -> Any:
+    """``msg`` with its ``mac`` set (unchanged without a key).
+
+    :param msg: an ack or weights message.
+    :param key: the run's key (None: no mac).
+    """
+    return msg if key is None else msg.replace(mac=mac_of(msg, key))
+
+
+def check(msg: Any, key: bytes | None) -> str | None:
+    """Why ``msg`` is not authentic under ``key`` (None: it is, or there is no key to check with).
+
+    :param msg: a received ack or weights message.
+    :param key: the run's key (None: nothing is checked).
+    """
+    if key is None:
+        return None
+    if msg.mac is None:
+        return f"{msg.KIND} without a mac (this process has the run's key: the learner would sign it)"
+    if not secrets.compare_digest(msg.mac, mac_of(msg, key)):
+        return f"{msg.KIND} with a wrong mac (not from a learner with the run's key)"
+    return None

@@ -1,0 +1,256 @@
+"""Split brain is noticed, not frozen; plain-mode forgeries harm no actor (issue 21, point 3). Real processes.
+
+* ``--secure``, holding ``actor-a0``'s certificate while a0 runs: right after a0 publishes batch h, one batch on
+  a0's key with a0's stream id and seq h + 1. The learner stores it as a0's, so every later ack claims more than
+  a0 sent. a0 says in one line that another process publishes as it (its id, the stream id), puts that in its
+  status and exits 4; ``khgrl up`` ends the run with that line (exit 1). (Before: a0 froze in its flow-control
+  wait and the run never ended.)
+* ``--secure``, holding the learner's certificate: a second ``khgrl learner`` with the live learner's id refuses to
+  start (exit 2, one line); an impostor that ignores this -- its own liveliness token, acks and weights of its own
+  epoch, signed with the run's key -- is raised by the actor in its status, and ``khgrl up`` ends the run with that
+  line (exit 1). (Before: the second learner started; the run went on with two learners.)
+* Plain mode, hand-started processes with ``RUN_DIR/run.key``: (b) a fake learner liveliness token with a task
+  queryable answering another task -- both actors ignore that learner and run on (before: both exited 2); (c) a
+  forged ``superseded`` ack -- refused, a0 runs on (before: exit 2); (a) a forged ack whose ``durable`` is a0's
+  highest sent seq, then a learner kill and resume -- refused, nothing lost (before: a0 dropped its outbox and the
+  transitions after the learner's checkpoint were lost). The run then ends by itself, each transition stored once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+import time
+
+import pytest
+
+from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
+from launch import KGRL, Launcher, _env
+
+pytestmark = pytest.mark.integration
+
+
+def _session(run_dir, cn: str, endpoint: str):
+    from khgrl.common.delivery.transport import _open
+    from khgrl.common.delivery.zenoh_config import build_config
+
+    conf = build_config("client", [], [endpoint], 3000, run_dir / "certs" / "zenoh" / f"{cn}.json5")
+    return _open(conf, lambda: False, 20, cn)
+
+
+def _secure_run(tmp_path, name: str, seed: str) -> tuple[Launcher, dict]:
+    up = Launcher(tmp_path, tmp_path / name, *KGRL, "--secure", "--episodes", "40", "--seed", seed,
+                  "--timeout", "400")
+    up.wait_line("khgrl up: run ", 120)  # its processes are starting
+    return up, read_json(up.run_dir / "config.json")["runtime"]
+
+
+def _ended(up: Launcher, timeout: float) -> int:
+    try:
+        return up.proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f"khgrl up did not end {timeout:.0f} s after the attack\n{up.stdout[-3000:]}") from None
+
+
+FORGE_FROM = 10  # KGRL's learning_starts 64 = 8 batches of 8
+
+
+@pytest.mark.timeout(600)
+def test_another_process_publishing_as_a0_stops_it_and_ends_the_run(tmp_path):
+    from khgrl.common.wire.messages import Transitions
+    from khgrl.common.wire.protocol import Keys, decode, encode
+
+    up, runtime = _secure_run(tmp_path, "split", "5")
+    keys = Keys(runtime["run"])
+    watcher = _session(up.run_dir, "monitor", runtime["endpoint"])
+    attacker = _session(up.run_dir, "actor-a0", runtime["endpoint"])
+    forged: dict = {"armed": True, "sent": []}
+
+    def on_batch(sample) -> None:  # right after a0's batch h (a0 waits for its training): batch h + 1, forged
+        msg = decode(Transitions, sample.payload.to_bytes())
+        forged["stream"] = msg.stream
+        if forged["armed"] and msg.envelope.seq >= FORGE_FROM:  # (past learning_starts: a0 waits after each batch)
+            forged["armed"] = False
+            seq = msg.envelope.seq + 1
+            attacker.put(keys.transitions("a0"), encode(msg.replace(first_step=msg.first_step + msg.n), "a0", seq))
+            forged["sent"].append((time.monotonic(), seq))
+
+    sub = watcher.declare_subscriber(keys.transitions("a0"), on_batch)
+    try:
+        for _ in range(3):  # a0 freezes unless its own batch h + 1 raced ahead of the learner's ack: then again
+            wait_for(lambda: not forged["armed"], 60 if forged["sent"] else 180, "a0 to publish a batch")
+            if up.proc.poll() is not None or _wait(up, 15):
+                break
+            forged["armed"] = True
+        rc = _ended(up, 60)
+        ended = time.monotonic()
+    finally:
+        sub.undeclare()
+        attacker.close()
+        watcher.close()
+        up.cleanup()
+    stream = forged["stream"]
+    line = f"another process publishes as actor a0 with this process's stream id {stream}"
+    assert rc == 1, f"khgrl up exited {rc}\n{up.stdout[-2000:]}\n{up.stderr[-2000:]}"
+    assert f"khgrl up: error: actor a0: {line}" in up.stderr, up.stderr[-3000:]
+    summary = read_json(up.run_dir / "summary.json")
+    assert summary["exit_codes"]["a0"] == 4 and line in summary["error"], summary["error"]
+    assert "a0" not in summary["failed"] or summary["exit_codes"]["a0"] == 4
+    log = (up.run_dir / "actor-a0" / "actor.log").read_text()
+    assert line in log and "this one stops" in log
+    print(f"split brain: forged batches {forged['sent'][-1][1]} ({len(forged['sent'])} tries); khgrl up ended "
+          f"{ended - forged['sent'][-1][0]:.1f} s after the last")
+
+
+def _wait(up: Launcher, seconds: float) -> bool:
+    try:
+        up.proc.wait(timeout=seconds)
+        return True
+    except subprocess.TimeoutExpired:
+        return False
+
+
+@pytest.mark.timeout(600)
+def test_one_learner_per_run_a_second_is_refused_an_impostor_ends_the_run(tmp_path):
+    from khgrl.common.delivery import run_key
+    from khgrl.common.wire.messages import Ack, Transitions, Weights
+    from khgrl.common.wire.protocol import Keys, decode, encode
+
+    up, runtime = _secure_run(tmp_path, "impostor", "6")
+    keys, ep = Keys(runtime["run"]), runtime["endpoint"]
+    try:
+        with _session(up.run_dir, "monitor", ep) as watcher:  # the learner is up (its token is declared first)
+            got: list = []
+            sub = watcher.declare_subscriber(keys.status("learner", "learner"), lambda s: got.append(1))
+            wait_for(lambda: got, 180, "the learner's status")
+            sub.undeclare()
+        second = subprocess.run(
+            [sys.executable, "-m", "khgrl.deploy.cli", "learner", "--config", str(up.run_dir / "config.json"),
+             "--zenoh-config", str(up.run_dir / "certs" / "zenoh" / "learner.json5")],
+            cwd=REPO, env=_env(), capture_output=True, text=True, timeout=90)
+        assert second.returncode == 2, f"{second.returncode}\n{second.stdout}\n{second.stderr}"
+        assert "learner learner is already alive on the router" in second.stderr, second.stderr
+        impostor = _session(up.run_dir, "learner", ep)
+        seen: dict = {}
+        sub = impostor.declare_subscriber(
+            keys.transitions("a0"), lambda s: seen.update(stream=decode(Transitions, s.payload.to_bytes()).stream))
+        key = run_key.load(up.run_dir)  # the worst case: it holds the run's key too
+        real = [decode(Weights, r.ok.payload.to_bytes()) for r in impostor.get(keys.weights, timeout=5.0) if r.ok]
+        assert real and key is not None
+        wait_for(lambda: "stream" in seen, 30, "a batch of a0")
+        token = impostor.liveliness().declare_token(keys.learner_alive("learner", "impostor"))
+        t0 = time.monotonic()
+        try:
+            i = 0
+            while up.proc.poll() is None and time.monotonic() - t0 < 60:
+                w = Weights(version=3, trained={"a0": 0}, tensors=real[0].tensors, epoch="impostor")
+                impostor.put(keys.weights, encode(run_key.sign(w, key), "learner", 10**6 + i))
+                ack = Ack(actor="a0", received=-1, durable=-1, trained=0, version=3, epoch="impostor",
+                          stream=seen["stream"])
+                impostor.put(keys.ack("a0"), encode(run_key.sign(ack, key), "learner", 10**6 + i))
+                i += 1
+                time.sleep(0.25)
+            rc = _ended(up, 30)
+            ended = time.monotonic() - t0
+        finally:
+            token.undeclare()
+            sub.undeclare()
+            impostor.close()
+    finally:
+        up.cleanup()
+    assert rc == 1, f"khgrl up exited {rc}\n{up.stdout[-2000:]}\n{up.stderr[-2000:]}"
+    assert "khgrl up: error: actor a0: two learners run for this run" in up.stderr, up.stderr[-3000:]
+    assert "impostor" in up.stderr
+    summary = read_json(up.run_dir / "summary.json")
+    assert "two learners run for this run" in summary["error"] and summary["exit_codes"]["learner"] == 0
+    assert "two learners" in (up.run_dir / "actor-a0" / "actor.log").read_text()
+    print(f"impostor learner: khgrl up ended {ended:.1f} s after its token appeared")
+
+
+# ------------------------------------------------------------------------------------ plain mode
+# no training (learning_starts beyond the run): the attacks need acks, not weights, and the run stays cheap
+PLAIN = ["--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "100000", "--rate", "50", "--episodes", "2"]
+
+
+@pytest.mark.timeout(400)
+def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_path):
+    from khgrl.benchmarks.scale import provenance_check
+    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery.task_link import TaskAnnouncer, fetch_tasks
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Ack, Control, Status, Transitions
+    from khgrl.common.wire.protocol import Keys, decode, encode
+
+    run, run_dir = unique_run("split"), tmp_path / "run"
+    keys = Keys(run)
+    run_key.create(run_dir)  # as khgrl up does; hand-started processes read it from their --run-dir
+    seen: dict = {"received": {}}
+
+    def on_ack(sample) -> None:
+        msg = decode(Ack, sample.payload.to_bytes())
+        if msg.envelope.seq < 10**6:  # the learner's (this test's forgeries are numbered from 10**6)
+            seen["ack"] = msg
+
+    def on_transitions(sample) -> None:
+        msg = decode(Transitions, sample.payload.to_bytes())
+        seen["stream"], seen["last_seq"] = msg.stream, max(seen.get("last_seq", -1), msg.envelope.seq)
+
+    def on_status(sample) -> None:
+        info = decode(Status, sample.payload.to_bytes()).info
+        seen["received"][info.id] = info.received
+
+    learner_args = ["--learning-starts", "100000", "--checkpoint-every", "0"]
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        learner = g.learner(run, ep, *learner_args)
+        actors = [g.actor(run, ep, *PLAIN, "--id", a) for a in ("a0", "a1")]
+        with open_client(ep) as s:
+            subs = [s.declare_subscriber(keys.ack("a0"), on_ack),
+                    s.declare_subscriber(keys.transitions("a0"), on_transitions),
+                    s.declare_subscriber(keys.status("actor", "*"), on_status)]
+            try:
+                wait_for(lambda: "ack" in seen and min(seen["received"].get(a, -1) for a in ("a0", "a1")) >= 1, 120,
+                         "both actors acked", procs=[learner, *actors])
+                s.put(keys.control("learner"), encode(Control(command="checkpoint"), "tester", 0))
+                wait_for(lambda: (run_dir / "learner" / "checkpoint" / "state.json").is_file(), 60,
+                         "a learner checkpoint", procs=[learner, *actors])
+                # (b) a learner of another task: a task queryable first, then its liveliness token
+                real = fetch_tasks(s, keys, "learner", timeout=5.0)["learner"]
+                fake_task = TaskAnnouncer(s, keys, "learner", "evil", dataclasses.replace(real, name="other"))
+                fake_token = s.liveliness().declare_token(keys.learner_alive("evil", "e666"))
+                time.sleep(3.0)
+                assert all(a.poll() is None for a in actors), [a.tail() for a in actors]
+                # (c) a forged superseded ack
+                ack = dataclasses.replace(seen["ack"], **({"mac": None} if hasattr(seen["ack"], "mac") else {}))
+                for i in range(3):
+                    s.put(keys.ack("a0"), encode(ack.replace(received=-1, durable=-1, superseded=True,
+                                                             stream=seen["stream"]), "learner", 10**6 + i))
+                time.sleep(1.5)
+                assert actors[0].poll() is None, actors[0].tail()
+                # (a) a forged ack: durable = a0's highest sent seq; then the learner is killed and resumed
+                h = seen["last_seq"]
+                s.put(keys.ack("a0"), encode(ack.replace(received=h, durable=h, stream=seen["stream"]), "learner",
+                                             2 * 10**6))
+                time.sleep(0.3)
+                learner.kill()
+                learner = g.learner(run, ep, *learner_args, "--resume")
+                for a in actors:
+                    assert a.wait(240) == 0, a.tail()
+                s.put(keys.control("learner"), encode(Control(command="stop"), "tester", 1))
+                assert learner.wait(60) == 0, learner.tail()
+                fake_token.undeclare()
+                fake_task.undeclare()
+            finally:
+                for sub in subs:
+                    sub.undeclare()
+    for a in ("a0", "a1"):
+        summary = read_json(run_dir / f"actor-{a}" / "summary.json")
+        assert summary["rejects"].get("task", 0) >= 1 and summary["unconfirmed_transitions"] == 0, summary
+        log = (run_dir / f"actor-{a}" / "actor.log").read_text()
+        assert "ignoring learner khgrl/" in log and "/alive/learner/evil/e666" in log
+    summary = read_json(run_dir / "actor-a0" / "summary.json")
+    assert summary["episodes"] == 2 and summary["rejects"]["ack"] >= 4, summary["rejects"]
+    assert "ack without a mac" in (run_dir / "actor-a0" / "actor.log").read_text()
+    check = provenance_check(run_dir)
+    assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] > 0, check
