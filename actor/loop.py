@@ -70,7 +70,8 @@ class ActorLoop:
         tf = cfg.tqc.train_freq
         self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
         self.dims = Dims(out=parts.env.mapping.model.out_dim)  # corrections carry O coordinates
-        self.inbound = Inbound(parts, flag, self.dims)  # acks, corrections, control, learner liveliness
+        # acks, corrections, control, learner liveliness
+        self.inbound = Inbound(parts, flag, self.dims, pause_s=cfg.stream.human_pause_s)
         self.delivery = ActorDelivery(actor, parts.link, parts.inbox, parts.stream, parts.weights, cfg.stream, flag,
                                       self.inbound, lambda item: self.inbound.handle(*item, episode=self.episode),
                                       self._publish_status)
