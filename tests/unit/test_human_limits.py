@@ -145,3 +145,24 @@ def test_inbound_bounds_fake_learner_tokens_and_human_pauses(tmp_path):
     inbound.handle("human_request", K.human_request("gui"), encode(Control(command="pause"), "gui", 1),
                    time.monotonic() - 61.0, episode=1)  # (as if last renewed 61 s ago)
     assert not inbound.paused and inbound.human_pauses.expired == 1
+
+
+def test_the_gui_renews_its_pause(monkeypatch):
+    """Actors end a human pause that is not renewed (human_pause_s, 60 s): the GUI asks again every PAUSE_RENEW_S
+    while its pause is on, and stops when the person resumes."""
+    from khgrl.human_bridge.gui import app as gui
+
+    sent: list[str] = []
+    a = gui.GuiApp(lambda *args: None, control=sent.append)
+    clock = [1000.0]
+    monkeypatch.setattr(gui.time, "monotonic", lambda: clock[0])
+    a.toggle_pause()
+    a.keepalive()
+    assert sent == ["pause"]
+    clock[0] += gui.PAUSE_RENEW_S
+    a.keepalive()
+    assert sent == ["pause", "pause"] and gui.PAUSE_RENEW_S < 60.0
+    a.toggle_pause()
+    clock[0] += 10 * gui.PAUSE_RENEW_S
+    a.keepalive()
+    assert sent == ["pause", "pause", "resume"]
