@@ -10,14 +10,19 @@ without the learner's ``mac``; a ``superseded`` ack is obeyed only when authenti
 ack of another stream of this id came; that stream's acks also stop the actor:
 :class:`~khgrl.common.delivery.actor_guard.ActorGuard`);
 a learner of another task is ignored (the actor stops only if none of its own task comes); a ``stop`` or ``pause``
-that does not come from the launcher is obeyed but logged as such (a warning with its sender and key).
+that does not come from the launcher is obeyed but logged as such (a warning with its sender and key). A
+human-input client's ``pause`` holds only the actors it is assigned to and ends unless renewed within
+``human_pause_s`` (:class:`~khgrl.actor.human_limits.HumanPauses`); a correction the arbiter refuses (a client not
+assigned to this actor, P_h far outside the workspace) is counted and logged as a rejected message.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from typing import Any
 
+from khgrl.actor.human_limits import HumanPauses
 from khgrl.common.delivery.actor_guard import ActorGuard
 from khgrl.common.delivery.senders import HUMAN_COMMANDS, read_for_actor
 from khgrl.common.delivery.trust import WeightsGate, learner_of
@@ -26,9 +31,15 @@ from khgrl.common.wire.checks import ProtocolError
 from khgrl.common.wire.messages import Ack, Control, Dims
 from khgrl.common.wire.protocol import attribute_control
 
-__all__ = ["Inbound", "HUMAN_COMMANDS"]
+__all__ = ["Inbound", "HUMAN_COMMANDS", "MAX_LEARNERS", "NEW_LEARNERS_PER_S"]
 
 log = logging.getLogger("khgrl.actor")
+
+# Learner liveliness tokens: each new one costs a task query and a re-send of the outbox, so an actor follows at most
+# MAX_LEARNERS at once and takes at most NEW_LEARNERS_PER_S new ones a second (bursts of MAX_LEARNERS); the rest are
+# refused (counted in rejects.alive, logged at a bounded rate). A run has one learner; a restarted one is one more.
+MAX_LEARNERS = 4
+NEW_LEARNERS_PER_S = 1.0
 
 
 class Inbound:
@@ -41,13 +52,16 @@ class Inbound:
     :param gate: the weights gate (default: a new one), installed in ``parts.weights.receiver``.
     :param guard: the actor's :class:`~khgrl.common.delivery.actor_guard.ActorGuard` (default: one with the gate's
         key, the run's).
+    :param pause_s: seconds a human-input client's pause lasts unless renewed (0: until resumed).
     """
 
     def __init__(self, parts: Any, flag: StopFlag, dims: Dims, gate: WeightsGate | None = None,
-                 guard: ActorGuard | None = None) -> None:
+                 guard: ActorGuard | None = None, pause_s: float = 60.0) -> None:
         self.p, self.flag, self.dims = parts, flag, dims
         self.learners: set[str] = set()
-        self.paused = False
+        self.launcher_paused = False  # control/actor or control/all pause (the launcher's: no expiry)
+        self.human_pauses = HumanPauses(pause_s)
+        self._new_learners = (float(MAX_LEARNERS), time.monotonic())  # token bucket: (tokens, when)
         self.wrong_task: str | None = None
         self.guard = guard or ActorGuard(parts.stream.actor, parts.stream.stream, getattr(gate, "key", None))
         self.gate = gate or WeightsGate(key=self.guard.key)
@@ -58,11 +72,31 @@ class Inbound:
 
         :param learners: their liveliness keys.
         """
-        for key in learners:
+        taken = [key for key in sorted(learners) if self._admit_learner(key)]
+        for key in taken:
             self.learners.add(key)
             self.p.weights.receiver.learner_appeared(key)
-        if learners:
+        if taken:
             self.check_learner_task()
+
+    def _admit_learner(self, key: str) -> bool:
+        """Whether a learner token not followed yet is taken (see :data:`MAX_LEARNERS`); a refused one is counted."""
+        tokens, since = self._new_learners
+        now = time.monotonic()
+        tokens = min(float(MAX_LEARNERS), tokens + NEW_LEARNERS_PER_S * (now - since))
+        if len(self.learners) >= MAX_LEARNERS or tokens < 1.0:
+            self._new_learners = (tokens, now)
+            self.p.rejects.reject("alive", key, ProtocolError(
+                f"learner token refused: {len(self.learners)} learners followed (at most {MAX_LEARNERS}, and at most "
+                f"{NEW_LEARNERS_PER_S:g} new a second)"))
+            return False
+        self._new_learners = (tokens - 1.0, now)
+        return True
+
+    @property
+    def paused(self) -> bool:
+        """Whether the actor is paused: by the launcher, or by a human-input client whose pause has not expired."""
+        return self.launcher_paused or self.human_pauses.active(time.monotonic())
 
     def handle(self, kind: str, key: str, payload, arrival: float, episode: int) -> None:
         """One inbox item.
@@ -84,12 +118,27 @@ class Inbound:
         if kind == "ack":
             self._on_ack(msg, key)
         elif kind == "correction":
-            self.p.arbiter.offer(msg, arrival, episode, self.p.env.t)
+            if why := self.p.arbiter.offer(msg, arrival, episode, self.p.env.t):
+                self.p.rejects.reject("correction", key, ProtocolError(why))
         elif kind == "human_request":  # a person's pause or resume (e.g. the GUI's space bar), on its own key
-            log.info("%s from human-input client %r", msg.command, msg.envelope.sender)
-            self.paused = msg.command == "pause"
+            self._on_human_request(msg, key, arrival)
         else:
             self._on_control(msg, key)
+
+    def _on_human_request(self, msg: Control, key: str, arrival: float) -> None:
+        client = msg.envelope.sender
+        if not self.p.arbiter.assignments.allows(client):
+            self.p.rejects.reject("control", key, ProtocolError(
+                f"{msg.command} from human-input client {client!r}, not assigned to actor {self.p.arbiter.actor}"))
+            return
+        if msg.command == "pause":
+            if not self.human_pauses.holds(client):
+                log.info("pause from human-input client %r (for %.0f s unless renewed)", client,
+                         self.human_pauses.limit)
+            self.human_pauses.pause(client, arrival)
+        else:
+            log.info("resume from human-input client %r", client)
+            self.human_pauses.resume(client)
 
     def _on_ack(self, msg: Ack, key: str) -> None:
         stream, guard = self.p.stream, self.guard
@@ -119,6 +168,8 @@ class Inbound:
         if put:
             if key in self.guard.wrong:  # a learner of another task: not followed
                 return
+            if key not in self.learners and not self._admit_learner(key):
+                return
             self.p.weights.receiver.learner_appeared(key)
             if key not in self.learners:
                 self.learners.add(key)
@@ -127,6 +178,8 @@ class Inbound:
                 if key in self.learners:  # (not a learner of another task)
                     self.p.stream.learner_appeared()
         else:
+            if key not in self.learners:
+                return  # (one refused when it appeared)
             self.learners.discard(key)
             self.p.weights.receiver.learner_gone(key)
             log.warning("learner %s gone: acting on with weights version %d", key, self.p.weights.version)
@@ -151,6 +204,6 @@ class Inbound:
         if msg.command == "stop":
             self.flag.set("stop command")
         elif msg.command == "pause":
-            self.paused = True
+            self.launcher_paused = True
         elif msg.command == "resume":
-            self.paused = False
+            self.launcher_paused = False

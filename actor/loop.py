@@ -70,7 +70,8 @@ class ActorLoop:
         tf = cfg.tqc.train_freq
         self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
         self.dims = Dims(out=parts.env.mapping.model.out_dim)  # corrections carry O coordinates
-        self.inbound = Inbound(parts, flag, self.dims, parts.weights.receiver.gate)  # acks, corrections, liveliness
+        # acks, corrections, control, learner liveliness
+        self.inbound = Inbound(parts, flag, self.dims, parts.weights.receiver.gate, pause_s=cfg.stream.human_pause_s)
         self.guard = self.inbound.guard  # another process publishes as this actor id, two learners
         self.delivery = ActorDelivery(actor, parts.link, parts.inbox, parts.stream, parts.weights, cfg.stream, flag,
                                       self.inbound, lambda item: self.inbound.handle(*item, episode=self.episode),

@@ -35,6 +35,7 @@ from pathlib import Path
 
 from khgrl.actor.arbiter import CorrectionArbiter
 from khgrl.actor.exploration import ExplorationScale
+from khgrl.actor.human_limits import Assignments, HoldAllowance
 from khgrl.actor.loop import ActorLoop
 from khgrl.actor.pacing import set_realtime
 from khgrl.actor.parts import ActorParts
@@ -97,7 +98,11 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
     if resume:
         scale.restore(out_dir)
     return ActorParts(env=env, policy=policy, link=link, inbox=inbox, stream=stream,
-                      arbiter=CorrectionArbiter(actor, cfg.stream.correction_timeout, enabled=khgrl),
+                      arbiter=CorrectionArbiter(actor, cfg.stream.correction_timeout, enabled=khgrl,
+                                                workspace=(env.world.low, env.world.high),
+                                                allowance=HoldAllowance(cfg.stream.human_hold_s,
+                                                                        cfg.stream.human_hold_refill),
+                                                assignments=Assignments(actor, cfg.human_clients)),
                       weights=PolicyWeights(policy, actor, receiver), scale=scale,
                       record=CorrectionRecord(out_dir / "corrections.csv", pc.run, actor, append=resume,
                                              dim=env.mapping.model.out_dim),

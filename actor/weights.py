@@ -18,9 +18,23 @@ from khgrl.common.wire.checks import ProtocolError, RejectCounter
 from khgrl.common.wire.messages import Weights
 from khgrl.common.wire.protocol import decode
 
-__all__ = ["WeightsUpdate", "WeightsReceiver", "PolicyWeights"]
+__all__ = ["WeightsUpdate", "WeightsReceiver", "PolicyWeights", "expected_bytes", "WEIGHTS_SLACK"]
 
 log = logging.getLogger("khgrl.actor")
+
+# Bytes a weights message may have beyond its tensors' data: the envelope, names, shapes and the ``trained`` map
+# (at most 4,096 actor ids of up to 64 characters). A larger message cannot be this network's: refused before decoding.
+WEIGHTS_SLACK = 512 * 1024
+
+
+def expected_bytes(template: dict[str, tuple]) -> int:
+    """The encoded size of a weights message for a network of these tensor shapes, without the slack: float32 data
+    plus each tensor's map (name, dtype, shape).
+
+    :param template: tensor shapes by name.
+    """
+    return sum(4 * int(np.prod(shape, dtype=np.int64)) + 48 + len(name.encode()) + 9 * len(shape)
+               for name, shape in template.items())
 
 
 @dataclass(frozen=True)
@@ -59,6 +73,7 @@ class WeightsReceiver:
                  gate: WeightsGate | None = None) -> None:
         self.sub = subscriber
         self.template = {k: tuple(getattr(v, "shape", v)) for k, v in template.items()}
+        self.max_bytes = expected_bytes(self.template) + WEIGHTS_SLACK
         self.rejects = rejects
         self.key = key
         self.lock = threading.Lock()
@@ -78,13 +93,20 @@ class WeightsReceiver:
                 return
             self.offer(payload)
 
-    def parse(self, payload: bytes) -> WeightsUpdate:
-        """Decode and check one weights payload (raises :class:`ProtocolError`).
+    def parse(self, payload) -> WeightsUpdate:
+        """Decode and check one weights payload (raises :class:`ProtocolError`): first its length against the size
+        of this network's weights (before anything is copied or decoded), then the message, then the tensors'
+        names and shapes (the data is still a view of the payload), and only then the copy into tensors.
 
-        :param payload: the encoded message.
+        :param payload: the encoded message (bytes, or Zenoh's ZBytes: copied only once its length fits).
         """
         import torch
 
+        if len(payload) > self.max_bytes:
+            raise ProtocolError(f"{len(payload)} bytes: the actor network's weights take at most {self.max_bytes} "
+                                f"(refused before decoding)")
+        if not isinstance(payload, (bytes, bytearray, memoryview)):
+            payload = payload.to_bytes()
         msg = decode(Weights, payload)
         if self.gate is not None:
             self.gate.authentic(msg)  # with the run's key: the learner's mac, before anything is copied

@@ -113,6 +113,15 @@ BENCHMARKS: dict[str, Benchmark] = {
         _flag("--rt-priority", type=int, default=0,
               help="actor loop under SCHED_FIFO at this priority, 0: normal scheduling (default: %(default)s)"),
         SEED, OUT)),
+    "queries": Benchmark("khgrl.benchmarks.queries", "run_queries_benchmark",
+                         "the learner's gradient steps/s while a monitor floods the weights queryable", (
+        _flag("--qps", type=float, default=1000.0, help="queries per second of the flood (default: %(default)s)"),
+        _flag("--seconds", type=float, default=15.0,
+              help="length of each quiet and each flooded window (default: %(default)s)"),
+        _flag("--rounds", type=int, default=2, help="quiet/flooded window pairs (default: %(default)s)"),
+        SEED,
+        _flag("--work", default="runs/bench-queries", help="run directories (default: %(default)s)"),
+        OUT)),
 }
 
 

@@ -29,8 +29,8 @@ from typing import Any, get_type_hints
 from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
 
 __all__ = ["METHODS", "HUMANS", "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "RunConfig",
-           "add_config_flags", "role_fields", "resolve", "read_table", "load_file", "write_run_config",
-           "read_run_file", "to_toml"]
+           "add_config_flags", "role_fields", "parse_assignments", "resolve", "read_table", "load_file",
+           "write_run_config", "read_run_file", "to_toml"]
 
 METHODS = ("khgrl", "kgrl")
 DEVICES = ("auto", "cpu", "cuda")
@@ -113,6 +113,14 @@ class StreamSettings:
     flush_timeout: float = _opt(120.0, "at the end, an actor waits this long for the learner to confirm (s)",
                                 roles=(ACTOR,))
     correction_timeout: float = _opt(0.5, "a silent correction client loses the robot after this (s)", roles=(ACTOR,))
+    human_pause_s: float = _opt(60.0, "a human-input client's pause ends after this unless the client renews it by "
+                                      "asking again (s; 0: until it resumes)", roles=(ACTOR,))
+    human_hold_s: float = _opt(60.0, "a human-input client's holding allowance per actor, in seconds of the actor's "
+                                     "running time: the longest hold; it refills at human_hold_refill (0: unlimited)",
+                               roles=(ACTOR,))
+    human_hold_refill: float = _opt(0.5, "seconds of holding allowance a client regains per second it does not hold "
+                                         "(a client holds at most refill / (1 + refill) of a long run)",
+                                    roles=(ACTOR,))
     learner_wait: float = _opt(10.0, "at start, an actor waits this long for a learner before acting without one, "
                                      "so processes started together are in lock-step from the first step (s)",
                                roles=(ACTOR,))
@@ -129,6 +137,8 @@ class StreamSettings:
             raise ValueError(f"max_lead must be >= the learner's train frequency ({train_freq})")
         if self.checkpoint_every < 0 or self.lease_ms < 500 or self.learner_wait < 0:
             raise ValueError("checkpoint_every and learner_wait must be >= 0 and lease_ms >= 500")
+        if self.human_pause_s < 0 or self.human_hold_s < 0 or self.human_hold_refill <= 0:
+            raise ValueError("human_pause_s and human_hold_s must be >= 0 and human_hold_refill > 0")
 
 
 @dataclass(frozen=True)
@@ -157,6 +167,9 @@ class RunConfig:
     human: str = _opt("scripted", "human-input client (khgrl only): scripted, gui (a window to drag the robot), "
                                   "keyboard, gamepad (move the desired position with keys / a stick), replay (a "
                                   "recorded session, --replay FILE), none", HUMANS, roles=())
+    human_clients: str = _opt("", "which actors each human-input client may correct and pause: "
+                                  "'CLIENT=ACTOR[,ACTOR...]' entries separated by ';' (CLIENT=*: every actor; a client "
+                                  "not listed: none)", roles=(ACTOR,), shown="every client, every actor")
     human_episodes: tuple[int, ...] = _opt(PAPER_EPISODES, "episodes with scripted corrections (the paper's)",
                                            roles=(HUMAN, REFERENCE))
     human_noise: float = _opt(0.0, "std of the scripted human's hand noise (workspace units)",
@@ -192,6 +205,7 @@ class RunConfig:
             raise ValueError(f"task {self.task!r}: expected 'passage:SCENARIO' or 'package.module:callable'")
         if any(e < 1 for e in self.human_episodes):
             raise ValueError("human_episodes are counted from 1")
+        parse_assignments(self.human_clients)  # (raises ValueError naming a bad entry)
         if self.human == "replay" and self.method == "khgrl" and not self.replay:
             raise ValueError("human 'replay' needs replay: the corrections.csv of a recorded run (--replay FILE)")
         if self.connect_timeout <= 0 or self.rate < 0:
@@ -217,6 +231,25 @@ class RunConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
+
+
+def parse_assignments(spec: str) -> dict[str, frozenset[str]] | None:
+    """The ``human_clients`` setting: ``"h0=a0,a1;user=a0 scripted=*"`` -> {client: actor ids} (``*``: every
+    actor); "" -> None (every client may drive every actor). Entries are separated by ``;`` or spaces; raises
+    :class:`ValueError` on a malformed one.
+
+    :param spec: the setting.
+    """
+    if not spec.strip():
+        return None
+    out: dict[str, frozenset[str]] = {}
+    for entry in spec.replace(";", " ").split():
+        client, sep, actors = entry.partition("=")
+        ids = frozenset(a for a in actors.split(",") if a)
+        if not sep or not client or not ids or any(c in client + actors for c in "/$?#"):
+            raise ValueError(f"human_clients: {entry!r} is not CLIENT=ACTOR[,ACTOR...] (or CLIENT=*)")
+        out[client] = out.get(client, frozenset()) | ids
+    return out
 
 
 # ------------------------------------------------------------------------------------ flags

@@ -56,9 +56,10 @@ class NewestPayload:
     def __init__(self, subscriber) -> None:
         self.sub = subscriber
 
-    def recv(self) -> bytes:
-        """The next payload, waiting for it; raises once the subscriber is undeclared."""
-        return self.sub.handler.recv().payload.to_bytes()
+    def recv(self):
+        """The next payload (Zenoh's ZBytes: its receiver checks the length before copying it), waiting for it;
+        raises once the subscriber is undeclared."""
+        return self.sub.handler.recv().payload
 
     def undeclare(self) -> None:
         self.sub.undeclare()

@@ -9,12 +9,20 @@
   actor gets the current network at once. With the run's key (:mod:`~khgrl.common.delivery.run_key`) every ack
   and weights message carries its ``mac``.
 * :func:`learner_alive` -- the live processes of a learner id (a second learner with that id refuses to start).
+* :class:`ReplyBudget` -- what the weights queryable may answer: Zenoh tells a queryable nothing that identifies the
+  querier (``source_info`` is empty unless the querier fills it in, and then it is whatever it says), so the budget
+  is global: at most :data:`QUERY_RATE` replies a second (bursts of :data:`QUERY_BURST`) and
+  :data:`QUERY_BYTES_PER_S` bytes of replies a second. A query over it is finalized without a reply (counted in
+  ``queries_refused``, logged at a bounded rate). The answer is the bytes encoded when the weights were published:
+  answering costs no encoding, and it runs on Zenoh's thread, never the training thread.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
-from typing import Any, Protocol
+import time
+from typing import Any, Callable, Protocol
 
 from khgrl.common.delivery import run_key
 from khgrl.common.delivery.declare import alive_now, publisher, queryable, subscribe, token
@@ -23,12 +31,58 @@ from khgrl.common.delivery.transport import Inbox, undeclare_all
 from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.protocol import Ack, Keys, Status, Weights, encode
 
-__all__ = ["Publisher", "ZenohPublisher", "LearnerLink", "learner_alive", "INBOX_SIZE", "INBOX_BYTES"]
+__all__ = ["Publisher", "ZenohPublisher", "LearnerLink", "ReplyBudget", "learner_alive", "INBOX_SIZE", "INBOX_BYTES",
+           "QUERY_RATE", "QUERY_BURST", "QUERY_BYTES_PER_S"]
+
+log = logging.getLogger("khgrl.learner")
 
 # Transitions waiting to be ingested. When full, the newest are dropped ("drop_newest"): the actor keeps every
 # batch until it is acknowledged and re-sends what was not, so a drop costs a re-send, never a transition.
 INBOX_SIZE = 100_000
 INBOX_BYTES = 256 * 2**20  # and at most this much payload (each actor has at most its window of batches out)
+# The weights queryable's budget (an actor asks at start and then at most once a second while behind; every actor
+# also gets each new version on the weights subscription).
+QUERY_RATE = 20.0  # replies per second
+QUERY_BURST = 40  # replies at once
+QUERY_BYTES_PER_S = 64 * 2**20  # reply payload per second
+REFUSED_LOG_EVERY_S = 10.0
+
+
+class ReplyBudget:
+    """Token buckets of replies and bytes (see the module docstring).
+
+    :param rate: replies per second.
+    :param burst: replies at once.
+    :param bytes_per_s: reply payload per second (the bucket holds one second's worth, and at least one reply).
+    :param clock: monotonic seconds.
+    """
+
+    def __init__(self, rate: float = QUERY_RATE, burst: int = QUERY_BURST, bytes_per_s: float = QUERY_BYTES_PER_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.rate, self.burst, self.bytes_per_s, self.clock = float(rate), float(burst), float(bytes_per_s), clock
+        self._replies, self._bytes, self._t = self.burst, self.bytes_per_s, clock()
+        self.refused = 0
+        self._logged = (-float("inf"), 0)  # (when the last line was logged, refused then)
+
+    def take(self, size: int) -> bool:
+        """Whether a reply of ``size`` bytes may go now (then it is spent).
+
+        :param size: the reply's payload bytes.
+        """
+        now = self.clock()
+        dt, self._t = max(0.0, now - self._t), now
+        self._replies = min(self.burst, self._replies + dt * self.rate)
+        self._bytes = min(max(self.bytes_per_s, size), self._bytes + dt * self.bytes_per_s)
+        if self._replies >= 1.0 and self._bytes >= size:
+            self._replies -= 1.0
+            self._bytes -= size
+            return True
+        self.refused += 1
+        if now - self._logged[0] >= REFUSED_LOG_EVERY_S:
+            log.warning("weights queries over the budget (%.0f/s, %.0f MB/s): %d refused since the last line "
+                        "(%d in all)", self.rate, self.bytes_per_s / 1e6, self.refused - self._logged[1], self.refused)
+            self._logged = (now, self.refused)
+        return False
 
 
 class Publisher(Protocol):
@@ -58,6 +112,7 @@ class ZenohPublisher:
         self.ack_pubs: dict[str, Any] = {}
         self.seq = {"weights": 0, "ack": 0, "status": 0}
         self.queries = 0
+        self.budget = ReplyBudget()
         self._latest = b""
         self._lock = threading.Lock()
         self._seq_lock = threading.Lock()  # the ingest and training threads both publish
@@ -98,17 +153,24 @@ class ZenohPublisher:
         """
         self.status_pub.put(self._encode(msg))
 
+    @property
+    def queries_refused(self) -> int:
+        """Weights queries refused over the reply budget."""
+        return self.budget.refused
+
     def answer(self, query: Any) -> None:
-        """Reply to a weights query with the latest weights (nothing before the first); always finalizes.
+        """Reply to a weights query with the latest weights, as encoded when they were published (nothing before
+        the first; nothing over the :class:`ReplyBudget`); always finalizes.
 
         :param query: the Zenoh query
         """
         with query:
             with self._lock:
                 blob = self._latest
-            if blob:
+                ok = bool(blob) and self.budget.take(len(blob))
+            if ok:
                 query.reply(self.keys.weights, blob)
-            self.queries += 1
+                self.queries += 1
 
     def close(self) -> None:
         """Undeclare every publisher (best effort, on the way out)."""

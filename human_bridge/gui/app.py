@@ -18,6 +18,7 @@ actor to drive, o toggles the overlays, q or Esc quits (releasing first).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -41,6 +42,7 @@ __all__ = ["GuiApp", "ActorState", "window_size", "CURVE_HEIGHT", "HELP"]
 CURVE_HEIGHT = 90  # the L(s) curve below the text strip (pixels)
 HELP = "drag: P_h  space: pause  tab: actor  o: overlays  q: quit"
 TRAIL_MAX = 2000
+PAUSE_RENEW_S = 20.0  # while paused, ask again this often (actors end a pause not renewed within human_pause_s)
 
 
 def window_size(size: int, strip_height: int = 80, views: int = 1) -> tuple[int, int]:
@@ -92,6 +94,7 @@ class GuiApp:
         self.rejects = rejects if rejects is not None else RejectCounter(f"human/{client}")
         self.actors: dict[str, ActorState] = {}
         self.paused = False
+        self.paused_at = 0.0  # when the pause was last asked for (time.monotonic(); renewed every PAUSE_RENEW_S)
         self.overlays = True
         self.quit = False
         self.task: TaskDescriptor | None = None
@@ -251,8 +254,12 @@ class GuiApp:
         self.hold.release()
 
     def keepalive(self) -> None:
-        """While held, re-send if no frame triggered a correction lately (e.g. the actor paused)."""
+        """While held, re-send if no frame triggered a correction lately (e.g. the actor paused); while paused,
+        renew the pause every :data:`PAUSE_RENEW_S` (an actor ends a pause that is not renewed, ``human_pause_s``)."""
         self.hold.keepalive()
+        if self.paused and self.control is not None and time.monotonic() - self.paused_at >= PAUSE_RENEW_S:
+            self.paused_at = time.monotonic()
+            self.control("pause")
 
     # ------------------------------------------------------------------ events
     def handle(self, event) -> None:
@@ -294,6 +301,7 @@ class GuiApp:
     def toggle_pause(self) -> None:
         """Pause or resume the actors (``control/actor``)."""
         self.paused = not self.paused
+        self.paused_at = time.monotonic()
         if self.control is not None:
             self.control("pause" if self.paused else "resume")
 

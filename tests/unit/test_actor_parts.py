@@ -75,10 +75,10 @@ def test_correction_arbitration_step_addressed():
     """A step-addressed client puts the actor in lock-step for the episode: each step waits for its word."""
     arb = CorrectionArbiter("a0", timeout=0.5, enabled=True)
     assert arb.ready(5)  # nobody in lock-step: never wait
-    arb.offer(addressed("s", 6, (0.1, 0.2)), arrival=1.0, episode=1, step=5)  # early: kept for step 6
-    assert arb.lockstep == "s" and not arb.ready(5) and arb.ready(6)
     arb.offer(addressed("s", 5), arrival=1.0, episode=1, step=5)  # release word for step 5
-    assert arb.ready(5) and arb.current(1.0, 5) is None
+    assert arb.lockstep == "s" and arb.ready(5) and not arb.ready(6)
+    arb.offer(addressed("s", 6, (0.1, 0.2)), arrival=1.0, episode=1, step=5)  # early: kept for step 6
+    assert arb.ready(5) and arb.ready(6) and arb.current(1.0, 5) is None
     assert np.allclose(arb.current(1.1, 6), [0.1, 0.2]) and arb.holder == "s"
     assert not arb.ready(7)  # waits for step 7's word...
     arb.offer(addressed("s", 6, (0.9, 0.9)), arrival=1.2, episode=1, step=7)  # ...one for a step already taken is late
