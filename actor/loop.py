@@ -70,9 +70,8 @@ class ActorLoop:
         tf = cfg.tqc.train_freq
         self.first_due = (cfg.tqc.learning_starts // tf + 1) * tf  # the first training iteration of the run
         self.dims = Dims(out=parts.env.mapping.model.out_dim)  # corrections carry O coordinates
-        # acks, corrections, control, learner liveliness
-        self.inbound = Inbound(parts, flag, self.dims, parts.weights.receiver.gate, pause_s=cfg.stream.human_pause_s)
-        self.guard = self.inbound.guard  # another process publishes as this actor id, two learners
+        self.inbound = Inbound(parts, flag, self.dims, parts.weights.receiver.gate,  # acks, corrections, liveliness
+                               pause_s=cfg.stream.human_pause_s)
         self.delivery = ActorDelivery(actor, parts.link, parts.inbox, parts.stream, parts.weights, cfg.stream, flag,
                                       self.inbound, lambda item: self.inbound.handle(*item, episode=self.episode),
                                       self._publish_status)
@@ -98,7 +97,7 @@ class ActorLoop:
         while len(self.p.episodes.new) < todo and not self.flag:
             if not self._episode(acc):
                 break  # stopped mid-episode: no statistics for a partial episode
-        if self.guard.fatal:  # another process publishes as this actor id: nothing more goes out on its stream
+        if self.inbound.guard.fatal:  # another process publishes as this actor id: nothing more goes out on its stream
             return self.delivery.split_exit()
         self.p.stream.cut()  # a partial batch after a stop
         if self.inbound.wrong_task:  # only a learner of another task (and none of this one)
@@ -196,7 +195,7 @@ class ActorLoop:
                            arbiter=p.arbiter, rejects=p.rejects, waits=self.waits,
                            learner_alive=self.delivery.learner_alive, paused=self.inbound.paused,
                            periods=self.pacer.periods)
-        info = replace(info, alarm=self.guard.alarm or "")  # another process as this actor, two learners
+        info = replace(info, alarm=self.inbound.guard.alarm or "")  # another process as this actor, two learners
         p.link.publish(Status(role="actor", info=info))
 
     def rate_limit(self) -> None:

@@ -123,7 +123,7 @@ def test_inbound_bounds_fake_learner_tokens_and_human_pauses(tmp_path):
     inbound, parts, _ = _inbound(tmp_path)
     queries = []
     parts.task = SimpleNamespace(digest="d")
-    parts.link = SimpleNamespace(other_task=lambda task: queries.append(task))
+    parts.link = SimpleNamespace(other_tasks=lambda task: queries.append(task) or {})
     for i in range(3000):
         inbound.handle("alive", f"khgrl/unit/alive/learner/fake{i}/e{i}", True, 0.0, episode=1)
     assert len(inbound.learners) == MAX_LEARNERS and len(queries) == MAX_LEARNERS

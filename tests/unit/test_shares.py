@@ -31,7 +31,8 @@ def batch(seq: int, first: int, n: int, actor: str = "a0", stream: str = "s0", s
     msg = Transitions(actor=actor, first_step=first, obs=obs, next_obs=obs[::-1].copy(),
                       action=rng.uniform(-1, 1, (n, 2)).astype(np.float32), reward=np.ones(n, np.float32),
                       terminated=np.zeros(n, np.uint8), truncated=np.zeros(n, np.uint8),
-                      intervened=np.zeros(n, np.uint8), clipped=np.zeros(n, np.uint8), base_seq=0, stream=stream)
+                      intervened=np.zeros(n, np.uint8), clipped=np.zeros(n, np.uint8), base_seq=0, stream=stream,
+                      task="0123456789abcdef")
     return decode(Transitions, encode(msg, actor, seq))
 
 
