@@ -91,7 +91,7 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                               cfg.stream.resend_after_s, task=None if task is None else task.digest,
                               next_seq=rec.next_seq, next_index=rec.next_index, durable=rec.durable,
                               journal=lambda pos: StreamRecord(stream=rec.stream, **pos).save(out_dir),
-                              window=cfg.stream.window)
+                              window=cfg.stream.window, key=key)
     khgrl = cfg.method == "khgrl"
     scale = ExplorationScale(env, actor, khgrl, link.publish)
     episodes = EpisodeLog(out_dir, resume)

@@ -43,7 +43,7 @@ class LearnerLoop:
     def __init__(self, trainer: Trainer, streams: StreamTable, publisher: Publisher, *, learner_id: str,
                  learner_dir: str | Path, checkpoint_every: int, flag: StopFlag,
                  clock: Callable[[], float] = time.monotonic, checkpoint_dir: str | Path | None = None,
-                 mode: str = "simulation", lead_cap: int | None = None) -> None:
+                 mode: str = "simulation", lead_cap: int | None = None, key: bytes | None = None) -> None:
         """:param trainer: the model and its schedule
         :param streams: the actor streams (empty, or from a checkpoint)
         :param publisher: where acks, weights and status go
@@ -56,6 +56,7 @@ class LearnerLoop:
         :param mode: ``simulation`` (iterations come due with the data) or ``robot`` (train whenever free)
         :param lead_cap: simulation mode: transitions of an actor stored ahead of what trained weights cover, at
             most (:attr:`~khgrl.common.delivery.learner_side.LearnerIngest.lead_cap`; None: no cap)
+        :param key: the run's key: batches without its ``mac`` are refused (None: none checked)
         """
         self.trainer, self.streams, self.pub = trainer, streams, publisher
         self.id = learner_id
@@ -74,7 +75,7 @@ class LearnerLoop:
         self.mode = mode
         trainer.schedule = mode == "simulation"
         self.ingest = ing = LearnerIngest(streams, publisher, store=trainer.add, ack_of=trainer.ack,
-                                          on_control=self.control, learner_id=learner_id, flag=flag)
+                                          on_control=self.control, learner_id=learner_id, flag=flag, key=key)
         ing.lead_cap = lead_cap if mode == "simulation" else None
         trainer.buffer.stream_codes = streams.codes  # (the replay buffer's shares are per actor id)
         self.receive, self.offer, self.set_task, self.ack_all = ing.receive, ing.offer, ing.set_task, ing.ack_all

@@ -111,7 +111,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     cfg = pc.cfg
     setup_process_logging(learner_dir / "learner.log")
     try:
-        key = run_key.load(cfg.run_dir)  # acks and weights carry a mac when the run has a key
+        key = run_key.load(cfg.run_dir)  # acks and weights carry a mac, batches must, when the run has a key
     except run_key.RunKeyError as exc:
         return _fail(exc)
     torch.set_num_threads(max(1, cfg.learner_threads))
@@ -149,7 +149,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         loop = LearnerLoop(trainer, streams, link.publisher, learner_id=learner_id, learner_dir=learner_dir,
                            checkpoint_every=cfg.stream.checkpoint_every, flag=flag,
                            checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode,
-                           lead_cap=lead_cap(cfg.stream))
+                           lead_cap=lead_cap(cfg.stream), key=key)
         loop.set_task(task)
         loop.start()
         link.announce(trainer.epoch)

@@ -26,6 +26,7 @@ import threading
 from collections import Counter
 from typing import Any, Callable, Protocol
 
+from khgrl.common.delivery import run_key
 from khgrl.common.delivery.guards import ReplayGuard, RequestLimiter
 from khgrl.common.delivery.ingest import ActorStream, FairInbox, StreamTable
 from khgrl.common.delivery.learner_link import Publisher
@@ -61,12 +62,15 @@ class LearnerIngest:
     :param on_control: a control command (``stop``, ``checkpoint``, ``pause``, ``resume``)
     :param learner_id: this learner's id (rejects)
     :param flag: the process's stop flag (the ingest thread runs until it is set, and sets it if it fails)
+    :param key: the run's key (:mod:`~khgrl.common.delivery.run_key`): batches without its ``mac`` are refused
+        before they are stored or their actor id admitted (None: none checked)
     """
 
     def __init__(self, streams: StreamTable, publisher: Publisher, *, store: Callable[..., None],
-                 ack_of: Callable[[Any], Ack], on_control: Callable[[Control], None], learner_id: str, flag) -> None:
+                 ack_of: Callable[[Any], Ack], on_control: Callable[[Control], None], learner_id: str, flag,
+                 key: bytes | None = None) -> None:
         self.streams, self.pub, self.store, self.ack_of, self.on_control = streams, publisher, store, ack_of, on_control
-        self.flag = flag
+        self.flag, self.key = flag, key
         self.rejects = RejectCounter(f"learner/{learner_id}")
         self.results: Counter = Counter()  # offers by result
         self.touched: set[str] = set()
@@ -104,8 +108,9 @@ class LearnerIngest:
         :param key: the key expression it arrived on
         :param payload: its bytes
 
-        A batch with a value out of the task's bounds (:func:`~khgrl.common.wire.bounds.check_bounds`) is refused
-        whole, counted as ``values`` in the rejects.
+        With the run's key (:attr:`key`) a batch without its right ``mac`` is refused, counted as ``mac``; a batch
+        with a value out of the task's bounds (:func:`~khgrl.common.wire.bounds.check_bounds`) is refused whole,
+        counted as ``values`` in the rejects.
         """
         try:
             msg = read_for_learner(kind, key, payload, self.dims, self.task)
@@ -113,12 +118,7 @@ class LearnerIngest:
             self.rejects.reject("control" if kind == "request" else kind, key, exc)
             return
         if isinstance(msg, Transitions):
-            reason = check_bounds(msg, self.task)  # finite, and within the task's value bounds
-            if reason is not None:
-                self.rejects.reject("values", key, ProtocolError(f"actor {msg.actor} batch {msg.envelope.seq}: "
-                                                                 f"{reason}"))
-                return
-            self.offer(msg)
+            self._take(msg, key)
             return
         if kind == "control":
             attribute_control(msg, key, log)
@@ -130,6 +130,24 @@ class LearnerIngest:
             self.forward_request()
             return
         self.on_control(msg)
+
+    def _take(self, msg: Transitions, key: str) -> None:
+        """A decoded batch: refused (counted, rate-limited log) without the right ``mac`` when this learner has the
+        run's key -- before it is stored or its actor id admitted -- or with a value out of the task's bounds;
+        otherwise :meth:`offer` ed.
+
+        :param msg: the batch
+        :param key: the key it came on
+        """
+        why = run_key.check(msg, self.key)
+        if why is not None:
+            self.rejects.reject("mac", key, ProtocolError(f"actor {msg.actor} batch {msg.envelope.seq}: {why}"))
+            return
+        reason = check_bounds(msg, self.task)  # finite, and within the task's value bounds
+        if reason is not None:
+            self.rejects.reject("values", key, ProtocolError(f"actor {msg.actor} batch {msg.envelope.seq}: {reason}"))
+            return
+        self.offer(msg)
 
     def forward_request(self) -> None:
         """Hand a taken checkpoint request to ``on_control`` once the gap since the last one has passed."""

@@ -6,8 +6,11 @@ process; a process started by hand reads the key from its ``--run-dir`` when the
 key puts a ``mac`` (keyed BLAKE2b, 32 bytes) over the canonical fields of every ack and weights message; an actor
 with the key takes only acks and weights whose ``mac`` is right. A process on the router without the key --
 another user of the machine reaching the loopback port, which cannot read a 0600 file -- can then no longer make
-an actor drop its outbox (a forged ``durable``), stop it (a forged ``superseded``) or load other weights. A process
-without the key behaves as before (no ``mac`` sent, none checked).
+an actor drop its outbox (a forged ``durable``), stop it (a forged ``superseded``) or load other weights. Likewise
+an actor with the key puts a ``mac`` on every ``transitions`` batch (:func:`batch_mac`, :func:`wire_batch_mac` for a
+re-stamped payload) and a learner with the key refuses a batch without a right one before it is stored or its
+actor id admitted: fake actor ids cost only their decoding. A process without the key behaves as before (no
+``mac`` sent, none checked).
 
 A ``mac`` binds the message's fields, not its time: a genuine earlier ack replayed says nothing new (``durable``
 never moves back, and an ack of a stale epoch is refused by the actor's checks).
@@ -25,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["KEY_FILE", "KEY_BYTES", "MAC_BYTES", "RunKeyError", "create", "load", "mac_of", "sign", "check"]
+__all__ = ["KEY_FILE", "KEY_BYTES", "MAC_BYTES", "RunKeyError", "create", "load", "mac_of", "sign", "check",
+           "batch_mac", "wire_batch_mac", "sign_batch"]
 
 log = logging.getLogger("khgrl.trust")
 
@@ -97,12 +101,69 @@ def _ack_fields(msg: Any) -> list:
             msg.superseded]
 
 
-def mac_of(msg: Any, key: bytes) -> bytes:
-    """The ``mac`` of an ack or weights message under ``key`` (its own ``mac`` field left out).
+# the arrays of a ``transitions`` batch, in the order the mac takes them
+BATCH_ARRAYS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "intervened", "clipped")
 
-    :param msg: an :class:`~khgrl.common.wire.messages.Ack` or :class:`~khgrl.common.wire.messages.Weights`.
+
+def _batch_digest(key: bytes, head: list, arrays: list[tuple[str, list, Any]]) -> bytes:
+    """The ``mac`` of a batch: its scalar fields and each array's dtype and shape as canonical JSON, then the
+    arrays' bytes in :data:`BATCH_ARRAYS` order."""
+    h = hashlib.blake2b(key=key, digest_size=MAC_BYTES, person=b"khgrl-batch")
+    h.update(_canonical(["transitions", *head, [[dt, shape] for dt, shape, _ in arrays]]))
+    for _, _, data in arrays:
+        h.update(data)
+    return h.digest()
+
+
+def _array_part(arr: np.ndarray) -> tuple[str, list, Any]:
+    """An array as the wire carries it (``pack_array``): dtype string, shape, C-order bytes (no copy if it can)."""
+    arr = np.ascontiguousarray(arr)
+    return arr.dtype.str, list(arr.shape), arr.data.cast("B") if arr.size else b""
+
+
+def batch_mac(msg: Any, key: bytes, seq: int) -> bytes:
+    """The ``mac`` of a ``transitions`` batch sent with envelope ``seq``: over actor, stream, seq, first_step,
+    base_seq, task digest and the arrays (dtype, shape, bytes), its own ``mac`` left out.
+
+    :param msg: a :class:`~khgrl.common.wire.messages.Transitions`.
+    :param key: the run's key.
+    :param seq: the envelope's seq (the batch's number in its stream).
+    """
+    head = [msg.actor, msg.stream, int(seq), msg.first_step, msg.base_seq, msg.task]
+    return _batch_digest(key, head, [_array_part(getattr(msg, n)) for n in BATCH_ARRAYS])
+
+
+def wire_batch_mac(m: dict, key: bytes) -> bytes:
+    """:func:`batch_mac` of a batch as its msgpack map (one this process encoded: a re-stamped ``base_seq``).
+
+    :param m: the map (envelope and fields; arrays as ``{dtype, shape, data}``).
     :param key: the run's key.
     """
+    head = [m.get(f) for f in ("actor", "stream", "seq", "first_step", "base_seq", "task")]
+    return _batch_digest(key, head, [(m[n]["dtype"], list(m[n]["shape"]), m[n]["data"]) for n in BATCH_ARRAYS])
+
+
+def sign_batch(msg: Any, key: bytes | None, seq: int) -> Any:
+    """``msg`` (a ``transitions`` batch to be sent with envelope ``seq``) with its ``mac`` set (unchanged without a
+    key).
+
+    :param msg: the batch.
+    :param key: the run's key (None: no mac).
+    :param seq: the envelope's seq.
+    """
+    return msg if key is None else msg.replace(mac=batch_mac(msg, key, seq))
+
+
+def mac_of(msg: Any, key: bytes) -> bytes:
+    """The ``mac`` of an ack, weights or (received: its envelope's seq) transitions message under ``key`` (its own
+    ``mac`` field left out).
+
+    :param msg: an :class:`~khgrl.common.wire.messages.Ack`, :class:`~khgrl.common.wire.messages.Weights` or
+        decoded :class:`~khgrl.common.wire.messages.Transitions`.
+    :param key: the run's key.
+    """
+    if msg.KIND == "transitions":
+        return batch_mac(msg, key, msg.envelope.seq)
     h = hashlib.blake2b(key=key, digest_size=MAC_BYTES, person=f"khgrl-{msg.KIND}".encode()[:16])
     if msg.KIND == "ack":
         h.update(_canonical(_ack_fields(msg)))
@@ -129,13 +190,14 @@ def sign(msg: Any, key: bytes | None) -> Any:
 def check(msg: Any, key: bytes | None) -> str | None:
     """Why ``msg`` is not authentic under ``key`` (None: it is, or there is no key to check with).
 
-    :param msg: a received ack or weights message.
+    :param msg: a received ack, weights or transitions message.
     :param key: the run's key (None: nothing is checked).
     """
     if key is None:
         return None
+    signer = "an actor" if msg.KIND == "transitions" else "the learner"
     if msg.mac is None:
-        return f"{msg.KIND} without a mac (this process has the run's key: the learner would sign it)"
+        return f"{msg.KIND} without a mac (this process has the run's key: {signer} would sign it)"
     if not secrets.compare_digest(msg.mac, mac_of(msg, key)):
-        return f"{msg.KIND} with a wrong mac (not from a learner with the run's key)"
+        return f"{msg.KIND} with a wrong mac (not from {signer} with the run's key)"
     return None

@@ -30,6 +30,7 @@ import time
 from typing import Callable
 
 import numpy as np
+from khgrl.common.delivery import run_key
 from khgrl.common.delivery.outbox import Outbox
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
 from khgrl.common.wire.messages import Ack, Transitions
@@ -60,14 +61,17 @@ class TransitionStream:
     :param durable: the highest seq the learner confirmed durable (likewise).
     :param journal: called with :meth:`position` before batch files are deleted as durable.
     :param window: batches out beyond the learner's ``received`` at most.
+    :param key: the run's key (:mod:`~khgrl.common.delivery.run_key`): every batch sent carries its ``mac``, a
+        re-stamped one is signed again (None: no mac).
     """
 
     def __init__(self, actor: str, stream: str, outbox: Outbox, publish: Callable[[bytes], None],
                  rejects: RejectCounter, resend_after_s: float = 2.0,
                  clock: Callable[[], float] = time.monotonic, task: str | None = None, *, next_seq: int = 0,
                  next_index: int = 0, durable: int = -1, journal: Callable[[dict], None] | None = None,
-                 window: int = 64) -> None:
+                 window: int = 64, key: bytes | None = None) -> None:
         self.actor = actor
+        self.key = key
         self.task = task  # the digest of this actor's task descriptor, stamped on every batch
         self.stream = stream
         self.outbox = outbox
@@ -142,7 +146,7 @@ class TransitionStream:
             terminated=np.asarray(cols[4], dtype=np.uint8), truncated=np.asarray(cols[5], dtype=np.uint8),
             intervened=np.asarray(cols[6], dtype=np.uint8), clipped=np.asarray(cols[7], dtype=np.uint8),
             base_seq=seq if oldest is None else oldest, stream=self.stream, task=self.task)
-        payload = encode(batch, self.actor, seq)
+        payload = encode(run_key.sign_batch(batch, self.key, seq), self.actor, seq)
         newest = self.outbox.newest()
         if newest is None or newest <= self.received:
             self.last_progress = self.clock()  # nothing was waiting: the resend timer starts now
@@ -175,9 +179,10 @@ class TransitionStream:
             self.cursor = self.next_seq
             return 0
         self.cursor = max(self.cursor, oldest)
-        n = 0
+        key, n = self.key, 0
+        sign = None if key is None else lambda m: run_key.wire_batch_mac(m, key)  # re-stamped: signed again
         while self.cursor < self.next_seq and self._in_window(self.cursor):
-            self._send(self.cursor, with_base_seq(self.outbox.get(self.cursor), oldest))
+            self._send(self.cursor, with_base_seq(self.outbox.get(self.cursor), oldest, sign))
             n += 1
         return n
 

@@ -47,7 +47,7 @@ def _any_vec(name: str, value: Any, most: int) -> np.ndarray:
     return vec(name, value, n)
 
 
-MAC_BYTES = 32  # the ``mac`` of acks and weights
+MAC_BYTES = 32  # the ``mac`` of acks, weights and transitions
 
 
 def _mac(name: str, value: Any) -> bytes:
@@ -95,6 +95,7 @@ class Transitions(Message):
     base_seq: int | None = None  # the oldest batch the actor still holds
     stream: str | None = None  # random id of the actor incarnation
     task: str | None = None  # the digest of the actor's task descriptor: required on the wire
+    mac: bytes | None = None  # keyed BLAKE2b of the other fields and the envelope's seq under the run's key
 
     @property
     def n(self) -> int:
@@ -128,7 +129,7 @@ class Transitions(Message):
         if m.get("task") is None:
             raise ProtocolError("task: missing (the digest of the actor's task descriptor is required)")
         return cls(actor=actor, first_step=first, base_seq=base, stream=opt(m, "stream", ident),
-                   task=ident("task", m.get("task")), **arrays)
+                   task=ident("task", m.get("task")), mac=opt(m, "mac", _mac), **arrays)
 
 
 @dataclass(frozen=True)

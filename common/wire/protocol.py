@@ -14,7 +14,7 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass, fields
-from typing import Any, TypeVar
+from typing import Any, Callable, TypeVar
 
 import msgpack
 import numpy as np
@@ -221,15 +221,24 @@ def decode_any(kind: str, payload: bytes) -> Message:
     return decode(KINDS[kind], payload)
 
 
-def with_base_seq(payload: bytes, base_seq: int) -> bytes:
+def with_base_seq(payload: bytes, base_seq: int, mac: Callable[[dict], bytes] | None = None) -> bytes:
     """A stored ``transitions`` payload (one this process encoded, so its fields were checked then) re-stamped
-    with the sender's current ``base_seq`` for a re-send: only the envelope and ``base_seq`` are looked at."""
+    with the sender's current ``base_seq`` for a re-send: only the envelope and ``base_seq`` are looked at.
+
+    :param payload: the encoded batch.
+    :param base_seq: the oldest batch the sender holds now.
+    :param mac: signs the re-stamped map (the run's key: ``run_key.wire_batch_mac``); None: no ``mac`` (one the
+        payload had is dropped, as it no longer matches).
+    """
     msg = _unpack(payload, Transitions.MAX_BYTES, Transitions.KIND)
     env = _envelope(msg, Transitions.KIND)
     base = typ("base_seq", base_seq, int, low=0)
     if base > env.seq:
         raise ProtocolError(f"base_seq {base} > seq {env.seq}")
     msg["base_seq"] = base
+    msg.pop("mac", None)
+    if mac is not None:
+        msg["mac"] = mac(msg)
     return msgpack.packb(msg, use_bin_type=True)
 
 

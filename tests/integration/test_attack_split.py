@@ -58,11 +58,13 @@ FORGE_FROM = 10  # KGRL's learning_starts 64 = 8 batches of 8
 
 @pytest.mark.timeout(600)
 def test_another_process_publishing_as_a0_stops_it_and_ends_the_run(tmp_path):
+    from khgrl.common.delivery import run_key
     from khgrl.common.wire.messages import Transitions
     from khgrl.common.wire.protocol import Keys, decode, encode
 
     up, runtime = _secure_run(tmp_path, "split", "5")
     keys = Keys(runtime["run"])
+    key = run_key.load(up.run_dir)
     watcher = _session(up.run_dir, "monitor", runtime["endpoint"])
     attacker = _session(up.run_dir, "actor-a0", runtime["endpoint"])
     forged: dict = {"armed": True, "sent": []}
@@ -73,7 +75,8 @@ def test_another_process_publishing_as_a0_stops_it_and_ends_the_run(tmp_path):
         if forged["armed"] and msg.envelope.seq >= FORGE_FROM:  # (past learning_starts: a0 waits after each batch)
             forged["armed"] = False
             seq = msg.envelope.seq + 1
-            attacker.put(keys.transitions("a0"), encode(msg.replace(first_step=msg.first_step + msg.n), "a0", seq))
+            forged_batch = msg.replace(first_step=msg.first_step + msg.n)  # signed: the attacker holds the run's key
+            attacker.put(keys.transitions("a0"), encode(run_key.sign_batch(forged_batch, key, seq), "a0", seq))
             forged["sent"].append((time.monotonic(), seq))
 
     sub = watcher.declare_subscriber(keys.transitions("a0"), on_batch)
@@ -254,3 +257,101 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
     assert "ack without a mac" in (run_dir / "actor-a0" / "actor.log").read_text()
     check = provenance_check(run_dir)
     assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] > 0, check
+
+
+# fake actor ids without the run's key: a0's own batch under 3,000 other ids, 3 batches each (valid content, the
+# run's task digest), paced; the learner's training is on (simulation mode: a0 waits for it)
+FAKE_IDS, FAKE_BATCHES, FAKE_PER_S = 3000, 3, 1000
+QUIET_S, ATTACK_S = 6.0, 9.0
+
+
+def _fake_batches(template, task: str) -> list[tuple[str, bytes]]:
+    """(actor id, payload) of batch k = 0..2 of each fake id, every one different (the replay guard would refuse
+    copies), without a ``mac``."""
+    import numpy as np
+    from khgrl.common.wire.protocol import encode
+
+    out = []
+    for i in range(FAKE_IDS):
+        for k in range(FAKE_BATCHES):
+            bump = np.float32(1e-5 * (FAKE_BATCHES * i + k + 1))
+            msg = template.replace(actor=f"x{i}", stream=f"x{i}s", first_step=k * template.n, base_seq=0, task=task,
+                                   obs=template.obs + bump, mac=None, envelope=None)
+            out.append((f"x{i}", encode(msg, f"x{i}", k)))
+    return out
+
+
+def _rate(samples: list, t0: float, t1: float) -> float:
+    """a0's steps/s between t0 and t1 from its status samples (arrival time, transitions)."""
+    inside = [(t, n) for t, n in samples if t0 <= t <= t1]
+    assert len(inside) >= 2, f"too few a0 status samples in [{t0:.1f}, {t1:.1f}]: {samples[-5:]}"
+    return (inside[-1][1] - inside[0][1]) / (inside[-1][0] - inside[0][0])
+
+
+@pytest.mark.timeout(300)
+def test_plain_mode_batches_of_fake_actor_ids_without_the_key_are_never_admitted(tmp_path):
+    from khgrl.benchmarks.scale import provenance_check
+    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Control, Status, Transitions
+    from khgrl.common.wire.protocol import Keys, decode, encode
+
+    run, run_dir = unique_run("fakes"), tmp_path / "run"
+    keys = Keys(run)
+    run_key.create(run_dir)  # as khgrl up does; the attacker cannot read it
+    seen: dict = {"a0": [], "learner": None, "batch": None}
+
+    def on_status(sample) -> None:
+        msg = decode(Status, sample.payload.to_bytes())
+        if msg.role == "learner":
+            seen["learner"] = msg.info
+        elif msg.info.id == "a0":
+            seen["a0"].append((time.monotonic(), msg.info.transitions))
+
+    def on_batch(sample) -> None:
+        seen["batch"] = sample.payload.to_bytes()
+
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        learner = g.learner(run, ep, "--learning-starts", "64", "--checkpoint-every", "0", "--max-lead", "8")
+        a0 = g.actor(run, ep, "--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "64",
+                     "--episodes", "5", "--id", "a0")
+        with open_client(ep) as s:
+            subs = [s.declare_subscriber(keys.status("*", "*"), on_status),
+                    s.declare_subscriber(keys.transitions("a0"), on_batch)]
+            try:
+                wait_for(lambda: seen["a0"] and seen["a0"][-1][1] >= 200, 120, "a0 training along",
+                         procs=[learner, a0])
+                template = decode(Transitions, seen["batch"])
+                fakes = _fake_batches(template, template.task)
+                t_quiet = time.monotonic()
+                time.sleep(QUIET_S)
+                t_attack = time.monotonic()
+                sent = 0
+                while time.monotonic() - t_attack < ATTACK_S and a0.poll() is None:
+                    actor, payload = fakes[sent % len(fakes)]
+                    s.put(keys.transitions(actor), payload)
+                    sent += 1
+                    if sent % 50 == 0:
+                        time.sleep(max(0.0, t_attack + sent / FAKE_PER_S - time.monotonic()))
+                t_end = time.monotonic()
+                time.sleep(1.5)  # the learner's status after the attack
+                during = seen["learner"]
+                assert a0.wait(180) == 0, a0.tail()
+                s.put(keys.control("learner"), encode(Control(command="stop"), "tester", 0))
+                assert learner.wait(60) == 0, learner.tail()
+            finally:
+                for sub in subs:
+                    sub.undeclare()
+    quiet, attacked = _rate(seen["a0"], t_quiet, t_attack), _rate(seen["a0"], t_attack, t_end)
+    print(f"fake ids: {sent} batches of {FAKE_IDS} ids in {t_end - t_attack:.1f} s; a0 {quiet:.1f} steps/s quiet, "
+          f"{attacked:.1f} under attack; learner rejects {during.rejects}, dropped unadmitted "
+          f"{during.not_admitted_dropped}")
+    assert sent >= FAKE_IDS, sent
+    assert set(during.next_seq) == {"a0"} and during.rejects.get("mac", 0) >= 100, during
+    assert attacked >= 0.4 * quiet, (quiet, attacked)
+    state = read_json(run_dir / "learner" / "checkpoint" / "state.json")
+    assert set(state["actors"]) == {"a0"}, sorted(state["actors"])[:10]
+    check = provenance_check(run_dir)
+    assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] > 0, check
+    assert "transitions without a mac" in (run_dir / "learner" / "learner.log").read_text()

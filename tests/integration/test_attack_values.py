@@ -42,10 +42,13 @@ def _session(run_dir, cn: str, endpoint: str):
     return _open(conf, lambda: False, 20, cn)
 
 
-def _batch(task, seq: int, *, reward: float = 0.0, obs: float | None = None, digest: bool = True) -> bytes:
-    """Batch ``seq`` of actor x9 (8 transitions of the task's sizes), encoded; without ``digest``: its map without
-    the task field (which ``encode`` refuses to make)."""
+def _batch(task, seq: int, *, reward: float = 0.0, obs: float | None = None, digest: bool = True,
+           key: bytes | None = None) -> bytes:
+    """Batch ``seq`` of actor x9 (8 transitions of the task's sizes), encoded and signed with ``key`` (the run's:
+    an actor process holds it); without ``digest``: its map without the task field (which ``encode`` refuses to
+    make)."""
     import msgpack
+    from khgrl.common.delivery import run_key
     from khgrl.common.wire.messages import Transitions
     from khgrl.common.wire.protocol import encode
 
@@ -56,7 +59,7 @@ def _batch(task, seq: int, *, reward: float = 0.0, obs: float | None = None, dig
                       action=np.zeros((n, task.out_dim), np.float32), reward=np.full(n, reward, np.float32),
                       terminated=z, truncated=z, intervened=z, clipped=z, base_seq=0, stream="x9stream",
                       task=task.digest)
-    payload = encode(msg, "x9", seq)
+    payload = encode(run_key.sign_batch(msg, key, seq), "x9", seq)
     if digest:
         return payload
     m = msgpack.unpackb(payload, raw=False)
@@ -68,12 +71,14 @@ def _attack(up: Launcher, runtime: dict, task) -> tuple[list, int]:
     """(a), (b), (c) from actor-x9's session; returns the learner's status infos seen meanwhile and how many
     extreme batches were sent. Asserts the learner is alive after two training iterations that follow (a) (before
     the fix the first one made the policy NaN and the learner exit 1)."""
+    from khgrl.common.delivery import run_key
     from khgrl.common.wire.messages import Control, Status
     from khgrl.common.wire.protocol import Keys, decode, encode
 
     keys = Keys(runtime["run"])
     infos: list = []
     s = _session(up.run_dir, "actor-x9", runtime["endpoint"])
+    key = run_key.load(up.run_dir)  # the worst case: x9 holds the run's key (as every actor process of the run)
     sub = s.declare_subscriber(keys.status("learner"), lambda m: infos.append(decode(Status, m.payload.to_bytes())))
     try:
         wait_for(lambda: infos, 120, "the learner's status", interval=0.2)
@@ -81,7 +86,7 @@ def _attack(up: Launcher, runtime: dict, task) -> tuple[list, int]:
                         "this part's pids.json")
         learner_pid = pids["children"]["learner"]
         at = infos[-1].info.iterations
-        s.put(keys.transitions("x9"), _batch(task, 0, reward=EXTREME))  # (a)
+        s.put(keys.transitions("x9"), _batch(task, 0, reward=EXTREME, key=key))  # (a)
         s.put(keys.request("x9"), encode(Control(command="checkpoint"), "x9", 0))
 
         def trained_on() -> bool:  # two more training iterations (which would sample the batch had it been stored)
@@ -92,12 +97,12 @@ def _attack(up: Launcher, runtime: dict, task) -> tuple[list, int]:
         seq, t_end = 1, time.monotonic() + 3.0  # (b)
         while time.monotonic() < t_end:
             sign = 1.0 if seq % 2 else -1.0
-            s.put(keys.transitions("x9"), _batch(task, seq, reward=sign * EXTREME, obs=-sign * EXTREME))
+            s.put(keys.transitions("x9"), _batch(task, seq, reward=sign * EXTREME, obs=-sign * EXTREME, key=key))
             seq += 1
             time.sleep(0.02)
         for k in range(3):  # (c): three, so that one gets past the inbox's cap for ids not admitted
             time.sleep(0.3)
-            s.put(keys.transitions("x9"), _batch(task, seq + k, digest=False))
+            s.put(keys.transitions("x9"), _batch(task, seq + k, digest=False, key=key))
         time.sleep(2.0)
         assert pid_alive(learner_pid), "the learner died under sustained +-3e38"
         return list(infos), seq
