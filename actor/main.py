@@ -92,6 +92,7 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                               next_seq=rec.next_seq, next_index=rec.next_index, durable=rec.durable,
                               journal=lambda pos: StreamRecord(stream=rec.stream, **pos).save(out_dir),
                               window=cfg.stream.window)
+    stream.bounds = task  # a transition outside the task's value bounds is not sent (the learner would refuse it)
     khgrl = cfg.method == "khgrl"
     scale = ExplorationScale(env, actor, khgrl, link.publish)
     episodes = EpisodeLog(out_dir, resume)
