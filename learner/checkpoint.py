@@ -32,14 +32,16 @@ from typing import Any, Callable
 import numpy as np
 from khgrl.learner.algorithm import BUFFER_FILE, DEFAULT, MODEL_FILE, algorithm_class
 
-__all__ = ["STATE_FILE", "MODEL_FILE", "BUFFER_FILE", "FORMAT", "TMP_PREFIX", "CheckpointError", "SaveFaults",
-           "checkpoint_dir", "find_checkpoint", "save_checkpoint", "load_checkpoint", "load_checkpoint_arrays",
+__all__ = ["STATE_FILE", "MODEL_FILE", "BUFFER_FILE", "FORMAT", "TMP_PREFIX", "MODEL_TMP_PREFIX", "CheckpointError",
+           "SaveFaults", "checkpoint_dir", "model_dir", "can_resume", "find_checkpoint", "find_model",
+           "save_checkpoint", "save_model", "load_checkpoint", "load_checkpoint_arrays",
            "remove_stale_temps", "is_disk_fault", "fault_reason"]
 
 log = logging.getLogger("khgrl.learner")
 
 STATE_FILE = "state.json"
 TMP_PREFIX = "checkpoint.tmp-"  # + the PID of the learner writing it
+MODEL_TMP_PREFIX = "model.tmp-"  # (the model checkpoint's)
 FORMAT = 2  # 1: side arrays in .npy files beside the buffer; 2: inside the replay buffer pickle
 RETRY_FIRST_S = 1.0  # a failed save is retried after 1 s, 2 s, 4 s, ... up to RETRY_MAX_S
 RETRY_MAX_S = 30.0
@@ -59,8 +61,17 @@ def checkpoint_dir(learner_dir: str | Path) -> Path:
     return Path(learner_dir) / "checkpoint"
 
 
-def _old_dir(learner_dir: str | Path) -> Path:
-    return Path(learner_dir) / "checkpoint.old"
+def model_dir(learner_dir: str | Path) -> Path:
+    """Where the learner of ``learner_dir`` keeps its model checkpoint (``model.zip`` and ``state.json``, no
+    replay buffer).
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    return Path(learner_dir) / "model"
+
+
+def _old_dir(learner_dir: str | Path, name: str = "checkpoint") -> Path:
+    return Path(learner_dir) / f"{name}.old"
 
 
 def find_checkpoint(learner_dir: str | Path) -> Path | None:
@@ -71,6 +82,25 @@ def find_checkpoint(learner_dir: str | Path) -> Path | None:
     """
     for d in (checkpoint_dir(learner_dir), _old_dir(learner_dir)):
         if (d / STATE_FILE).is_file():
+            return d
+    return None
+
+
+def can_resume(learner_dir: str | Path) -> bool:
+    """Whether a learner can be resumed from ``learner_dir``: a full checkpoint or a journal segment is there.
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    return find_checkpoint(learner_dir) is not None or any((Path(learner_dir) / "journal").glob("segment-*.bin"))
+
+
+def find_model(learner_dir: str | Path) -> Path | None:
+    """The newest complete model checkpoint under ``learner_dir`` (``model/``, else ``model.old/``), or None.
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    for d in (model_dir(learner_dir), _old_dir(learner_dir, "model")):
+        if (d / STATE_FILE).is_file() and (d / MODEL_FILE).is_file():
             return d
     return None
 
@@ -87,11 +117,11 @@ def _fsync(path: Path, directory: bool = False) -> None:
         os.close(fd)
 
 
-def _write(tmp: Path, algo: Any, state: dict[str, Any]) -> None:
+def _write(tmp: Path, algo: Any, state: dict[str, Any], buffer: bool = True) -> None:
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    for path in algo.save(tmp):
+    for path in (algo.save(tmp) if buffer else algo.save(tmp, buffer=False)):
         _fsync(path)
     with open(tmp / STATE_FILE, "w") as fh:  # written last: a checkpoint without it is incomplete
         json.dump({"format": FORMAT, "time": time.time(), **state}, fh, indent=1)
@@ -99,9 +129,9 @@ def _write(tmp: Path, algo: Any, state: dict[str, Any]) -> None:
         os.fsync(fh.fileno())
 
 
-def _swap_in(learner_dir: Path, tmp: Path) -> Path:
-    """Rename ``tmp`` to ``checkpoint/``; the previous one is ``checkpoint.old/`` until the new one is in place."""
-    final, old = checkpoint_dir(learner_dir), _old_dir(learner_dir)
+def _swap_in(learner_dir: Path, tmp: Path, name: str = "checkpoint") -> Path:
+    """Rename ``tmp`` to ``NAME/``; the previous one is ``NAME.old/`` until the new one is in place."""
+    final, old = learner_dir / name, _old_dir(learner_dir, name)
     if final.exists():
         if old.exists():
             shutil.rmtree(old)
@@ -122,11 +152,25 @@ def save_checkpoint(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -
         saved with it)
     :param state: JSON-able counters and stream positions (``format`` and ``time`` are added)
     """
-    learner_dir = Path(learner_dir)
-    tmp = learner_dir / f"{TMP_PREFIX}{os.getpid()}"
+    return _save(Path(learner_dir), algo, state, "checkpoint", TMP_PREFIX, buffer=True)
+
+
+def save_model(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -> Path:
+    """The model checkpoint: ``model.zip`` and ``state`` (no replay buffer: the last full checkpoint and the
+    journal hold the data), written like :func:`save_checkpoint` to ``model/``.
+
+    :param learner_dir: the learner's checkpoint directory
+    :param algo: the learner algorithm
+    :param state: JSON-able counters (the trainer's state)
+    """
+    return _save(Path(learner_dir), algo, state, "model", MODEL_TMP_PREFIX, buffer=False)
+
+
+def _save(learner_dir: Path, algo: Any, state: dict[str, Any], name: str, prefix: str, buffer: bool) -> Path:
+    tmp = learner_dir / f"{prefix}{os.getpid()}"
     try:
-        _write(tmp, algo, state)
-        return _swap_in(learner_dir, tmp)
+        _write(tmp, algo, state, buffer)
+        return _swap_in(learner_dir, tmp, name)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -153,8 +197,8 @@ def remove_stale_temps(learner_dir: str | Path) -> list[Path]:
     directory = Path(learner_dir)
     if not directory.is_dir():
         return removed
-    for path in sorted(directory.glob(TMP_PREFIX + "*")):
-        pid = path.name[len(TMP_PREFIX):]
+    for path in sorted([*directory.glob(TMP_PREFIX + "*"), *directory.glob(MODEL_TMP_PREFIX + "*")]):
+        pid = path.name.rpartition("-")[2]
         if pid.isdigit() and int(pid) != os.getpid() and _pid_alive(int(pid)):
             log.warning("left %s alone: process %s is running", path, pid)
             continue
@@ -212,11 +256,12 @@ class SaveFaults:
         """Whether a save may be tried now (always, unless a failed one waits out its backoff)."""
         return self.clock() >= self.retry_at
 
-    def failed(self, exc: BaseException, unsaved: int) -> float:
+    def failed(self, exc: BaseException, unsaved: int, what: str = "checkpoint") -> float:
         """A save failed: note it, log it (rate-limited), and return the seconds until the retry.
 
         :param exc: the disk fault
-        :param unsaved: transitions accepted since the last checkpoint (not durable)
+        :param unsaved: transitions accepted that no checkpoint or journal holds (not durable)
+        :param what: what failed ('checkpoint', 'model checkpoint', 'journal write')
         """
         now, reason = self.clock(), fault_reason(exc)
         if self.streak == 0:
@@ -227,9 +272,9 @@ class SaveFaults:
         self.retry_at = now + delay
         if reason != self.error or now - self._warned_at >= WARN_EVERY_S:
             self._warned_at = now
-            log.warning("checkpoint failed (%s); %d failed attempts in %.0f s; training and ingest go on, %d "
+            log.warning("%s failed (%s); %d failed attempts in %.0f s; training and ingest go on, %d "
                         "transitions are not durable and the actors keep them until a checkpoint holds them; "
-                        "retrying in %.0f s (then at most every %.0f s)", reason, self.streak, now - self._since,
+                        "retrying in %.0f s (then at most every %.0f s)", what, reason, self.streak, now - self._since,
                         unsaved, delay, RETRY_MAX_S)
         self.error = reason
         return delay

@@ -7,6 +7,16 @@ step. The calling thread trains -- one due iteration at a time (``simulation`` m
 ``learn()``; ``robot`` mode: whenever it is free, on everything stored) -- publishes the new weights and acks every
 actor, checkpoints when due or asked to (ingest pauses meanwhile), and publishes a status about once a second.
 
+Durability (with a :class:`~khgrl.learner.journal.Journal`, the default): every batch stored is also appended to
+the journal; the *journal thread* writes and fsyncs what waits as one group and acks its actors with the new
+``durable`` (the highest seq on disk). The model is saved on its own schedule (``model_checkpoint_every``
+training iterations: ``model/``, small); the full checkpoint -- model and whole replay buffer, ``checkpoint/`` --
+is rare: when the journal since the last one holds a replay buffer's worth of transitions (or every
+``checkpoint_every``), when the journal failed (disk fault: the snapshot holds what the journal missed), and at
+the end; the journal's older segments are then deleted. An actor's ``checkpoint`` request syncs the journal and
+saves the model. Without a journal, full checkpoints alone make batches durable (every ``checkpoint_every``,
+on request, at the end).
+
 Unit tests drive the same steps in one thread: :meth:`LearnerLoop.offer` / :meth:`LearnerLoop.control` with decoded
 messages (or :meth:`LearnerLoop.receive` with payload bytes), then :meth:`LearnerLoop.step`, with a publisher that
 collects the typed messages.
@@ -15,6 +25,7 @@ collects the typed messages.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -25,7 +36,8 @@ from khgrl.common.delivery.learner_side import IDLE_WAIT_S, LearnerIngest
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import LearnerInfo
 from khgrl.common.wire.protocol import Control, Status
-from khgrl.learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint
+from khgrl.learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint, save_model
+from khgrl.learner.journal import Journal
 from khgrl.learner.resume import open_learner, rss_mb
 from khgrl.learner.trainer import Trainer
 
@@ -43,7 +55,8 @@ class LearnerLoop:
     def __init__(self, trainer: Trainer, streams: StreamTable, publisher: Publisher, *, learner_id: str,
                  learner_dir: str | Path, checkpoint_every: int, flag: StopFlag,
                  clock: Callable[[], float] = time.monotonic, checkpoint_dir: str | Path | None = None,
-                 mode: str = "simulation") -> None:
+                 mode: str = "simulation", journal: Journal | None = None, model_checkpoint_every: int = 0,
+                 snapshot_rows: int | None = None) -> None:
         """:param trainer: the model and its schedule
         :param streams: the actor streams (empty, or from a checkpoint)
         :param publisher: where acks, weights and status go
@@ -54,6 +67,11 @@ class LearnerLoop:
         :param clock: monotonic seconds (status period, checkpoint retries)
         :param checkpoint_dir: where checkpoints go (None: ``learner_dir``)
         :param mode: ``simulation`` (iterations come due with the data) or ``robot`` (train whenever free)
+        :param journal: the journal of stored batches (None: only full checkpoints make batches durable)
+        :param model_checkpoint_every: with a journal, save the model every N training iterations (0: only in
+            full checkpoints)
+        :param snapshot_rows: with a journal, a full checkpoint once it holds this many transitions since the last
+            one (None: the replay buffer's size)
         """
         self.trainer, self.streams, self.pub = trainer, streams, publisher
         self.id = learner_id
@@ -67,11 +85,17 @@ class LearnerLoop:
         self.checkpoint_requested = False
         self.checkpoints = 0
         self.last_ckpt_total = trainer.total
+        self.journal = journal
+        self.model_every = int(model_checkpoint_every) if journal is not None else 0
+        self.snapshot_rows = int(snapshot_rows or trainer.buffer.buffer_size)
+        self.model_checkpoints = 0
+        self.last_model_iterations = trainer.iterations
         self.train_time = 0.0
         self.scalar_faults = 0  # training scalars the SB3 logger could not write
         self.mode = mode
         trainer.schedule = mode == "simulation"
-        self.ingest = ing = LearnerIngest(streams, publisher, store=trainer.add, ack_of=trainer.ack,
+        store = trainer.add if journal is None else self._store
+        self.ingest = ing = LearnerIngest(streams, publisher, store=store, ack_of=trainer.ack,
                                           on_control=self.control, learner_id=learner_id, flag=flag)
         self.receive, self.offer, self.set_task, self.ack_all = ing.receive, ing.offer, ing.set_task, ing.ack_all
         self.rejects, self.lock, self.wake = ing.rejects, ing.lock, ing.wake
@@ -108,22 +132,40 @@ class LearnerLoop:
         self.ack_all()
 
     def step(self) -> None:
-        """After messages were taken in: ack, then :meth:`work`."""
+        """After messages were taken in: ack, sync the journal (what the journal thread does), then :meth:`work`."""
         self.ingest.ack_touched()
+        self.sync_journal()
         self.work()
 
     def work(self) -> bool:
         """Train one iteration (unless paused; simulation mode: if one is due), checkpoint when due (after a failed
         save: once its retry is due), publish status when its time has come. Returns whether it trained."""
         trained = not self.paused and (self.mode == "robot" or bool(self.trainer.due)) and self.train()
-        every = self.checkpoint_every
-        due = self.checkpoint_requested or (every > 0 and self.trainer.total - self.last_ckpt_total >= every)
-        if due and self.saves.ready():
-            self.checkpoint_requested = False
-            self.checkpoint()
+        self.durability()
         if self.clock() - self._status_t >= STATUS_EVERY_S:
             self.publish_status()
         return trained
+
+    def durability(self) -> None:
+        """A full checkpoint when due (see the module), else what a request asks (journal: sync it and save the
+        model), else the model checkpoint when due; after a failed save, only once its retry is due."""
+        tr, j, every = self.trainer, self.journal, self.checkpoint_every
+        full = (every > 0 and tr.total - self.last_ckpt_total >= every) or (j is None and self.checkpoint_requested) \
+            or (j is not None and (bool(j.error) or j.rows >= self.snapshot_rows))
+        if full:
+            if self.saves.ready():
+                self.checkpoint_requested = False
+                self.checkpoint()
+            return
+        if self.checkpoint_requested:
+            self.checkpoint_requested = False
+            self.sync_journal()
+            if tr.iterations > self.last_model_iterations and self.saves.ready():
+                self.save_model()
+            self.ack_all()
+        elif self.model_every and tr.iterations - self.last_model_iterations >= self.model_every and \
+                self.saves.ready():
+            self.save_model()
 
     def train(self) -> bool:
         """One training iteration (simulation mode: the next due one; robot mode: on everything stored), then the
@@ -149,26 +191,93 @@ class LearnerLoop:
                             self.scalar_faults)
         return True
 
+    # ------------------------------------------------------------------------------------ durability
+    def _store(self, batch: Any, stream: Any, positions: Callable[[], dict[str, int]]) -> None:
+        """Store an accepted batch (ingest thread, :attr:`lock` held) and journal it."""
+        self.trainer.add(batch, stream, positions)
+        self.journal.append(batch, stream)
+
+    def not_durable(self) -> int:
+        """Transitions stored that neither the last full checkpoint nor the journal (on disk) holds."""
+        synced = self.journal.synced_rows if self.journal is not None else 0
+        return max(0, self.trainer.total - self.last_ckpt_total - synced)
+
+    def sync_journal(self) -> None:
+        """Write and fsync what waits in the journal, raise ``durable`` of those streams and ack their actors; a
+        failed write is a disk fault (logged, shown in the status; a full checkpoint comes due)."""
+        if self.journal is None:
+            return
+        marks, exc = self.journal.sync()
+        if not marks and exc is None:
+            return
+        with self.lock:
+            self._durable(marks)
+            if exc is not None:
+                self.saves.failed(exc, self.not_durable(), "journal write")
+
+    def _durable(self, marks: dict) -> None:
+        """Streams whose batches up to a seq are on disk (call with :attr:`lock` held): raise and ack."""
+        for stream, seq in marks.values():
+            if seq > stream.durable:
+                stream.durable = seq
+            if stream.actor in self.streams and self.streams[stream.actor] is stream:
+                self.pub.ack(self.ingest.ack(stream.actor))
+
+    def save_model(self) -> Path | None:
+        """Save the model checkpoint (``model/``: model and counters, no replay buffer) after syncing the journal,
+        so that it never covers data the journal does not hold. A disk fault is logged and retried (None)."""
+        tr = self.trainer
+        with self.lock:
+            state = tr.state()
+        self.sync_journal()
+        if self.journal is not None and self.journal.error:
+            return None  # (a full checkpoint is due instead)
+        t0 = time.perf_counter()
+        try:
+            path = save_model(self.ckpt_dir, tr.algo, state)
+        except Exception as exc:
+            if not is_disk_fault(exc):
+                raise
+            self.saves.failed(exc, self.not_durable(), "model checkpoint")
+            return None
+        self.saves.succeeded()
+        self.model_checkpoints += 1
+        self.last_model_iterations = int(state["iterations"])
+        log.debug("model checkpoint %d: version %d, %d iterations (%.2f s)", self.model_checkpoints, state["version"],
+                  state["iterations"], time.perf_counter() - t0)
+        return path
+
     def checkpoint(self) -> Path | None:
-        """Save a checkpoint of everything accepted so far, then tell every actor (``durable`` in the acks). A disk
-        fault (full, read-only, unwritable) leaves the previous checkpoint and marks nothing durable: it is logged,
-        shown in the status, retried with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`), and None returned."""
+        """Save a full checkpoint of everything accepted so far (model and replay buffer), then tell every actor
+        (``durable`` in the acks) and delete the journal's segments before it. A disk fault (full, read-only,
+        unwritable) leaves the previous checkpoint and marks nothing new durable: it is logged, shown in the
+        status, retried with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`), and None returned."""
         with self.lock:  # ingest waits (the inbox holds what arrives): the buffer is saved as the acks will say
             return self._checkpoint()
 
     def _checkpoint(self) -> Path | None:
         t0 = time.perf_counter()
-        tr = self.trainer
+        tr, j = self.trainer, self.journal
+        extra: dict[str, Any] = {}
+        if j is not None:  # what waits is written; later batches go to a new segment, replayed after this snapshot
+            index, marks, exc = j.cut()
+            self._durable(marks)
+            if exc is not None:
+                self.saves.failed(exc, self.not_durable(), "journal write")
+            extra = {"journal": {"next": index}}
         try:
-            path = save_checkpoint(self.ckpt_dir, tr.algo, {**tr.state(), **self.streams.state()})
+            path = save_checkpoint(self.ckpt_dir, tr.algo, {**tr.state(), **self.streams.state(), **extra})
         except Exception as exc:
             if not is_disk_fault(exc):
                 raise
-            self.saves.failed(exc, tr.total - self.last_ckpt_total)
+            self.saves.failed(exc, self.not_durable())
             return None
         self.saves.succeeded()
+        if j is not None:
+            j.snapshot_saved(extra["journal"]["next"])
         self.streams.mark_durable()
         self.last_ckpt_total = tr.total
+        self.last_model_iterations = tr.iterations
         self.checkpoints += 1
         log.info("checkpoint %d: %d transitions, version %d, %d iterations (%.2f s)", self.checkpoints, tr.total,
                  tr.version, tr.iterations, time.perf_counter() - t0)
@@ -198,6 +307,10 @@ class LearnerLoop:
         :param inbox: where the learner's link files transitions and control messages (the ingest thread's)
         """
         ingest = self.ingest.start(inbox)
+        syncer = None
+        if self.journal is not None:
+            syncer = threading.Thread(target=self._sync_loop, name="journal", daemon=True)
+            syncer.start()
         try:
             while not self.flag:
                 if not self.work():
@@ -206,10 +319,27 @@ class LearnerLoop:
         finally:
             self.flag.set("stop")
             ingest.join(10.0)
+            if syncer is not None:
+                syncer.join(10.0)
+
+    def _sync_loop(self) -> None:
+        """The journal thread: write and fsync what the ingest thread journaled, as soon as something waits
+        (whatever arrives during one fsync goes into the next), until the stop flag is set."""
+        try:
+            while not self.flag:
+                if self.journal.wake.wait(IDLE_WAIT_S):
+                    self.journal.wake.clear()
+                    self.sync_journal()
+            self.sync_journal()
+        except Exception:  # noqa: BLE001 - a bug here must stop the learner, not leave acks claiming nothing
+            log.exception("journal thread failed")
+            self.flag.set("journal thread failed")
 
     def summary(self) -> dict[str, Any]:
         """Totals for the log line at the end."""
         tr = self.trainer
         return {"transitions": tr.total, "iterations": tr.iterations, "gradient_steps": tr.gradient_steps,
                 "train_s": round(self.train_time, 1), "version": tr.version, "rejected": self.rejects.by_kind(),
-                "offers": dict(self.ingest.results), "not_admitted_dropped": self.ingest.dropped}
+                "offers": dict(self.ingest.results), "not_admitted_dropped": self.ingest.dropped,
+                "checkpoints": self.checkpoints, "model_checkpoints": self.model_checkpoints,
+                "journal": self.journal.info() if self.journal is not None else None}

@@ -254,13 +254,14 @@ def test_a_failed_final_checkpoint_is_one_clear_error(capsys):
 
     from khgrl.learner.main import _final_checkpoint_failed
 
-    loop = SimpleNamespace(trainer=SimpleNamespace(total=100), last_ckpt_total=40, ckpt_dir=Path("/data/ck"),
+    lost = {"n": 60}
+    loop = SimpleNamespace(not_durable=lambda: lost["n"], ckpt_dir=Path("/data/ck"),
                            saves=SimpleNamespace(error="ENOSPC No space left on device"))
     assert _final_checkpoint_failed(loop) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("khgrl learner: error: the final checkpoint in /data/ck failed "
                                                "(ENOSPC No space left on device): the 60 transitions received")
     assert "re-send it to a learner restarted with --resume" in err[0]
-    loop.last_ckpt_total = 100
+    lost["n"] = 0
     assert _final_checkpoint_failed(loop) == 1
-    assert "the last checkpoint holds every transition received" in capsys.readouterr().err
+    assert "the last checkpoint and the journal hold every transition received" in capsys.readouterr().err
