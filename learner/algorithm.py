@@ -120,9 +120,9 @@ class LearnerAlgorithm(Protocol):
         """Write training scalars to ``folder`` in ``formats`` (SB3 logger: 'csv', 'tensorboard')."""
         ...
 
-    def save(self, directory: Path, *, buffer: bool = True) -> list[Path]:
-        """Write :data:`MODEL_FILE` and (``buffer``) :data:`BUFFER_FILE` into ``directory``; returns the files
-        written."""
+    def save(self, directory: Path, *, buffer: bool | StreamReplayBuffer = True) -> list[Path]:
+        """Write :data:`MODEL_FILE` and (``buffer``) :data:`BUFFER_FILE` into ``directory`` (a buffer given: that
+        one instead of the algorithm's); returns the files written."""
         ...
 
 

@@ -19,6 +19,7 @@ directories that killed learners left behind (:func:`remove_stale_temps`).
 
 from __future__ import annotations
 
+import copy
 import errno
 import json
 import logging
@@ -33,7 +34,7 @@ import numpy as np
 from khgrl.learner.algorithm import BUFFER_FILE, DEFAULT, MODEL_FILE, algorithm_class
 
 __all__ = ["STATE_FILE", "MODEL_FILE", "BUFFER_FILE", "FORMAT", "TMP_PREFIX", "MODEL_TMP_PREFIX", "CheckpointError",
-           "SaveFaults", "checkpoint_dir", "model_dir", "can_resume", "find_checkpoint", "find_model",
+           "SaveFaults", "checkpoint_dir", "model_dir", "can_resume", "copy_buffer", "find_checkpoint", "find_model",
            "save_checkpoint", "save_model", "load_checkpoint", "load_checkpoint_arrays",
            "remove_stale_temps", "is_disk_fault", "fault_reason"]
 
@@ -117,11 +118,24 @@ def _fsync(path: Path, directory: bool = False) -> None:
         os.close(fd)
 
 
-def _write(tmp: Path, algo: Any, state: dict[str, Any], buffer: bool = True) -> None:
+def copy_buffer(buffer: Any) -> Any:
+    """A copy of a replay buffer (its arrays copied, under its lock) to save while the live one takes more.
+
+    :param buffer: the :class:`~khgrl.learner.replay.StreamReplayBuffer`
+    """
+    with buffer.lock:
+        out = copy.copy(buffer)
+        for name, value in vars(buffer).items():
+            if isinstance(value, np.ndarray):
+                setattr(out, name, value.copy())
+    return out
+
+
+def _write(tmp: Path, algo: Any, state: dict[str, Any], buffer: Any = True) -> None:
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    for path in (algo.save(tmp) if buffer else algo.save(tmp, buffer=False)):
+    for path in (algo.save(tmp) if buffer is True else algo.save(tmp, buffer=buffer)):
         _fsync(path)
     with open(tmp / STATE_FILE, "w") as fh:  # written last: a checkpoint without it is incomplete
         json.dump({"format": FORMAT, "time": time.time(), **state}, fh, indent=1)
@@ -142,7 +156,7 @@ def _swap_in(learner_dir: Path, tmp: Path, name: str = "checkpoint") -> Path:
     return final
 
 
-def save_checkpoint(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -> Path:
+def save_checkpoint(learner_dir: str | Path, algo: Any, state: dict[str, Any], buffer: Any = None) -> Path:
     """Write model, replay buffer and ``state`` to a temporary directory, then rename it to ``checkpoint/``
     (the previous checkpoint is kept until then). On any error the temporary directory is removed, the previous
     checkpoint is left as it was, and the error is raised (:func:`is_disk_fault` tells a disk fault).
@@ -151,8 +165,9 @@ def save_checkpoint(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -
     :param algo: the learner algorithm (:class:`~khgrl.learner.algorithm.LearnerAlgorithm`; its replay buffer is
         saved with it)
     :param state: JSON-able counters and stream positions (``format`` and ``time`` are added)
+    :param buffer: the replay buffer to save (a :func:`copy_buffer` taken with ``state``; None: the algorithm's)
     """
-    return _save(Path(learner_dir), algo, state, "checkpoint", TMP_PREFIX, buffer=True)
+    return _save(Path(learner_dir), algo, state, "checkpoint", TMP_PREFIX, buffer=True if buffer is None else buffer)
 
 
 def save_model(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -> Path:
@@ -166,7 +181,7 @@ def save_model(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -> Pat
     return _save(Path(learner_dir), algo, state, "model", MODEL_TMP_PREFIX, buffer=False)
 
 
-def _save(learner_dir: Path, algo: Any, state: dict[str, Any], name: str, prefix: str, buffer: bool) -> Path:
+def _save(learner_dir: Path, algo: Any, state: dict[str, Any], name: str, prefix: str, buffer: Any) -> Path:
     tmp = learner_dir / f"{prefix}{os.getpid()}"
     try:
         _write(tmp, algo, state, buffer)

@@ -208,6 +208,9 @@ class Journal:
         self.rows = 0  # transitions journaled since the last cut
         self.synced_rows = 0  # transitions on disk since the last snapshot saved
         self.error = ""  # set when a write failed: nothing more is journaled until a snapshot
+        self.failures = 0  # writes that failed (this process)
+        self._cut_failures = 0  # ... when the last cut was made
+        self._cut_synced = 0  # synced_rows then
         self.records = 0  # records written (this process)
         self.syncs = 0  # groups written and fsynced (this process)
         self.wake = threading.Event()  # something waits to be written
@@ -249,6 +252,7 @@ class Journal:
             except OSError as exc:
                 with self._mu:
                     self.error = str(exc) or type(exc).__name__
+                    self.failures += 1
                     self._pending = []
                 return {}, exc
         marks: dict[int, tuple[Any, int]] = {}
@@ -285,11 +289,14 @@ class Journal:
             if self.size or _segment(self.dir, self.index).exists():
                 self.index, self.size = self.index + 1, 0
             self.rows = 0
+            self._cut_failures, self._cut_synced = self.failures, self.synced_rows
             return self.index, marks, exc
 
     def snapshot_saved(self, index: int) -> list[Path]:
         """A full snapshot holding everything before segment ``index`` is in place: delete those segments, and
-        journal again if a write had failed. Returns the deleted files (one that cannot be deleted is logged).
+        journal again if a write had failed before the cut (one that failed since -- while the snapshot was
+        written -- left a gap that only the next snapshot covers). Returns the deleted files (one that cannot be
+        deleted is logged).
 
         :param index: what :meth:`cut` returned
         """
@@ -302,11 +309,12 @@ class Journal:
                         removed.append(path)
                     except OSError as exc:
                         log.warning("cannot delete the old journal segment %s (%s)", path, exc)
-            self.synced_rows = 0
+            self.synced_rows = max(0, self.synced_rows - self._cut_synced)
+            self._cut_synced = 0
             with self._mu:
-                if self.error:
+                if self.error and self.failures == self._cut_failures:
                     log.warning("journal: on again (the snapshot holds what it missed since: %s)", self.error)
-                self.error = ""
+                    self.error = ""
         return removed
 
     def info(self) -> dict[str, Any]:

@@ -36,7 +36,7 @@ from khgrl.common.delivery.learner_side import IDLE_WAIT_S, LearnerIngest
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import LearnerInfo
 from khgrl.common.wire.protocol import Control, Status
-from khgrl.learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint, save_model
+from khgrl.learner.checkpoint import SaveFaults, copy_buffer, fault_reason, is_disk_fault, save_checkpoint, save_model
 from khgrl.learner.journal import Journal
 from khgrl.learner.resume import open_learner, rss_mb
 from khgrl.learner.trainer import Trainer
@@ -249,39 +249,53 @@ class LearnerLoop:
 
     def checkpoint(self) -> Path | None:
         """Save a full checkpoint of everything accepted so far (model and replay buffer), then tell every actor
-        (``durable`` in the acks) and delete the journal's segments before it. A disk fault (full, read-only,
-        unwritable) leaves the previous checkpoint and marks nothing new durable: it is logged, shown in the
-        status, retried with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`), and None returned."""
-        with self.lock:  # ingest waits (the inbox holds what arrives): the buffer is saved as the acks will say
-            return self._checkpoint()
+        (``durable`` in the acks) and delete the journal's segments before it. With a working journal, ingest
+        pauses only while the journal is cut and the replay buffer copied (what comes meanwhile goes to the
+        journal's next segment); without one (or after a journal write failed) it waits for the whole save. A disk
+        fault (full, read-only, unwritable) leaves the previous checkpoint and marks nothing new durable: it is
+        logged, shown in the status, retried with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`), and None
+        returned."""
+        j = self.journal
+        with self.lock:  # ingest waits (the inbox holds what arrives): the buffer is taken as the acks will say
+            index = None
+            if j is not None:  # what waits is written; later batches go to a new segment, replayed after this one
+                index, marks, exc = j.cut()
+                self._durable(marks)
+                if exc is not None:
+                    self.saves.failed(exc, self.not_durable(), "journal write")
+            snap = self._snapshot(index)
+            if j is None or j.error:  # the snapshot must hold what the journal missed: ingest waits for the save
+                return self._save_snapshot(snap)
+            snap["buffer"] = copy_buffer(self.trainer.buffer)
+        return self._save_snapshot(snap)
 
-    def _checkpoint(self) -> Path | None:
-        t0 = time.perf_counter()
-        tr, j = self.trainer, self.journal
-        extra: dict[str, Any] = {}
-        if j is not None:  # what waits is written; later batches go to a new segment, replayed after this snapshot
-            index, marks, exc = j.cut()
-            self._durable(marks)
-            if exc is not None:
-                self.saves.failed(exc, self.not_durable(), "journal write")
-            extra = {"journal": {"next": index}}
+    def _snapshot(self, index: int | None) -> dict[str, Any]:
+        """What a full checkpoint holds, taken with :attr:`lock` held (the replay buffer: the live one)."""
+        tr = self.trainer
+        state = {**tr.state(), **self.streams.state(), **({} if index is None else {"journal": {"next": index}})}
+        return {"state": state, "buffer": None, "index": index, "total": tr.total, "iterations": tr.iterations,
+                "held": {id(st): (st, st.next_seq - 1) for st in (self.streams[a] for a in self.streams)},
+                "t0": time.perf_counter()}
+
+    def _save_snapshot(self, snap: dict[str, Any]) -> Path | None:
+        tr = self.trainer
         try:
-            path = save_checkpoint(self.ckpt_dir, tr.algo, {**tr.state(), **self.streams.state(), **extra})
+            path = save_checkpoint(self.ckpt_dir, tr.algo, snap["state"], buffer=snap["buffer"])
         except Exception as exc:
             if not is_disk_fault(exc):
                 raise
             self.saves.failed(exc, self.not_durable())
             return None
-        self.saves.succeeded()
-        if j is not None:
-            j.snapshot_saved(extra["journal"]["next"])
-        self.streams.mark_durable()
-        self.last_ckpt_total = tr.total
-        self.last_model_iterations = tr.iterations
-        self.checkpoints += 1
-        log.info("checkpoint %d: %d transitions, version %d, %d iterations (%.2f s)", self.checkpoints, tr.total,
-                 tr.version, tr.iterations, time.perf_counter() - t0)
-        self.ack_all()
+        with self.lock:
+            self.saves.succeeded()
+            if self.journal is not None:
+                self.journal.snapshot_saved(snap["index"])
+            self.last_ckpt_total = snap["total"]
+            self.last_model_iterations = max(self.last_model_iterations, snap["iterations"])
+            self.checkpoints += 1
+            self._durable(snap["held"])  # (acks every actor)
+        log.info("checkpoint %d: %d transitions, version %d, %d iterations (%.2f s)", self.checkpoints, snap["total"],
+                 snap["state"]["version"], snap["iterations"], time.perf_counter() - snap["t0"])
         return path
 
     def info(self) -> LearnerInfo:

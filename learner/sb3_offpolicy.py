@@ -182,11 +182,14 @@ class SB3OffPolicy:
         sd = self.model.policy.actor.state_dict()
         return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
 
-    def save(self, directory: Path, *, buffer: bool = True) -> list[Path]:
-        """``model.zip`` (SB3's ``save``) and (``buffer``) ``replay_buffer.pkl`` (``save_replay_buffer``)."""
+    def save(self, directory: Path, *, buffer: bool | StreamReplayBuffer = True) -> list[Path]:
+        """``model.zip`` (SB3's ``save``) and (``buffer``) ``replay_buffer.pkl`` (``save_replay_buffer``; a
+        buffer given: that one, e.g. a copy taken while ingest was paused)."""
+        from stable_baselines3.common.save_util import save_to_pkl
+
         directory = Path(directory)
         self.model.save(directory / MODEL_FILE)
-        if not buffer:
+        if buffer is False:
             return [directory / MODEL_FILE]
-        self.model.save_replay_buffer(directory / BUFFER_FILE)
+        save_to_pkl(directory / BUFFER_FILE, self.buffer if buffer is True else buffer)
         return [directory / MODEL_FILE, directory / BUFFER_FILE]

@@ -223,3 +223,48 @@ def test_a_fresh_start_removes_an_earlier_learners_journal_and_checkpoints(tmp_p
     assert not segments(fresh.journal.dir) and find_checkpoint(tmp_path / "learner") is None
     with pytest.raises(Exception, match="no checkpoint"):
         open_learner(SMALL, 1, tmp_path / "learner", resume=True, logger_formats=("csv",))
+
+
+def test_a_write_that_fails_while_a_snapshot_is_saved_keeps_the_journal_off(tmp_path, monkeypatch):
+    j = Journal(tmp_path / "journal")
+    s = _Stream()
+    j.append(batch(0, 0, 8), s)
+    index, _, _ = j.cut()  # the snapshot holds seq 0; it is written while ingest goes on
+    monkeypatch.setattr(journal_module.os, "write", lambda fd, data: (_ for _ in ()).throw(OSError(errno.EIO, "I/O")))
+    j.append(batch(1, 8, 8), s)
+    assert j.sync()[1] is not None
+    monkeypatch.undo()
+    j.snapshot_saved(index)  # seq 1 is neither in that snapshot nor in the journal: still off, nothing claimed
+    j.append(batch(2, 16, 8), s)
+    assert j.error and j.sync() == ({}, None)
+    index, _, _ = j.cut()  # the next snapshot (ingest paused while it is saved) holds seq 1 and 2
+    j.snapshot_saved(index)
+    assert not j.error
+
+
+def test_ingest_goes_on_into_the_journal_while_a_full_checkpoint_is_saved(tmp_path, monkeypatch):
+    from khgrl.learner import loop as loop_module
+    from khgrl.learner.checkpoint import load_checkpoint_arrays
+
+    loop, pub = _loop(tmp_path)
+    for seq in range(3):
+        loop.offer(batch(seq, 8 * seq, 8))
+        loop.step()
+    real = loop_module.save_checkpoint
+
+    def save_while_ingesting(*args, **kwargs):
+        loop.offer(batch(3, 24, 8))  # arrives while the snapshot is written: stored, journaled, durable
+        loop.sync_journal()
+        assert not loop.lock._is_owned()  # ingest was not paused for the save
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop_module, "save_checkpoint", save_while_ingesting)
+    assert loop.checkpoint() is not None
+    ckpt = find_checkpoint(tmp_path / "learner")
+    state = json.loads((ckpt / "state.json").read_text())
+    assert state["total_ingested"] == 24 and state["actors"]["a0"]["next_seq"] == 3
+    assert sorted(load_checkpoint_arrays(ckpt)["provenance_step"][:24].tolist()) == list(range(24))
+    assert [m.envelope.seq for m in read_records(loop.journal.dir, state["journal"]["next"])] == [3]
+    assert [a.durable for a in pub.of(Ack)][-1] == 3 and loop.trainer.total == 32
+    again, _ = _loop(tmp_path, resume=True)
+    assert _provenance(again) == [("a0", i) for i in range(32)] and again.streams["a0"].next_seq == 4
