@@ -1,20 +1,34 @@
-"""Learner checkpoints on local disk: ``CHECKPOINT_DIR/checkpoint/`` (``CHECKPOINT_DIR``: ``RUN_DIR/learner``
-unless ``--checkpoint-dir`` puts it elsewhere, e.g. on a data disk).
+"""Learner checkpoints on local disk under ``CHECKPOINT_DIR`` (``RUN_DIR/learner`` unless ``--checkpoint-dir``
+puts it elsewhere, e.g. on a data disk).
 
-A checkpoint holds what the learner algorithm saves (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.save`:
-``model.zip``, policy, optimisers, entropy coefficient; ``replay_buffer.pkl``, SB3's pickle of the
-:class:`~khgrl.learner.replay.StreamReplayBuffer`: transitions with their intervention and clip flags and
-provenance) and ``state.json`` (the algorithm's name, stream positions, counters, pending training iterations,
-weights version). A checkpoint is resumed by the algorithm that wrote it (one without a name: ``tqc``).
-It is written to a temporary directory (``checkpoint.tmp-PID``, fsynced) that is then renamed into place,
-``state.json`` last, so a crash leaves either the previous checkpoint or the new one, never a mix. The pickle
-is our own file on local disk, never anything from the wire. (SB3 is imported when a checkpoint is read, so
-that finding one is cheap.)
+Durability has three parts (the learner loop schedules them, :mod:`khgrl.learner.loop`):
+
+* the **journal** (:mod:`khgrl.learner.journal`, ``journal/``): every batch stored, appended and fsynced in groups;
+  what makes an actor's batch durable (``durable`` in its acks) moments after it arrived;
+* the **model checkpoint** (:func:`save_model`, ``model/``): ``model.zip`` and ``state.json`` without the replay
+  buffer, every ``--model-checkpoint-every`` training iterations (after the journal is synced, so it never covers
+  data the journal does not hold);
+* the **full checkpoint** (:func:`save_checkpoint`, ``checkpoint/``), rare: what the learner algorithm saves
+  (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.save`: ``model.zip``, policy, optimisers, entropy
+  coefficient; ``replay_buffer.pkl``, SB3's pickle of the :class:`~khgrl.learner.replay.StreamReplayBuffer`:
+  transitions with their intervention and clip flags and provenance) and ``state.json`` (the algorithm's name,
+  stream positions, counters, pending training iterations, weights version, and ``journal.next``: the first
+  journal segment after it). Written when the journal holds a replay buffer's worth since the last one (or every
+  ``--checkpoint-every``), after a failed journal write, and at the end; the journal segments before it are then
+  deleted. With a working journal, ingest pauses only while the journal is cut and the buffer copied
+  (:func:`copy_buffer`); the copy is saved meanwhile.
+
+A resumed learner (:mod:`khgrl.learner.resume`) loads the full checkpoint, replays the journal after it, and takes
+the model checkpoint when it is newer. A checkpoint is resumed by the algorithm that wrote it (one without a name:
+``tqc``). Each is written to a temporary directory (``checkpoint.tmp-PID`` / ``model.tmp-PID``, fsynced) that is
+then renamed into place, ``state.json`` last, so a crash leaves either the previous checkpoint or the new one,
+never a mix. The pickle is our own file on local disk, never anything from the wire. (SB3 is imported when a
+checkpoint is read, so that finding one is cheap.)
 
 Disk faults (a full, read-only or unwritable directory): a failed save removes its temporary directory and
-leaves the previous checkpoint as it was; :class:`SaveFaults` keeps the reason, counts the failures, logs them
-(not every retry) and says when to retry (exponential backoff). A learner started anew removes the temporary
-directories that killed learners left behind (:func:`remove_stale_temps`).
+leaves the previous checkpoint as it was; :class:`SaveFaults` keeps the reason, counts the failures (journal writes
+too), logs them (not every retry) and says when to retry (exponential backoff). A learner started anew removes the
+temporary directories that killed learners left behind (:func:`remove_stale_temps`).
 """
 
 from __future__ import annotations
