@@ -3,7 +3,7 @@ data is durable moments after it arrives rather than at the next full checkpoint
 
 Layout: ``CHECKPOINT_DIR/journal/segment-000123.bin``. A segment is a sequence of records, one per batch stored in
 the replay buffer, in the order it was stored. A record is a 12-byte header -- ``b"KJ01"``, the body's length and
-its CRC-32 (little endian) -- and a body: a 4-byte length, a msgpack map (``actor``, ``stream``, ``seq``, ``base``,
+its CRC-32 (little endian) -- and a body: a 4-byte length, a JSON map (``actor``, ``stream``, ``seq``, ``base``,
 ``first``, ``n``, ``obs``, ``out``) and the arrays of the batch as raw little-endian bytes (``obs``, ``next_obs``,
 ``action``, ``reward`` float32; ``terminated``, ``truncated``, ``intervened``, ``clipped`` uint8). A record whose
 header, length or checksum is wrong (the torn tail of a learner killed while writing) ends what is read of its
@@ -27,6 +27,7 @@ segments from that index on (:func:`read_records`).
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -36,7 +37,6 @@ import zlib
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-import msgpack
 import numpy as np
 from khgrl.common.wire.protocol import Envelope, Transitions
 
@@ -105,9 +105,9 @@ def encode_record(msg: Transitions, seq: int) -> bytes:
     :param msg: the batch
     :param seq: its seq in the actor's stream
     """
-    meta = msgpack.packb({"actor": msg.actor, "stream": msg.stream or "", "seq": int(seq),
-                          "base": int(msg.base_seq or 0), "first": int(msg.first_step), "n": msg.n,
-                          "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1])}, use_bin_type=True)
+    meta = json.dumps({"actor": msg.actor, "stream": msg.stream or "", "seq": int(seq),
+                       "base": int(msg.base_seq or 0), "first": int(msg.first_step), "n": msg.n,
+                       "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1])}).encode()
     parts = [_META.pack(len(meta)), meta]
     parts += [np.ascontiguousarray(getattr(msg, name), dtype=dt).tobytes() for name, dt, _ in ARRAYS]
     body = b"".join(parts)
@@ -116,7 +116,7 @@ def encode_record(msg: Transitions, seq: int) -> bytes:
 
 def _decode_body(body: memoryview) -> Transitions:
     (mlen,) = _META.unpack_from(body, 0)
-    meta = msgpack.unpackb(bytes(body[_META.size:_META.size + mlen]), raw=False)
+    meta = json.loads(bytes(body[_META.size:_META.size + mlen]))
     n, off = int(meta["n"]), _META.size + mlen
     arrays = {}
     for name, dt, cols in ARRAYS:
@@ -157,7 +157,7 @@ def _records(path: Path) -> Iterator[Transitions]:
             return
         try:
             msg = _decode_body(body)
-        except (ValueError, KeyError, TypeError, msgpack.UnpackException) as exc:
+        except (ValueError, KeyError, TypeError) as exc:
             log.warning("journal %s: the record at byte %d does not decode (%s); the rest is ignored", path.name, off,
                         exc)
             return

@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import khgrl.learner.loop as loop_module
+import khgrl.learner.durability as loop_module  # (where the loop's checkpoints are saved)
 import numpy as np
 import pytest
 from khgrl.common.config.settings import TQCSettings

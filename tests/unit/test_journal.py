@@ -243,7 +243,7 @@ def test_a_write_that_fails_while_a_snapshot_is_saved_keeps_the_journal_off(tmp_
 
 
 def test_ingest_goes_on_into_the_journal_while_a_full_checkpoint_is_saved(tmp_path, monkeypatch):
-    from khgrl.learner import loop as loop_module
+    from khgrl.learner import durability as loop_module
     from khgrl.learner.checkpoint import load_checkpoint_arrays
 
     loop, pub = _loop(tmp_path)
