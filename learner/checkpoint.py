@@ -49,7 +49,7 @@ from khgrl.learner.algorithm import BUFFER_FILE, DEFAULT, MODEL_FILE, algorithm_
 
 __all__ = ["STATE_FILE", "MODEL_FILE", "BUFFER_FILE", "FORMAT", "TMP_PREFIX", "MODEL_TMP_PREFIX", "CheckpointError",
            "SaveFaults", "checkpoint_dir", "model_dir", "can_resume", "copy_buffer", "find_checkpoint", "find_model",
-           "save_checkpoint", "save_model", "load_checkpoint", "load_checkpoint_arrays",
+           "newest_model", "save_checkpoint", "save_model", "load_checkpoint", "load_checkpoint_arrays",
            "remove_stale_temps", "is_disk_fault", "fault_reason"]
 
 log = logging.getLogger("khgrl.learner")
@@ -118,6 +118,25 @@ def find_model(learner_dir: str | Path) -> Path | None:
         if (d / STATE_FILE).is_file() and (d / MODEL_FILE).is_file():
             return d
     return None
+
+
+def newest_model(learner_dir: str | Path) -> Path | None:
+    """The directory of the most trained model under ``learner_dir``: the full checkpoint or the model checkpoint,
+    whichever ``state.json`` counts more training iterations in (None: neither).
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    best, most = None, -1
+    for found in (find_checkpoint(learner_dir), find_model(learner_dir)):
+        if found is None or not (found / MODEL_FILE).is_file():
+            continue
+        try:
+            iterations = int(json.loads((found / STATE_FILE).read_text()).get("iterations", 0))
+        except (OSError, ValueError, TypeError):
+            continue
+        if iterations > most:
+            best, most = found, iterations
+    return best
 
 
 def _fsync(path: Path, directory: bool = False) -> None:

@@ -141,6 +141,10 @@ def test_khgrl_up_resume_looks_in_the_checkpoint_dir(tmp_path):
 
     save_checkpoint(tmp_path / "data", _FakeModel(), {"mark": 1})
     assert not has_checkpoint(tmp_path / "run") and has_checkpoint(tmp_path / "run", str(tmp_path / "data"))
+    # a learner killed before its first full checkpoint left its journal: that is resumed too
+    (tmp_path / "run" / "learner" / "journal").mkdir(parents=True)
+    (tmp_path / "run" / "learner" / "journal" / "segment-000000.bin").write_bytes(b"")
+    assert has_checkpoint(tmp_path / "run")
 
 
 def test_save_faults_back_off_and_log_once_per_reason(caplog):

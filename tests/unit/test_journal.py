@@ -268,3 +268,16 @@ def test_ingest_goes_on_into_the_journal_while_a_full_checkpoint_is_saved(tmp_pa
     assert [a.durable for a in pub.of(Ack)][-1] == 3 and loop.trainer.total == 32
     again, _ = _loop(tmp_path, resume=True)
     assert _provenance(again) == [("a0", i) for i in range(32)] and again.streams["a0"].next_seq == 4
+
+
+def test_eval_takes_the_most_trained_model(tmp_path):
+    from khgrl.learner.checkpoint import newest_model
+
+    loop, _ = _loop(tmp_path, model_every=1)
+    for seq in range(4):
+        loop.offer(batch(seq, 8 * seq, 8))
+        loop.step()
+    learner_dir = tmp_path / "learner"
+    assert newest_model(learner_dir) == find_model(learner_dir) and find_checkpoint(learner_dir) is None
+    loop.checkpoint()
+    assert newest_model(learner_dir) == find_checkpoint(learner_dir)  # as trained as the model checkpoint, or more
