@@ -51,6 +51,7 @@ MAGIC = b"KJ01"
 _HEAD = struct.Struct("<4sII")  # magic, body length, crc32(body)
 _META = struct.Struct("<I")
 MAX_BODY = 64 * 2**20  # a length beyond this is a damaged header (a batch is at most 4 MiB on the wire)
+MAX_WAITING_BYTES = 256 * 2**20  # batches waiting for a disk that does not keep up: beyond this the journal stops
 _NAME = re.compile(r"^segment-(\d{6,})\.bin$")
 # (field, dtype, columns: "obs" / "out" / None for a vector)
 ARRAYS = (("obs", "<f4", "obs"), ("next_obs", "<f4", "obs"), ("action", "<f4", "out"), ("reward", "<f4", None),
@@ -215,6 +216,7 @@ class Journal:
         self.syncs = 0  # groups written and fsynced (this process)
         self.wake = threading.Event()  # something waits to be written
         self._pending: list[tuple[Any, Transitions]] = []
+        self._waiting_bytes = 0
         self._mu = threading.Lock()  # _pending, rows, error
         self._io = threading.Lock()  # the files (one group written at a time)
 
@@ -225,10 +227,18 @@ class Journal:
         :param stream: its actor's :class:`~khgrl.common.delivery.ingest.ActorStream` (``durable`` is raised there
             once the record is on disk)
         """
+        size = sum(getattr(msg, name).nbytes for name, _, _ in ARRAYS)
         with self._mu:
             if self.error:
                 return
+            if self._waiting_bytes + size > MAX_WAITING_BYTES:  # (a stalled disk must not cost the learner memory)
+                self.error = f"EIO {self._waiting_bytes >> 20} MiB wait for a journal disk that does not keep up"
+                self.failures += 1
+                self._pending, self._waiting_bytes = [], 0
+                log.warning("journal: %s; off until the next full checkpoint", self.error)
+                return
             self._pending.append((stream, msg))
+            self._waiting_bytes += size
             self.rows += msg.n
         self.wake.set()
 
@@ -242,7 +252,7 @@ class Journal:
         what is now on disk, or ``({}, the error)`` if the write failed (the journal then stops, see the module)."""
         with self._io:
             with self._mu:
-                items, self._pending = self._pending, []
+                items, self._pending, self._waiting_bytes = self._pending, [], 0
                 if self.error:
                     return {}, None
             if not items:
@@ -253,7 +263,7 @@ class Journal:
                 with self._mu:
                     self.error = str(exc) or type(exc).__name__
                     self.failures += 1
-                    self._pending = []
+                    self._pending, self._waiting_bytes = [], 0
                 return {}, exc
         marks: dict[int, tuple[Any, int]] = {}
         for stream, msg in items:

@@ -281,3 +281,15 @@ def test_eval_takes_the_most_trained_model(tmp_path):
     assert newest_model(learner_dir) == find_model(learner_dir) and find_checkpoint(learner_dir) is None
     loop.checkpoint()
     assert newest_model(learner_dir) == find_checkpoint(learner_dir)  # as trained as the model checkpoint, or more
+
+
+def test_a_disk_that_does_not_keep_up_stops_the_journal_not_the_memory(tmp_path, monkeypatch):
+    monkeypatch.setattr(journal_module, "MAX_WAITING_BYTES", 1000)  # 2 batches of 8 (448 bytes each)
+    j = Journal(tmp_path / "journal")
+    s = _Stream()
+    for i in range(4):  # nothing synced meanwhile (a stalled fsync)
+        j.append(batch(i, 8 * i, 8), s)
+    assert j.error.startswith("EIO") and j.waiting == 0 and j.sync() == ({}, None)
+    index, _, _ = j.cut()
+    j.snapshot_saved(index)
+    assert not j.error
