@@ -64,7 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="khgrl actor",
                                 description="Actor: steps the run's task with the current policy, applies human "
                                             "corrections, streams transitions to the learner.")
-    p.add_argument("--id", default="a0", help="actor id; actor a<i> is seeded with seed + i (default: %(default)s)")
+    p.add_argument("--id", default="a0", help="actor id; actor a<i> is seeded with seed + i, another id with seed "
+                   "+ a number made from it (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
                    help="continue this actor's part of the run in RUN_DIR/actor-ID: its transition stream, episode "
                         "numbering, episodes.csv, corrections.csv and TensorBoard carry on (default: start afresh, "
@@ -92,6 +93,7 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                               next_seq=rec.next_seq, next_index=rec.next_index, durable=rec.durable,
                               journal=lambda pos: StreamRecord(stream=rec.stream, **pos).save(out_dir),
                               window=cfg.stream.window, key=key)
+    stream.bounds = task  # a transition outside the task's value bounds is not sent (the learner would refuse it)
     khgrl = cfg.method == "khgrl"
     scale = ExplorationScale(env, actor, khgrl, link.publish)
     episodes = EpisodeLog(out_dir, resume)

@@ -51,9 +51,10 @@ BENCHMARKS: dict[str, Benchmark] = {
         _flag("--episodes", type=int, default=None, help="single-process reference episodes (default: 2; quick 1)"),
         _flag("--actor-episodes", type=int, default=None, help="episodes of the 50 Hz actor (default: 10; quick 2)"),
         _flag("--ingest-transitions", type=int, default=None,
-              help="transitions published for the ingest rate (default: 200000; quick 50000)"),
+              help="transitions published for the ingest rate, without durability and with the learner's journal "
+                   "(default: 200000; quick 50000)"),
         _flag("--ingest-checkpoint-transitions", type=int, default=None,
-              help="the same with checkpoints every 2000 (default: 100000; quick 20000)"),
+              help="the same without the journal, with full checkpoints every 2000 (default: 100000; quick 20000)"),
         _flag("--batch", type=int, default=256, help="transitions per published batch (default: %(default)s)"),
         _flag("--inflight", type=int, default=8, help="unacknowledged batches at most (default: %(default)s)"),
         _flag("--train-seconds", type=float, default=None,

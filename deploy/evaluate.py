@@ -127,16 +127,16 @@ def read_config(run_dir: Path, actor: str = "a0") -> tuple[Any, dict, Path]:
 
 def find_model(run_dir: Path, checkpoint: str | Path | None) -> Path:
     """The ``model.zip`` to evaluate: ``--checkpoint`` (a checkpoint directory, a learner directory or a
-    model.zip) or the run's newest complete learner checkpoint.
+    model.zip) or the run's most trained complete learner checkpoint (full or model checkpoint).
 
     :param run_dir: the run directory.
     :param checkpoint: what ``--checkpoint`` gave (None: the run's).
     :raises EvalError: nothing to load.
     """
-    from khgrl.learner.checkpoint import MODEL_FILE, find_checkpoint
+    from khgrl.learner.checkpoint import MODEL_FILE, newest_model
 
-    if checkpoint is None:
-        found = find_checkpoint(Path(run_dir) / "learner")
+    if checkpoint is None:  # (the full checkpoint or the model checkpoint, whichever is trained more)
+        found = newest_model(Path(run_dir) / "learner")
         if found is None or not (found / MODEL_FILE).is_file():
             raise EvalError(f"{run_dir}: no learner checkpoint in {Path(run_dir) / 'learner'} "
                             "(did the run train? give --checkpoint PATH)")

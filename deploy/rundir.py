@@ -50,14 +50,16 @@ def results_in(run_dir: Path) -> list[str]:
 
 
 def has_checkpoint(run_dir: Path, checkpoint_dir: str | Path = "") -> bool:
-    """Whether the learner left a complete checkpoint to resume from (``state.json`` in
-    ``learner/checkpoint`` or in the previous one, ``learner/checkpoint.old``).
+    """Whether the learner left something to resume from: a complete checkpoint (``state.json`` in
+    ``learner/checkpoint`` or in the previous one, ``learner/checkpoint.old``) or its journal
+    (``learner/journal/segment-*.bin``, see :func:`khgrl.learner.checkpoint.can_resume`).
 
     :param run_dir: the run directory
     :param checkpoint_dir: the learner's ``--checkpoint-dir`` (empty: ``RUN_DIR/learner``)
     """
     base = Path(checkpoint_dir) if checkpoint_dir else run_dir / "learner"
-    return any((base / d / "state.json").is_file() for d in ("checkpoint", "checkpoint.old"))
+    return any((base / d / "state.json").is_file() for d in ("checkpoint", "checkpoint.old")) or \
+        any((base / "journal").glob("segment-*.bin"))
 
 
 def clear_run(run_dir: Path) -> list[str]:

@@ -78,8 +78,10 @@ class LearnerAlgorithm(Protocol):
         ...
 
     @classmethod
-    def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str) -> LearnerAlgorithm:
-        """The algorithm and its replay buffer as :meth:`save` left them in ``directory``."""
+    def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str, *,
+             buffer: StreamReplayBuffer | None = None) -> LearnerAlgorithm:
+        """The algorithm and its replay buffer as :meth:`save` left them in ``directory``; with ``buffer``, the
+        algorithm of a model checkpoint (:meth:`save` without the buffer) with that replay buffer."""
         ...
 
     @classmethod
@@ -140,8 +142,9 @@ class LearnerAlgorithm(Protocol):
         """Write training scalars to ``folder`` in ``formats`` (SB3 logger: 'csv', 'tensorboard')."""
         ...
 
-    def save(self, directory: Path) -> list[Path]:
-        """Write :data:`MODEL_FILE` and :data:`BUFFER_FILE` into ``directory``; returns the files written."""
+    def save(self, directory: Path, *, buffer: bool | StreamReplayBuffer = True) -> list[Path]:
+        """Write :data:`MODEL_FILE` and (``buffer``) :data:`BUFFER_FILE` into ``directory`` (a buffer given: that
+        one instead of the algorithm's); returns the files written."""
         ...
 
 

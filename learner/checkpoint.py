@@ -1,29 +1,44 @@
-"""Learner checkpoints on local disk: ``CHECKPOINT_DIR/checkpoint/`` (``CHECKPOINT_DIR``: ``RUN_DIR/learner``
-unless ``--checkpoint-dir`` puts it elsewhere, e.g. on a data disk).
+"""Learner checkpoints on local disk under ``CHECKPOINT_DIR`` (``RUN_DIR/learner`` unless ``--checkpoint-dir``
+puts it elsewhere, e.g. on a data disk).
 
-A checkpoint holds what the learner algorithm saves (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.save`:
-``model.zip``, policy, optimisers, entropy coefficient; ``replay_buffer.pkl``, SB3's pickle of the
-:class:`~khgrl.learner.replay.StreamReplayBuffer`: transitions with their intervention and clip flags and
-provenance) and ``state.json`` (the algorithm's name, stream positions, counters, pending training iterations,
-weights version). A checkpoint is resumed by the algorithm that wrote it (one without a name: ``tqc``).
-It is written to a temporary directory (``checkpoint.tmp-PID``, fsynced) that is then renamed into place,
-``state.json`` last, so a crash leaves either the previous checkpoint or the new one, never a mix. The pickle
-is our own file on local disk, never anything from the wire. (SB3 is imported when a checkpoint is read, so
-that finding one is cheap.)
+Durability has three parts (the learner loop schedules them, :mod:`khgrl.learner.loop`):
 
-A resumed learner checks what it loads (:func:`load_sound_checkpoint`): a NaN or infinite parameter refuses the
-checkpoint (the learner falls back to ``checkpoint.old`` when a cut-short save left one, else exits 2 naming the
-file), and stored transitions that are not finite or lie outside the task's value bounds are dropped (logged
-with counts).
+* the **journal** (:mod:`khgrl.learner.journal`, ``journal/``): every batch stored, appended and fsynced in groups;
+  what makes an actor's batch durable (``durable`` in its acks) moments after it arrived;
+* the **model checkpoint** (:func:`save_model`, ``model/``): ``model.zip`` and ``state.json`` without the replay
+  buffer, every ``--model-checkpoint-every`` training iterations (after the journal is synced, so it never covers
+  data the journal does not hold);
+* the **full checkpoint** (:func:`save_checkpoint`, ``checkpoint/``), rare: what the learner algorithm saves
+  (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.save`: ``model.zip``, policy, optimisers, entropy
+  coefficient; ``replay_buffer.pkl``, SB3's pickle of the :class:`~khgrl.learner.replay.StreamReplayBuffer`:
+  transitions with their intervention and clip flags and provenance) and ``state.json`` (the algorithm's name,
+  stream positions, counters, pending training iterations, weights version, and ``journal.next``: the first
+  journal segment after it). Written when the journal holds a replay buffer's worth since the last one (or every
+  ``--checkpoint-every``), after a failed journal write, and at the end; the journal segments before it are then
+  deleted. With a working journal, ingest pauses only while the journal is cut and the buffer copied
+  (:func:`copy_buffer`); the copy is saved meanwhile.
+
+A resumed learner (:mod:`khgrl.learner.resume`) loads the full checkpoint, replays the journal after it, and takes
+the model checkpoint when it is newer. A checkpoint is resumed by the algorithm that wrote it (one without a name:
+``tqc``). Each is written to a temporary directory (``checkpoint.tmp-PID`` / ``model.tmp-PID``, fsynced) that is
+then renamed into place, ``state.json`` last, so a crash leaves either the previous checkpoint or the new one,
+never a mix. The pickle is our own file on local disk, never anything from the wire. (SB3 is imported when a
+checkpoint is read, so that finding one is cheap.)
+
+A resumed learner checks what it loads (:func:`~khgrl.learner.sound.load_sound_checkpoint`): a NaN or infinite
+parameter refuses the checkpoint (the learner falls back to ``checkpoint.old`` when a cut-short save left one, else
+exits 2 naming the file), and stored transitions that are not finite or lie outside the task's value bounds are
+dropped (logged with counts).
 
 Disk faults (a full, read-only or unwritable directory): a failed save removes its temporary directory and
-leaves the previous checkpoint as it was; :class:`SaveFaults` keeps the reason, counts the failures, logs them
-(not every retry) and says when to retry (exponential backoff). A learner started anew removes the temporary
-directories that killed learners left behind (:func:`remove_stale_temps`).
+leaves the previous checkpoint as it was; :class:`SaveFaults` keeps the reason, counts the failures (journal writes
+too), logs them (not every retry) and says when to retry (exponential backoff). A learner started anew removes the
+temporary directories that killed learners left behind (:func:`remove_stale_temps`).
 """
 
 from __future__ import annotations
 
+import copy
 import errno
 import json
 import logging
@@ -37,15 +52,16 @@ from typing import Any, Callable
 import numpy as np
 from khgrl.learner.algorithm import BUFFER_FILE, DEFAULT, MODEL_FILE, algorithm_class
 
-__all__ = ["STATE_FILE", "MODEL_FILE", "BUFFER_FILE", "FORMAT", "TMP_PREFIX", "CheckpointError", "SaveFaults",
-           "checkpoint_dir", "find_checkpoint", "save_checkpoint", "load_checkpoint", "load_checkpoint_arrays",
-           "load_sound_checkpoint", "drop_bad_rows",
+__all__ = ["STATE_FILE", "MODEL_FILE", "BUFFER_FILE", "FORMAT", "TMP_PREFIX", "MODEL_TMP_PREFIX", "CheckpointError",
+           "SaveFaults", "checkpoint_dir", "model_dir", "can_resume", "copy_buffer", "find_checkpoint", "find_model",
+           "newest_model", "save_checkpoint", "save_model", "load_checkpoint", "load_checkpoint_arrays",
            "remove_stale_temps", "is_disk_fault", "fault_reason"]
 
 log = logging.getLogger("khgrl.learner")
 
 STATE_FILE = "state.json"
 TMP_PREFIX = "checkpoint.tmp-"  # + the PID of the learner writing it
+MODEL_TMP_PREFIX = "model.tmp-"  # (the model checkpoint's)
 FORMAT = 2  # 1: side arrays in .npy files beside the buffer; 2: inside the replay buffer pickle
 RETRY_FIRST_S = 1.0  # a failed save is retried after 1 s, 2 s, 4 s, ... up to RETRY_MAX_S
 RETRY_MAX_S = 30.0
@@ -65,8 +81,17 @@ def checkpoint_dir(learner_dir: str | Path) -> Path:
     return Path(learner_dir) / "checkpoint"
 
 
-def _old_dir(learner_dir: str | Path) -> Path:
-    return Path(learner_dir) / "checkpoint.old"
+def model_dir(learner_dir: str | Path) -> Path:
+    """Where the learner of ``learner_dir`` keeps its model checkpoint (``model.zip`` and ``state.json``, no
+    replay buffer).
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    return Path(learner_dir) / "model"
+
+
+def _old_dir(learner_dir: str | Path, name: str = "checkpoint") -> Path:
+    return Path(learner_dir) / f"{name}.old"
 
 
 def find_checkpoint(learner_dir: str | Path) -> Path | None:
@@ -81,6 +106,44 @@ def find_checkpoint(learner_dir: str | Path) -> Path | None:
     return None
 
 
+def can_resume(learner_dir: str | Path) -> bool:
+    """Whether a learner can be resumed from ``learner_dir``: a full checkpoint or a journal segment is there.
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    return find_checkpoint(learner_dir) is not None or any((Path(learner_dir) / "journal").glob("segment-*.bin"))
+
+
+def find_model(learner_dir: str | Path) -> Path | None:
+    """The newest complete model checkpoint under ``learner_dir`` (``model/``, else ``model.old/``), or None.
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    for d in (model_dir(learner_dir), _old_dir(learner_dir, "model")):
+        if (d / STATE_FILE).is_file() and (d / MODEL_FILE).is_file():
+            return d
+    return None
+
+
+def newest_model(learner_dir: str | Path) -> Path | None:
+    """The directory of the most trained model under ``learner_dir``: the full checkpoint or the model checkpoint,
+    whichever ``state.json`` counts more training iterations in (None: neither).
+
+    :param learner_dir: the learner's checkpoint directory
+    """
+    best, most = None, -1
+    for found in (find_checkpoint(learner_dir), find_model(learner_dir)):
+        if found is None or not (found / MODEL_FILE).is_file():
+            continue
+        try:
+            iterations = int(json.loads((found / STATE_FILE).read_text()).get("iterations", 0))
+        except (OSError, ValueError, TypeError):
+            continue
+        if iterations > most:
+            best, most = found, iterations
+    return best
+
+
 def _fsync(path: Path, directory: bool = False) -> None:
     """Flush a file (or a directory's entries) to the disk; a filesystem that cannot fsync a directory is let be."""
     fd = os.open(path, os.O_RDONLY)
@@ -93,11 +156,24 @@ def _fsync(path: Path, directory: bool = False) -> None:
         os.close(fd)
 
 
-def _write(tmp: Path, algo: Any, state: dict[str, Any]) -> None:
+def copy_buffer(buffer: Any) -> Any:
+    """A copy of a replay buffer (its arrays copied, under its lock) to save while the live one takes more.
+
+    :param buffer: the :class:`~khgrl.learner.replay.StreamReplayBuffer`
+    """
+    with buffer.lock:
+        out = copy.copy(buffer)
+        for name, value in vars(buffer).items():
+            if isinstance(value, np.ndarray):
+                setattr(out, name, value.copy())
+    return out
+
+
+def _write(tmp: Path, algo: Any, state: dict[str, Any], buffer: Any = True) -> None:
     if tmp.exists():
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
-    for path in algo.save(tmp):
+    for path in (algo.save(tmp) if buffer is True else algo.save(tmp, buffer=buffer)):
         _fsync(path)
     with open(tmp / STATE_FILE, "w") as fh:  # written last: a checkpoint without it is incomplete
         json.dump({"format": FORMAT, "time": time.time(), **state}, fh, indent=1)
@@ -105,9 +181,9 @@ def _write(tmp: Path, algo: Any, state: dict[str, Any]) -> None:
         os.fsync(fh.fileno())
 
 
-def _swap_in(learner_dir: Path, tmp: Path) -> Path:
-    """Rename ``tmp`` to ``checkpoint/``; the previous one is ``checkpoint.old/`` until the new one is in place."""
-    final, old = checkpoint_dir(learner_dir), _old_dir(learner_dir)
+def _swap_in(learner_dir: Path, tmp: Path, name: str = "checkpoint") -> Path:
+    """Rename ``tmp`` to ``NAME/``; the previous one is ``NAME.old/`` until the new one is in place."""
+    final, old = learner_dir / name, _old_dir(learner_dir, name)
     if final.exists():
         if old.exists():
             shutil.rmtree(old)
@@ -118,7 +194,7 @@ def _swap_in(learner_dir: Path, tmp: Path) -> Path:
     return final
 
 
-def save_checkpoint(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -> Path:
+def save_checkpoint(learner_dir: str | Path, algo: Any, state: dict[str, Any], buffer: Any = None) -> Path:
     """Write model, replay buffer and ``state`` to a temporary directory, then rename it to ``checkpoint/``
     (the previous checkpoint is kept until then). On any error the temporary directory is removed, the previous
     checkpoint is left as it was, and the error is raised (:func:`is_disk_fault` tells a disk fault).
@@ -127,12 +203,27 @@ def save_checkpoint(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -
     :param algo: the learner algorithm (:class:`~khgrl.learner.algorithm.LearnerAlgorithm`; its replay buffer is
         saved with it)
     :param state: JSON-able counters and stream positions (``format`` and ``time`` are added)
+    :param buffer: the replay buffer to save (a :func:`copy_buffer` taken with ``state``; None: the algorithm's)
     """
-    learner_dir = Path(learner_dir)
-    tmp = learner_dir / f"{TMP_PREFIX}{os.getpid()}"
+    return _save(Path(learner_dir), algo, state, "checkpoint", TMP_PREFIX, buffer=True if buffer is None else buffer)
+
+
+def save_model(learner_dir: str | Path, algo: Any, state: dict[str, Any]) -> Path:
+    """The model checkpoint: ``model.zip`` and ``state`` (no replay buffer: the last full checkpoint and the
+    journal hold the data), written like :func:`save_checkpoint` to ``model/``.
+
+    :param learner_dir: the learner's checkpoint directory
+    :param algo: the learner algorithm
+    :param state: JSON-able counters (the trainer's state)
+    """
+    return _save(Path(learner_dir), algo, state, "model", MODEL_TMP_PREFIX, buffer=False)
+
+
+def _save(learner_dir: Path, algo: Any, state: dict[str, Any], name: str, prefix: str, buffer: Any) -> Path:
+    tmp = learner_dir / f"{prefix}{os.getpid()}"
     try:
-        _write(tmp, algo, state)
-        return _swap_in(learner_dir, tmp)
+        _write(tmp, algo, state, buffer)
+        return _swap_in(learner_dir, tmp, name)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -159,8 +250,8 @@ def remove_stale_temps(learner_dir: str | Path) -> list[Path]:
     directory = Path(learner_dir)
     if not directory.is_dir():
         return removed
-    for path in sorted(directory.glob(TMP_PREFIX + "*")):
-        pid = path.name[len(TMP_PREFIX):]
+    for path in sorted([*directory.glob(TMP_PREFIX + "*"), *directory.glob(MODEL_TMP_PREFIX + "*")]):
+        pid = path.name.rpartition("-")[2]
         if pid.isdigit() and int(pid) != os.getpid() and _pid_alive(int(pid)):
             log.warning("left %s alone: process %s is running", path, pid)
             continue
@@ -218,11 +309,12 @@ class SaveFaults:
         """Whether a save may be tried now (always, unless a failed one waits out its backoff)."""
         return self.clock() >= self.retry_at
 
-    def failed(self, exc: BaseException, unsaved: int) -> float:
+    def failed(self, exc: BaseException, unsaved: int, what: str = "checkpoint") -> float:
         """A save failed: note it, log it (rate-limited), and return the seconds until the retry.
 
         :param exc: the disk fault
-        :param unsaved: transitions accepted since the last checkpoint (not durable)
+        :param unsaved: transitions accepted that no checkpoint or journal holds (not durable)
+        :param what: what failed ('checkpoint', 'model checkpoint', 'journal write')
         """
         now, reason = self.clock(), fault_reason(exc)
         if self.streak == 0:
@@ -233,9 +325,9 @@ class SaveFaults:
         self.retry_at = now + delay
         if reason != self.error or now - self._warned_at >= WARN_EVERY_S:
             self._warned_at = now
-            log.warning("checkpoint failed (%s); %d failed attempts in %.0f s; training and ingest go on, %d "
+            log.warning("%s failed (%s); %d failed attempts in %.0f s; training and ingest go on, %d "
                         "transitions are not durable and the actors keep them until a checkpoint holds them; "
-                        "retrying in %.0f s (then at most every %.0f s)", reason, self.streak, now - self._since,
+                        "retrying in %.0f s (then at most every %.0f s)", what, reason, self.streak, now - self._since,
                         unsaved, delay, RETRY_MAX_S)
         self.error = reason
         return delay
@@ -270,80 +362,6 @@ def load_checkpoint(ckpt: str | Path, task: Any, settings: Any, device: str = "c
         return algorithm_class(algo).load(ckpt, task, settings, device), state
     except ValueError as exc:
         raise CheckpointError(f"{ckpt}: {exc}") from None
-
-
-def load_sound_checkpoint(learner_dir: str | Path, task: Any, settings: Any, device: str = "cpu",
-                          algo: str = DEFAULT) -> tuple[Any, dict[str, Any], Path]:
-    """The newest checkpoint whose parameters are all finite (:func:`load_checkpoint`), with the stored transitions
-    that are not finite or lie outside the task's bounds dropped from its replay buffer (:func:`drop_bad_rows`,
-    logged with counts). A checkpoint with a NaN or infinite parameter is refused; the learner falls back to
-    ``checkpoint.old`` where a save was cut short after the new one was in place (that one holds everything the
-    acks called durable: they follow the rename), else it raises.
-
-    :param learner_dir: the learner's checkpoint directory (``RUN_DIR/learner`` or its ``--checkpoint-dir``)
-    :param task: the run's task descriptor (spaces, value bounds; None: the passage world, finiteness only)
-    :param settings: the run's learner settings
-    :param device: the torch device to train on
-    :param algo: the run's ``--algo``
-    :raises CheckpointError: no checkpoint, or none with finite parameters (naming the file and the parameter)
-    """
-    ckpt = find_checkpoint(learner_dir)
-    if ckpt is None:
-        raise CheckpointError(f"--resume: no checkpoint under {learner_dir}")
-    model, state = load_checkpoint(ckpt, task, settings, device, algo)
-    fault = model.fault()
-    if fault is not None:
-        refused = (f"{ckpt / MODEL_FILE}: {fault} is not finite (NaN or inf): a learner does not resume from it "
-                   f"(move {ckpt} away to start the learner afresh)")
-        old = _old_dir(learner_dir)
-        if ckpt == old or not (old / STATE_FILE).is_file():
-            raise CheckpointError(refused)
-        log.error("%s; trying the previous checkpoint %s", refused, old)
-        try:
-            model, state = load_checkpoint(old, task, settings, device, algo)
-        except Exception as exc:  # noqa: BLE001 - a half-removed old checkpoint: the first refusal is the error
-            raise CheckpointError(f"{refused}; the previous one, {old}, does not load either ({exc})") from None
-        if model.fault() is not None:
-            raise CheckpointError(f"{refused}; the previous one, {old}, is not finite either ({model.fault()})")
-        ckpt = old
-    dropped = drop_bad_rows(model.buffer, task)
-    if dropped:
-        log.warning("%s: dropped %d of the stored transitions (by actor code: %s): a value not finite or outside the "
-                    "task's bounds (%d kept)", ckpt / BUFFER_FILE, sum(dropped.values()), dropped,
-                    model.buffer.pos)
-    return model, state, ckpt
-
-
-_BUFFER_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
-
-
-def drop_bad_rows(buffer: Any, task: Any) -> dict[int, int]:
-    """Remove the stored transitions :func:`~khgrl.common.wire.bounds.bad_rows` flags from a replay buffer: the
-    others move to its front in their order (oldest first), the buffer is then not full, its position after them
-    and the freed slots empty (provenance -1). Returns the transitions dropped per provenance code (empty: none).
-
-    :param buffer: a :class:`~khgrl.learner.replay.StreamReplayBuffer`
-    :param task: the run's task descriptor (None: finiteness and +-1e12 only)
-    """
-    from khgrl.common.wire.bounds import bad_rows
-
-    size = buffer.buffer_size if buffer.full else buffer.pos
-    if size == 0:
-        return {}
-    with buffer.lock:
-        bad = bad_rows({"obs": buffer.observations[:size], "next_obs": buffer.next_observations[:size],
-                        "action": buffer.actions[:size], "reward": buffer.rewards[:size]}, task)
-        if not bad.any():
-            return {}
-        codes, counts = np.unique(buffer.provenance_actor[:size][bad], return_counts=True)
-        order = np.arange(size) if not buffer.full else np.roll(np.arange(size), -buffer.pos)  # oldest first
-        keep = order[~bad[order]]
-        arrays = [getattr(buffer, name) for name in _BUFFER_ARRAYS] + list(buffer.side_arrays().values())
-        for arr in arrays:
-            arr[:len(keep)] = arr[keep]
-            arr[len(keep):] = -1 if arr is buffer.provenance_actor or arr is buffer.provenance_step else 0
-        buffer.pos, buffer.full = len(keep), False
-    return {int(c): int(n) for c, n in zip(codes, counts)}
 
 
 def load_checkpoint_arrays(ckpt: str | Path) -> dict[str, np.ndarray]:

@@ -5,7 +5,10 @@
 stores accepted batches in the replay buffer (``trainer.add``) and acks their actors; it never waits for a gradient
 step. The calling thread trains -- one due iteration at a time (``simulation`` mode: the schedule of SB3's
 ``learn()``; ``robot`` mode: whenever it is free, on everything stored) -- publishes the new weights and acks every
-actor, checkpoints when due or asked to (ingest pauses meanwhile), and publishes a status about once a second.
+actor, checkpoints when due or asked to, and publishes a status about once a second.
+
+Durability -- the journal (synced by its own *journal thread*), the model checkpoint and the rare full checkpoint --
+is :attr:`LearnerLoop.durable` (:class:`~khgrl.learner.durability.Durability`).
 
 Unit tests drive the same steps in one thread: :meth:`LearnerLoop.offer` / :meth:`LearnerLoop.control` with decoded
 messages (or :meth:`LearnerLoop.receive` with payload bytes), then :meth:`LearnerLoop.step`, with a publisher that
@@ -15,6 +18,7 @@ collects the typed messages.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -25,7 +29,9 @@ from khgrl.common.delivery.learner_side import IDLE_WAIT_S, LearnerIngest
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import LearnerInfo
 from khgrl.common.wire.protocol import Control, Status
-from khgrl.learner.checkpoint import SaveFaults, fault_reason, is_disk_fault, save_checkpoint
+from khgrl.learner.checkpoint import fault_reason
+from khgrl.learner.durability import Durability
+from khgrl.learner.journal import Journal
 from khgrl.learner.resume import open_learner, rss_mb
 from khgrl.learner.trainer import Trainer
 
@@ -43,17 +49,24 @@ class LearnerLoop:
     def __init__(self, trainer: Trainer, streams: StreamTable, publisher: Publisher, *, learner_id: str,
                  learner_dir: str | Path, checkpoint_every: int, flag: StopFlag,
                  clock: Callable[[], float] = time.monotonic, checkpoint_dir: str | Path | None = None,
-                 mode: str = "simulation", lead_cap: int | None = None, key: bytes | None = None) -> None:
+                 mode: str = "simulation", journal: Journal | None = None, model_checkpoint_every: int = 0,
+                 snapshot_rows: int | None = None, lead_cap: int | None = None, key: bytes | None = None) -> None:
         """:param trainer: the model and its schedule
         :param streams: the actor streams (empty, or from a checkpoint)
         :param publisher: where acks, weights and status go
         :param learner_id: this learner's id (status)
         :param learner_dir: ``RUN_DIR/learner`` (checkpoints)
-        :param checkpoint_every: checkpoint every N ingested transitions (0: only when asked and at the end)
+        :param checkpoint_every: full checkpoint every N ingested transitions (0: the journal's schedule; without a
+            journal, only when asked and at the end)
         :param flag: the process's stop flag (a ``stop`` command sets it)
         :param clock: monotonic seconds (status period, checkpoint retries)
         :param checkpoint_dir: where checkpoints go (None: ``learner_dir``)
         :param mode: ``simulation`` (iterations come due with the data) or ``robot`` (train whenever free)
+        :param journal: the journal of stored batches (None: only full checkpoints make batches durable)
+        :param model_checkpoint_every: with a journal, save the model every N training iterations (0: only in
+            full checkpoints)
+        :param snapshot_rows: with a journal, a full checkpoint once it holds this many transitions since the last
+            one (None: the replay buffer's size)
         :param lead_cap: simulation mode: transitions of an actor stored ahead of what trained weights cover, at
             most (:attr:`~khgrl.common.delivery.learner_side.LearnerIngest.lead_cap`; None: no cap)
         :param key: the run's key: batches without its ``mac`` are refused (None: none checked)
@@ -62,20 +75,19 @@ class LearnerLoop:
         self.id = learner_id
         self.dir = Path(learner_dir)
         self.ckpt_dir = Path(checkpoint_dir or learner_dir)
-        self.saves = SaveFaults(clock)  # failed checkpoint saves (disk faults) and their retry backoff
-        self.checkpoint_every = int(checkpoint_every)
+        self.durable = dur = Durability(trainer, streams, self.ckpt_dir, checkpoint_every=checkpoint_every, clock=clock,
+                                        journal=journal, model_every=model_checkpoint_every,
+                                        snapshot_rows=snapshot_rows)
         self.flag = flag
         self.clock = clock
         self.paused = False
-        self.checkpoint_requested = False
-        self.checkpoints = 0
-        self.last_ckpt_total = trainer.total
         self.train_time = 0.0
         self.scalar_faults = 0  # training scalars the SB3 logger could not write
         self.mode = mode
         trainer.schedule = mode == "simulation"
-        self.ingest = ing = LearnerIngest(streams, publisher, store=trainer.add, ack_of=trainer.ack,
-                                          on_control=self.control, learner_id=learner_id, flag=flag, key=key)
+        self.ingest = dur.ingest = ing = LearnerIngest(streams, publisher, store=dur.store, ack_of=trainer.ack,
+                                                       on_control=self.control, learner_id=learner_id, flag=flag,
+                                                       key=key)
         ing.lead_cap = lead_cap if mode == "simulation" else None
         trainer.buffer.stream_codes = streams.codes  # (the replay buffer's shares are per actor id)
         self.receive, self.offer, self.set_task, self.ack_all = ing.receive, ing.offer, ing.set_task, ing.ack_all
@@ -113,19 +125,16 @@ class LearnerLoop:
         self.ack_all()
 
     def step(self) -> None:
-        """After messages were taken in: ack, then :meth:`work`."""
+        """After messages were taken in: ack, sync the journal (what the journal thread does), then :meth:`work`."""
         self.ingest.ack_touched()
+        self.sync_journal()
         self.work()
 
     def work(self) -> bool:
         """Train one iteration (unless paused; simulation mode: if one is due), checkpoint when due (after a failed
         save: once its retry is due), publish status when its time has come. Returns whether it trained."""
         trained = not self.paused and (self.mode == "robot" or bool(self.trainer.due)) and self.train()
-        every = self.checkpoint_every
-        due = self.checkpoint_requested or (every > 0 and self.trainer.total - self.last_ckpt_total >= every)
-        if due and self.saves.ready():
-            self.checkpoint_requested = False
-            self.checkpoint()
+        self.durable.work()
         if self.clock() - self._status_t >= STATUS_EVERY_S:
             self.publish_status()
         return trained
@@ -154,31 +163,24 @@ class LearnerLoop:
                             self.scalar_faults)
         return True
 
+    # ------------------------------------------------------------------------------------ durability
     def checkpoint(self) -> Path | None:
-        """Save a checkpoint of everything accepted so far, then tell every actor (``durable`` in the acks). A disk
-        fault (full, read-only, unwritable) leaves the previous checkpoint and marks nothing durable: it is logged,
-        shown in the status, retried with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`), and None returned."""
-        with self.lock:  # ingest waits (the inbox holds what arrives): the buffer is saved as the acks will say
-            return self._checkpoint()
+        """A full checkpoint now (:meth:`~khgrl.learner.durability.Durability.checkpoint`); None if it failed."""
+        return self.durable.checkpoint()
 
-    def _checkpoint(self) -> Path | None:
-        t0 = time.perf_counter()
-        tr = self.trainer
-        try:
-            path = save_checkpoint(self.ckpt_dir, tr.algo, {**tr.state(), **self.streams.state()})
-        except Exception as exc:
-            if not is_disk_fault(exc):
-                raise
-            self.saves.failed(exc, tr.total - self.last_ckpt_total)
-            return None
-        self.saves.succeeded()
-        self.streams.mark_durable()
-        self.last_ckpt_total = tr.total
-        self.checkpoints += 1
-        log.info("checkpoint %d: %d transitions, version %d, %d iterations (%.2f s)", self.checkpoints, tr.total,
-                 tr.version, tr.iterations, time.perf_counter() - t0)
-        self.ack_all()
-        return path
+    @property
+    def checkpoint_requested(self) -> bool:
+        """A ``checkpoint`` command waits to be served."""
+        return self.durable.checkpoint_requested
+
+    @checkpoint_requested.setter
+    def checkpoint_requested(self, value: bool) -> None:
+        self.durable.checkpoint_requested = value
+
+    def __getattr__(self, name: str) -> Any:  # checkpoints, saves, journal, sync_journal, not_durable, ...
+        if name == "durable":
+            raise AttributeError(name)
+        return getattr(self.durable, name)
 
     def info(self) -> LearnerInfo:
         """This learner's status (the rate: gradient steps per second since the previous call)."""
@@ -204,6 +206,10 @@ class LearnerLoop:
         :param inbox: where the learner's link files transitions and control messages (the ingest thread's)
         """
         ingest = self.ingest.start(inbox)
+        syncer = None
+        if self.journal is not None:
+            syncer = threading.Thread(target=self.durable.sync_loop, args=(self.flag,), name="journal", daemon=True)
+            syncer.start()
         try:
             while not self.flag:
                 if not self.work():
@@ -212,11 +218,13 @@ class LearnerLoop:
         finally:
             self.flag.set("stop")
             ingest.join(10.0)
+            if syncer is not None:
+                syncer.join(10.0)
 
     def summary(self) -> dict[str, Any]:
         """Totals for the log line at the end."""
         tr = self.trainer
         return {"transitions": tr.total, "iterations": tr.iterations, "gradient_steps": tr.gradient_steps,
                 "train_s": round(self.train_time, 1), "version": tr.version, "rollbacks": tr.rollbacks,
-                "rejected": self.rejects.by_kind(),
-                "offers": dict(self.ingest.results), "not_admitted_dropped": self.ingest.dropped}
+                "rejected": self.rejects.by_kind(), "offers": dict(self.ingest.results),
+                "not_admitted_dropped": self.ingest.dropped, **self.durable.summary()}

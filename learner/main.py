@@ -11,10 +11,13 @@ token) files the payload in an inbox; the ingest thread (:class:`~khgrl.common.d
 decodes and checks it, orders it into its actor's stream (:mod:`khgrl.common.delivery.ingest`) and hands it to
 :mod:`khgrl.learner.trainer`, which stores it in the replay buffer (:mod:`khgrl.learner.replay`);
 :mod:`khgrl.learner.loop` trains when an iteration is due; acks and weights go out through the link's publisher;
-:mod:`khgrl.learner.checkpoint` saves and loads everything in ``RUN_DIR/learner/checkpoint`` (or
-``CHECKPOINT_DIR/checkpoint`` with ``--checkpoint-dir``). A checkpoint that fails on a full or unwritable disk is
-logged, shown in the status and retried while training goes on; if the final one fails the learner says so and exits
-with 1. A router not reached within ``--connect-timeout`` is one error line naming it (exit 1).
+:mod:`khgrl.learner.journal` appends every stored batch to fsync'd segments in ``CHECKPOINT_DIR/journal`` (what
+makes it durable for its actor); :mod:`khgrl.learner.checkpoint` saves the model on its own schedule
+(``CHECKPOINT_DIR/model``) and, rarely, everything (``CHECKPOINT_DIR/checkpoint``; ``CHECKPOINT_DIR`` is
+``RUN_DIR/learner`` unless ``--checkpoint-dir`` says); :mod:`khgrl.learner.resume` loads them and replays the
+journal. A journal write or checkpoint that fails on a full or unwritable disk is logged, shown in the status and
+retried while training goes on; if the final checkpoint fails the learner says so and exits with 1.
+A router not reached within ``--connect-timeout`` is one error line naming it (exit 1).
 
 One learner per run: a learner whose id is alive on the router (its liveliness token ``alive/learner/<id>/*``,
 waited for up to the lease plus :data:`START_CHECK_S` to go, as a killed learner's does) refuses to start (one
@@ -38,7 +41,7 @@ from khgrl.common.delivery.transport import open_client
 from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
 from khgrl.common.wire.protocol import Keys
 from khgrl.learner.algorithm import check_algorithm
-from khgrl.learner.checkpoint import CheckpointError, find_checkpoint
+from khgrl.learner.checkpoint import CheckpointError, can_resume
 
 if TYPE_CHECKING:
     from khgrl.learner.loop import LearnerLoop
@@ -57,8 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_process_flags(p, "learner")  # the settings whose roles name the learner
     p.add_argument("--id", default="learner", help="learner id (default: %(default)s)")
     p.add_argument("--resume", action="store_true",
-                   help="continue from the checkpoint in RUN_DIR/learner (or --checkpoint-dir; an error if there is "
-                        "none; default: start afresh)")
+                   help="continue from the checkpoint and journal in RUN_DIR/learner (or --checkpoint-dir; an error "
+                        "if there is neither; default: start afresh, removing an earlier learner's checkpoints)")
     return p
 
 
@@ -84,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(exc)
     learner_dir = Path(pc.cfg.run_dir) / "learner"
     ckpt_dir = Path(pc.cfg.checkpoint_dir) if pc.cfg.checkpoint_dir else learner_dir
-    if args.resume and find_checkpoint(ckpt_dir) is None:
+    if args.resume and not can_resume(ckpt_dir):
         return _fail(f"--resume: no checkpoint under {ckpt_dir}")
     try:
         return run(pc, keys, args.id, learner_dir, resume=args.resume)
@@ -104,6 +107,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     import torch  # (imported here: --help and flag errors answer at once)
     from khgrl.common.delivery import run_key
     from khgrl.common.delivery.learner_link import LearnerLink
+    from khgrl.learner.journal import Journal, journal_dir
     from khgrl.learner.loop import LearnerLoop
     from khgrl.learner.resume import open_learner
     from khgrl.learner.trainer import torch_device
@@ -145,10 +149,12 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
                                         task=task, checkpoint_dir=cfg.checkpoint_dir or None, algo=cfg.algo)
         log.info("task %s (O = %d, %d observations, digest %s); epoch %s, learning_starts %d, training on %s",
                  task.name, task.out_dim, task.obs_dim, task.digest, trainer.epoch, trainer.learning_starts, device)
+        journal = Journal(journal_dir(cfg.checkpoint_dir or learner_dir)) if cfg.stream.journal else None
         link = LearnerLink(session, keys, learner_id, task, key=key)
         loop = LearnerLoop(trainer, streams, link.publisher, learner_id=learner_id, learner_dir=learner_dir,
                            checkpoint_every=cfg.stream.checkpoint_every, flag=flag,
-                           checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode,
+                           checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode, journal=journal,
+                           model_checkpoint_every=cfg.stream.model_checkpoint_every,
                            lead_cap=lead_cap(cfg.stream), key=key)
         loop.set_task(task)
         loop.start()
@@ -181,15 +187,15 @@ def _final_checkpoint_failed(loop: LearnerLoop) -> int:
 
     :param loop: the learner loop whose final :meth:`~khgrl.learner.loop.LearnerLoop.checkpoint` failed
     """
-    unsaved = loop.trainer.total - loop.last_ckpt_total
+    unsaved = loop.not_durable()
     message = f"the final checkpoint in {loop.ckpt_dir} failed ({loop.saves.error}): "
     if unsaved:
-        message += (f"the {unsaved} transitions received since the last checkpoint are not in it. Running actors "
-                    f"keep every batch a checkpoint does not hold (acks never said durable) and re-send it to a "
+        message += (f"the {unsaved} transitions received that neither the last checkpoint nor the journal holds are "
+                    f"lost here. Running actors keep every batch that acks never said durable and re-send it to a "
                     f"learner restarted with --resume once the disk is fixed")
     else:
-        message += ("the last checkpoint holds every transition received, but not the training since it (a learner "
-                    "restarted with --resume trains from there)")
+        message += ("the last checkpoint and the journal hold every transition received, but not the training since "
+                    "the last model checkpoint (a learner restarted with --resume trains from there)")
     log.error("%s", message)
     print(f"khgrl learner: error: {message}", file=sys.stderr, flush=True)
     return 1

@@ -1,39 +1,63 @@
-"""A learner's start: a fresh algorithm (``--algo``) and stream table, or both as the newest checkpoint left them
-(``--resume``)."""
+"""A learner's start: a fresh algorithm (``--algo``) and stream table, or (``--resume``) both as the learner left
+them on disk -- the last full checkpoint (model, replay buffer, stream positions), then the journal's batches
+after it replayed in order into the replay buffer and the stream table (each row checked, see
+:data:`DEFAULT_ROW_CHECK`), then the newest model checkpoint when it fits what was replayed."""
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import shutil
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 from khgrl.common.config.settings import TQCSettings
 from khgrl.common.delivery.ingest import StreamTable
-from khgrl.learner.algorithm import DEFAULT
-from khgrl.learner.checkpoint import fault_reason, load_sound_checkpoint, remove_stale_temps
+from khgrl.common.wire.bounds import bad_rows
+from khgrl.learner.algorithm import DEFAULT, algorithm_class
+from khgrl.learner.checkpoint import (
+    STATE_FILE,
+    CheckpointError,
+    fault_reason,
+    find_checkpoint,
+    find_model,
+    remove_stale_temps,
+)
+from khgrl.learner.journal import ARRAYS, RowCheck, journal_dir, read_records, segments
+from khgrl.learner.sound import load_sound_checkpoint
 from khgrl.learner.trainer import Trainer, build_algorithm, keep_freed_memory, torch_device
 
-__all__ = ["open_learner", "rss_mb"]
+__all__ = ["open_learner", "replay_journal", "rss_mb", "DEFAULT_ROW_CHECK"]
 
 log = logging.getLogger("khgrl.learner")
+
+# The check of every journal row a resumed learner replays (see RowCheck; another per call through
+# open_learner(row_check=...)).
+DEFAULT_ROW_CHECK: RowCheck = bad_rows  # finite, and within the task's value bounds
 
 
 def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume: bool,
                  logger_formats: tuple[str, ...] = ("csv", "tensorboard"), task=None,
-                 checkpoint_dir: str | Path | None = None, algo: str = DEFAULT) -> tuple[Trainer, StreamTable]:
-    """A fresh model and empty stream table, or (``resume``) both as the newest checkpoint left them. Temporary
-    checkpoint directories that killed learners left behind are removed first.
+                 checkpoint_dir: str | Path | None = None, algo: str = DEFAULT,
+                 row_check: RowCheck | None = None) -> tuple[Trainer, StreamTable]:
+    """A fresh model and empty stream table, or (``resume``) both as the learner left them: the last full
+    checkpoint, the journal after it, the newest model checkpoint that fits (the module's docstring). Temporary
+    checkpoint directories that killed learners left behind are removed first; a fresh start also removes the
+    checkpoints and journal of an earlier learner there (a later ``--resume`` must not mix them with this one's).
 
     :param tqc: the run's TQC settings (schedule: ``learning_starts``, ``train_freq``)
-    :param seed: the model's seed (a fresh model only)
+    :param seed: the model's seed (a fresh model; also one resumed from a journal without a full checkpoint)
     :param learner_dir: ``RUN_DIR/learner`` (checkpoint, SB3 logs under ``tb/``)
     :param resume: continue from the checkpoint (:class:`~khgrl.learner.checkpoint.CheckpointError` if there is
-        none, or its parameters are not finite: :func:`~khgrl.learner.checkpoint.load_sound_checkpoint`; stored
+        none, or its parameters are not finite: :func:`~khgrl.learner.sound.load_sound_checkpoint`; stored
         transitions out of the task's bounds are dropped)
     :param logger_formats: SB3 logger output formats
     :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (None: the passage world's spaces)
     :param checkpoint_dir: where the checkpoints are (None: ``learner_dir``)
     :param algo: the learner algorithm's registered name (``--algo``; a checkpoint must be of the same)
+    :param row_check: the check of each replayed journal row (None: :data:`DEFAULT_ROW_CHECK`)
     """
     learner_dir = Path(learner_dir)
     learner_dir.mkdir(parents=True, exist_ok=True)
@@ -43,15 +67,112 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     kw = dict(learning_starts=tqc.learning_starts, train_freq=tqc.train_freq, log_dir=learner_dir / "tb",
               logger_formats=logger_formats)
     if not resume:
+        _remove_earlier(ckpt_dir)
         log.info("learner algorithm %s, seed %d", algo, seed)
         return Trainer(build_algorithm(tqc, seed, task, algo), **kw), StreamTable()
-    model, state, ckpt = load_sound_checkpoint(ckpt_dir, task, tqc, torch_device(tqc.device), algo)
-    trainer, streams = Trainer(model, **kw), StreamTable.from_state(state)
-    trainer.restore(state)
-    log.info("%s resumed from %s: %d transitions (buffer pos %d), version %d, %d iterations, actors %s", algo, ckpt,
-             trainer.total, trainer.buffer.pos, trainer.version, trainer.iterations,
+    ckpt, jdir = find_checkpoint(ckpt_dir), journal_dir(ckpt_dir)
+    device = torch_device(tqc.device)
+    if ckpt is not None:
+        model, state, ckpt = load_sound_checkpoint(ckpt_dir, task, tqc, device, algo)  # (finite, rows in bounds)
+        trainer, streams = Trainer(model, **kw), StreamTable.from_state(state)
+        trainer.restore(state)
+        start = state["journal"]["next"] if isinstance(state.get("journal"), dict) else None
+    elif segments(jdir):
+        log.info("no full checkpoint under %s: a fresh model (seed %d) and the whole journal", ckpt_dir, seed)
+        trainer, streams, start = Trainer(build_algorithm(tqc, seed, task, algo), **kw), StreamTable(), 0
+    else:
+        raise CheckpointError(f"--resume: no checkpoint under {ckpt_dir}")
+    base = trainer.total
+    if start is not None:
+        replay_journal(trainer, streams, jdir, int(start), row_check or DEFAULT_ROW_CHECK, task)
+        streams.mark_durable()  # everything replayed is on disk
+    _adopt_model(trainer, ckpt_dir, base, task, tqc, device, algo, kw)
+    log.info("%s resumed from %s: %d transitions (buffer pos %d), version %d, %d iterations, actors %s", algo,
+             ckpt or jdir, trainer.total, trainer.buffer.pos, trainer.version, trainer.iterations,
              {a: streams[a].next_seq for a in streams})
     return trainer, streams
+
+
+def replay_journal(trainer: Trainer, streams: StreamTable, directory: Path, start: int, row_check: RowCheck,
+                   task: Any = None) -> tuple[int, int]:
+    """Store the journal's batches from segment ``start`` on, in order, as the ingest thread stored them (their
+    actors' streams advance as they did). A batch with a bad row (``row_check``) is not stored, but its seq is
+    taken (its actor does not send it again); one out of order (a gap, a duplicate) is logged. Returns the
+    batches stored and dropped.
+
+    :param trainer: the trainer (its replay buffer and schedule)
+    :param streams: the stream table (from the full checkpoint, or empty)
+    :param directory: the journal directory
+    :param start: the first segment to replay (the full checkpoint's ``journal.next``)
+    :param row_check: per row of a batch, whether it is bad
+    :param task: the run's task descriptor (for ``row_check``)
+    """
+    stored = dropped = rows = 0
+    for msg in read_records(directory, start):
+        res = streams.offer(msg)
+        if res.result != "accepted":
+            log.warning("journal: batch %d of actor %s (stream %s) is %s on replay", msg.envelope.seq, msg.actor,
+                        msg.stream, res.result)
+            continue
+        for batch in res.ready:
+            bad = np.asarray(row_check({name: getattr(batch, name) for name, _, _ in ARRAYS}, task), dtype=bool)
+            if bad.any():
+                dropped += 1
+                res.stream.index = batch.first_step + batch.n
+                log.warning("journal: batch %d of actor %s has %d bad rows (of %d): not stored", batch.envelope.seq,
+                            batch.actor, int(bad.sum()), batch.n)
+                continue
+            trainer.add(batch, res.stream, streams.positions)
+            stored += 1
+            rows += batch.n
+    if stored or dropped:
+        log.info("journal: replayed %d batches (%d transitions) from segment %d on; %d dropped", stored, rows, start,
+                 dropped)
+    return stored, dropped
+
+
+def _adopt_model(trainer: Trainer, ckpt_dir: Path, base: int, task: Any, tqc: TQCSettings, device: str, algo: str,
+                 kw: dict) -> None:
+    """Continue from the model checkpoint if it is newer than the full checkpoint's model and covers no more
+    data than the replay holds (it was saved after the journal was synced): its networks, optimisers and
+    counters; the iterations it had not trained yet plus those the replay brought later stay due."""
+    found = find_model(ckpt_dir)
+    if found is None:
+        return
+    try:
+        m = json.loads((found / STATE_FILE).read_text())
+        total, iterations = int(m["total_ingested"]), int(m["iterations"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("model checkpoint %s unreadable (%s): not used", found, exc)
+        return
+    if m.get("algo", DEFAULT) != algo or iterations <= trainer.iterations or not base <= total <= trainer.total:
+        log.info("model checkpoint %s (%d transitions, %d iterations) not used: the full checkpoint and journal give "
+                 "%d transitions, %d iterations", found, total, iterations, trainer.total, trainer.iterations)
+        return
+    try:
+        model = algorithm_class(algo).load(found, task, tqc, device, buffer=trainer.buffer)
+    except (ValueError, OSError) as exc:
+        log.warning("model checkpoint %s does not load (%s): not used", found, exc)
+        return
+    if model.fault() is not None:
+        log.error("model checkpoint %s: %s is not finite (NaN or inf): not used", found, model.fault())
+        return
+    model.set_logger(Path(kw["log_dir"]), kw["logger_formats"])
+    later = [[at, snap] for at, snap in trainer.due if at > total]
+    trainer.algo = model
+    trainer.restore({**m, "total_ingested": trainer.total, "due": [*m["due"], *later]})
+    log.info("model checkpoint %s: version %d, %d iterations", found, trainer.version, trainer.iterations)
+
+
+def _remove_earlier(ckpt_dir: Path) -> None:
+    """A fresh start: remove an earlier learner's checkpoints and journal from ``ckpt_dir`` (logged)."""
+    for name in ("checkpoint", "checkpoint.old", "model", "model.old"):
+        path = ckpt_dir / name
+        if path.is_dir():
+            log.warning("fresh start (no --resume): removing the earlier learner's %s", path)
+            shutil.rmtree(path, ignore_errors=True)
+    for _, path in segments(journal_dir(ckpt_dir)):
+        path.unlink(missing_ok=True)
 
 
 def _remove_stale_temps(ckpt_dir: Path) -> None:

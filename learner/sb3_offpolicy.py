@@ -99,11 +99,15 @@ class SB3OffPolicy:
         return cls(cls.sb3_class()("MlpPolicy", SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer))
 
     @classmethod
-    def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str) -> SB3OffPolicy:
+    def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str, *,
+             buffer: StreamReplayBuffer | None = None) -> SB3OffPolicy:
         """The model and replay buffer :meth:`save` wrote in ``directory`` (on ``device``, whatever it was saved
-        from)."""
+        from); with ``buffer``, the model alone (a model checkpoint) with that replay buffer."""
         model = cls.sb3_class().load(Path(directory) / MODEL_FILE, env=SpacesEnv(task), device=device)
-        model.load_replay_buffer(Path(directory) / BUFFER_FILE)
+        if buffer is None:
+            model.load_replay_buffer(Path(directory) / BUFFER_FILE)
+        else:
+            model.replay_buffer = buffer
         if not isinstance(model.replay_buffer, StreamReplayBuffer):
             raise ValueError(f"{directory}: the replay buffer is a {type(model.replay_buffer).__name__}, not a "
                              "StreamReplayBuffer")
@@ -236,9 +240,14 @@ class SB3OffPolicy:
         sd = self.model.policy.actor.state_dict()
         return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
 
-    def save(self, directory: Path) -> list[Path]:
-        """``model.zip`` (SB3's ``save``) and ``replay_buffer.pkl`` (``save_replay_buffer``)."""
+    def save(self, directory: Path, *, buffer: bool | StreamReplayBuffer = True) -> list[Path]:
+        """``model.zip`` (SB3's ``save``) and (``buffer``) ``replay_buffer.pkl`` (``save_replay_buffer``; a
+        buffer given: that one, e.g. a copy taken while ingest was paused)."""
+        from stable_baselines3.common.save_util import save_to_pkl
+
         directory = Path(directory)
         self.model.save(directory / MODEL_FILE)
-        self.model.save_replay_buffer(directory / BUFFER_FILE)
+        if buffer is False:
+            return [directory / MODEL_FILE]
+        save_to_pkl(directory / BUFFER_FILE, self.buffer if buffer is True else buffer)
         return [directory / MODEL_FILE, directory / BUFFER_FILE]

@@ -6,8 +6,11 @@ the other, so the ratios are taken under the same load:
 
 1. **ingest** (:mod:`.ingest`): transitions per second a learner (``--learning-starts`` 10^9: it never trains)
    ingests from valid transition batches this process publishes as fast as the acks allow (at most
-   ``inflight`` batches unacknowledged): total transitions / time from the first put to the ack of the last
-   seq. Twice: without checkpoints and with the learner's durability checkpoints every 2000 transitions.
+   ``inflight`` batches beyond the last acknowledged): total transitions / time from the first put to the ack of
+   the last seq. Three times: without durability (``--no-journal``, no checkpoints); with the learner's journal,
+   timed to the ack that says the last seq durable (its full checkpoints on their schedule, one per replay buffer's
+   worth: a buffer of half the stream puts one mid-way); and the old way, ``--no-journal`` with a full checkpoint
+   every 2000 transitions.
 2. **weights latency** (:mod:`.actor`): an actor (``--rate 50 --max-lead 1000000``, so the lead limit never
    stops it) and a training learner; for every weights version the actor applies: time from the learner's
    publish (the message's ``ts``) to the swap in the actor's control loop (``weights_latency_ms`` of the
@@ -24,8 +27,8 @@ the other, so the ratios are taken under the same load:
    alone (its ``learner/iteration_s`` scalar), which separates the service loop's overhead from a slower
    ``train()`` in that process.
 5. **exactly-once across a learner kill** (:mod:`.resume`; default on unless ``--quick``): an actor streams,
-   the learner is SIGKILLed after its first checkpoint and restarted with ``--resume``; the final checkpoint's
-   provenance is counted: transitions lost and duplicated.
+   the learner is SIGKILLed once its journal holds 128 transitions (no full checkpoint yet) and restarted with
+   ``--resume``; the final checkpoint's provenance is counted: transitions lost and duplicated.
 
 Numbers on a small shared machine are noisy; the printed note says so and records the load average.
 :mod:`.run` runs the stages and :mod:`.table` prints them.

@@ -1,4 +1,5 @@
-"""Measurement 1: transitions per second a learner ingests (it never trains), with and without checkpoints."""
+"""Measurement 1: transitions per second a learner ingests (it never trains): without durability, with its journal
+(timed until the last batch is acked durable), and with the old full checkpoints every 2000 transitions."""
 
 from __future__ import annotations
 
@@ -13,30 +14,37 @@ __all__ = ["measure_ingest"]
 
 
 def measure_ingest(procs: BenchProcs, ep: str, work: Path, *, n: int, batch: int, inflight: int,
-                   checkpoint_every: int, seed: int, report: Callable[[int, int], None]) -> dict:
-    """Publish ``n`` transitions to a fresh learner and time them from the first put to the last ack.
+                   checkpoint_every: int, seed: int, report: Callable[[int, int], None], journal: bool = False,
+                   buffer_size: int | None = None) -> dict:
+    """Publish ``n`` transitions to a fresh learner and time them from the first put to the last ack (with the
+    journal: also to the ack saying the last batch durable, ``durable_s``).
 
     :param procs: the benchmark's processes
     :param ep: the router endpoint
     :param work: the work directory
     :param n: transitions
     :param batch: transitions per batch
-    :param inflight: unacknowledged batches at most
-    :param checkpoint_every: the learner's checkpoint interval (0: none)
+    :param inflight: batches beyond the last acknowledged at most
+    :param checkpoint_every: the learner's full-checkpoint interval (0: none, or the journal's schedule)
     :param seed: seed of the transitions
     :param report: ``report(done, n)`` as the acks come in
+    :param journal: the learner journals (``--journal``; else ``--no-journal``)
+    :param buffer_size: the learner's replay buffer (None: its default); with the journal a full checkpoint
+        comes each time the journal holds this many transitions
     """
-    tag = f"ingest-ckpt{checkpoint_every}"
+    tag = f"ingest-{'journal' if journal else 'ckpt'}{checkpoint_every}"
     run = run_id(tag)
     payloads = batches(n, batch, seed)
+    extra = ["--buffer-size", str(buffer_size)] if buffer_size else []
     learner = procs.learner(f"learner-{tag}", run, ep, work / tag, "--learning-starts", str(10**9),
-                            "--checkpoint-every", str(checkpoint_every))
+                            "--checkpoint-every", str(checkpoint_every), "--journal" if journal else "--no-journal",
+                            *extra)
     try:
         with open_client(ep) as session:
             link = Link(session, run)
             try:
                 link.wait_learner(learner)
-                res = link.stream(payloads, inflight, on_progress=lambda k: report(k * batch, n))
+                res = link.stream(payloads, inflight, on_progress=lambda k: report(k * batch, n), durable=journal)
                 # the learner's own count (status about every second)
                 seen = wait_until(lambda: [m for m in link.statuses() if m.info.ingested >= n], 5.0,
                                   "learner status", [learner])
@@ -45,7 +53,10 @@ def measure_ingest(procs: BenchProcs, ep: str, work: Path, *, n: int, batch: int
                 link.close()
     finally:
         learner.stop(30.0)
+    durable_s = res["durable_s"]
     return {"transitions": n, "batch": batch, "inflight": inflight, "checkpoint_every": checkpoint_every,
-            "elapsed_s": res["elapsed_s"], "transitions_per_s": n / res["elapsed_s"], "resends": res["resends"],
+            "journal": journal, "buffer_size": buffer_size, "elapsed_s": res["elapsed_s"],
+            "transitions_per_s": n / res["elapsed_s"], "durable_s": durable_s,
+            "durable_transitions_per_s": n / durable_s if durable_s else None, "resends": res["resends"],
             "learner_ingested": info.ingested, "learner_duplicates": info.duplicates.get(BENCH_ACTOR, 0),
             "learner_checkpoints": info.checkpoints, "learner_iterations": info.iterations}

@@ -91,47 +91,52 @@ class Link:
         put(self.session, self.keys.control("learner"), encode(Control(command=command), "bench", self._control_seq))
         self._control_seq += 1
 
-    def _drain_acks(self, received: int, wait: float) -> tuple[int, float | None]:
-        """Read the acks that arrived (waiting up to ``wait`` s for the first): the highest ``received`` seq,
-        and when the ack that raised it arrived (None: no progress)."""
-        t_new = None
+    def _drain_acks(self, seen: dict, wait: float) -> bool:
+        """Read the acks that arrived (waiting up to ``wait`` s for the first) into ``seen``: the highest
+        ``received`` and ``durable`` seqs and when the acks that raised them arrived. Returns whether either rose."""
+        rose = False
         item = self.acks.get(timeout=wait)
         while item is not None:
             try:
                 ack = decode(Ack, item[2])
             except ProtocolError:
                 ack = None
-            if ack is not None and ack.received > received:
-                received, t_new = ack.received, item[3]
+            for field in ("received", "durable"):
+                if ack is not None and getattr(ack, field) > seen[field]:
+                    seen[field], seen[f"t_{field}"], rose = getattr(ack, field), item[3], True
             item = self.acks.get()
-        return received, t_new
+        return rose
 
     def stream(self, payloads: list[bytes], inflight: int, on_progress: Callable[[int], None] | None = None,
-               timeout: float = 300.0, stall_s: float = 5.0) -> dict:
-        """Publish ``payloads`` keeping at most ``inflight`` unacknowledged, until the last seq is acked;
-        batches not acknowledged after ``stall_s`` s without progress are sent again."""
+               timeout: float = 300.0, stall_s: float = 5.0, durable: bool = False) -> dict:
+        """Publish ``payloads`` keeping at most ``inflight`` beyond the last ``received`` seq (as an actor's
+        window), until the last seq is acked received (``durable``: and durable); batches not acknowledged after
+        ``stall_s`` s without progress are sent again. ``elapsed_s``: first put to the last ack received,
+        ``durable_s``: to the ack saying the last seq durable (None unless ``durable``)."""
         last = len(payloads) - 1
-        received, nxt, resends = -1, 0, 0
+        nxt, resends = 0, 0
         t0 = time.monotonic()
-        t_last = last_progress = t0
-        while received < last:
-            while nxt <= last and nxt - 1 - received < inflight:
+        seen = {"received": -1, "durable": -1, "t_received": t0, "t_durable": None}
+        last_progress = t0
+        while seen["received"] < last or (durable and seen["durable"] < last):
+            while nxt <= last and nxt - 1 - seen["received"] < inflight:
                 self.pub.put(payloads[nxt])
                 nxt += 1
-            received, t_new = self._drain_acks(received, 0.5)
             now = time.monotonic()
-            if t_new is not None:
-                t_last, last_progress = t_new, now
+            if self._drain_acks(seen, 0.5):
+                last_progress = now
             if on_progress is not None:
-                on_progress(received + 1)
+                on_progress(seen["received"] + 1)
             if now - t0 > timeout:
-                raise RuntimeError(f"ingest: only seq {received} of {last} acknowledged after {timeout:.0f} s")
+                raise RuntimeError(f"ingest: only seq {seen['received']} of {last} acknowledged (durable "
+                                   f"{seen['durable']}) after {timeout:.0f} s")
             if now - last_progress > stall_s:  # a lost batch (e.g. before the subscription was matched): re-send
-                for s in range(received + 1, nxt):
+                for s in range(seen["received"] + 1, nxt):
                     self.pub.put(payloads[s])
                 resends += 1
                 last_progress = now
-        return {"elapsed_s": t_last - t0, "resends": resends, "batches": len(payloads)}
+        return {"elapsed_s": seen["t_received"] - t0, "resends": resends, "batches": len(payloads),
+                "durable_s": seen["t_durable"] - t0 if durable else None}
 
     def statuses(self) -> list[Status]:
         """The learner status messages that arrived since the last call (decoded; ``.envelope.ts`` is the

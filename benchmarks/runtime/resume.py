@@ -1,6 +1,6 @@
-"""Measurement 5: exactly-once across a learner kill -- an actor streams, the learner is SIGKILLed after its
-first checkpoint and restarted with ``--resume``; the final checkpoint's provenance counts what was lost or
-duplicated."""
+"""Measurement 5: exactly-once across a learner kill -- an actor streams, the learner (default durability: the
+journal, no full checkpoint until the end) is SIGKILLed once its journal holds 128 transitions and restarted with
+``--resume``; the final checkpoint's provenance counts what was lost or duplicated."""
 
 from __future__ import annotations
 
@@ -32,7 +32,8 @@ def buffer_steps(ckpt: Path, actor: str) -> np.ndarray:
 
 
 def measure_kill_resume(procs: BenchProcs, ep: str, work: Path, *, seed: int, report: Callable[[str], None]) -> dict:
-    """Kill the learner after its first checkpoint, resume it, and count the actor's transitions in the end.
+    """Kill the learner once its journal holds 128 transitions, resume it, and count the actor's transitions in
+    the end.
 
     :param procs: the benchmark's processes
     :param ep: the router endpoint
@@ -42,20 +43,25 @@ def measure_kill_resume(procs: BenchProcs, ep: str, work: Path, *, seed: int, re
     """
     run = run_id("resume")
     run_dir = work / "resume"
-    state_file = run_dir / "learner" / "checkpoint" / "state.json"
-    largs = ["--learning-starts", "16", "--checkpoint-every", "64"]
+    from khgrl.learner.journal import read_records
+
+    journal = run_dir / "learner" / "journal"
+    largs = ["--learning-starts", "16"]
     learner = procs.learner("learner-resume-1", run, ep, run_dir, *largs)
-    actor = procs.actor("actor-resume", run, ep, run_dir, "--scenario", "low_cov", "--method", "kgrl",
+    actor = procs.actor("actor-resume", run, ep, run_dir, "--scenario", "high_cov", "--method", "kgrl",
                         "--episodes", "2", "--seed", str(seed), "--rate", "120", "--max-lead", "100000",
                         "--learning-starts", "16")
     try:
-        report("waiting for the learner's first checkpoint")
-        wait_until(lambda: json.loads(state_file.read_text())["total_ingested"] >= 128, 180, "a first checkpoint",
-                   [learner, actor])
+        report("waiting for 128 transitions in the learner's journal")
+
+        def journaled() -> int:
+            return sum(m.n for m in read_records(journal))
+
+        wait_until(lambda: journaled() >= 128, 180, "128 journaled transitions", [learner, actor])
         learner.kill()
-        killed_at = json.loads(state_file.read_text())["total_ingested"]
+        killed_at = journaled()
         time.sleep(0.5)
-        report(f"learner killed at {killed_at} checkpointed transitions; resuming")
+        report(f"learner killed with {killed_at} journaled transitions; resuming")
         learner = procs.learner("learner-resume-2", run, ep, run_dir, *largs, "--resume")
         if actor.wait(240) != 0:
             raise RuntimeError(f"actor exited with {actor.poll()}:\n{actor.tail()}")
@@ -68,7 +74,7 @@ def measure_kill_resume(procs: BenchProcs, ep: str, work: Path, *, seed: int, re
     n = int(summary["transitions"])
     unique = set(got.tolist())
     return {
-        "actor_transitions": n, "in_buffer": int(got.size), "killed_at_checkpointed": killed_at,
+        "actor_transitions": n, "in_buffer": int(got.size), "killed_at_journaled": killed_at,
         "lost": len(set(range(n)) - unique), "duplicated": int(got.size - len(unique)),
         "unexpected": len(unique - set(range(n))), "actor_resends": summary["resends"],
         "actor_unconfirmed": summary["unconfirmed_transitions"],

@@ -61,8 +61,9 @@ class _Stages:
     def __init__(self, sizes: Sizes, procs: BenchProcs, work: Path, progress, record: dict) -> None:
         self.s, self.procs, self.work, self.progress, self.record = sizes, procs, work, progress, record
         self.results = record["results"]
-        names = (["ingest", "ingest_ckpt", "train", "actor"] + (["actor_rt"] if sizes.rt_priority else [])
-                 + ["reference"] + (["kill_resume"] if sizes.loss_check else []))
+        names = (["ingest", "ingest_journal", "ingest_ckpt", "train", "actor"]
+                 + (["actor_rt"] if sizes.rt_priority else []) + ["reference"]
+                 + (["kill_resume"] if sizes.loss_check else []))
         self.overall = progress.add_task("[bold]overall", total=len(names), info="")
 
     def _task(self, name: str, description: str, total: float = 1.0):
@@ -88,14 +89,22 @@ class _Stages:
 
     def ingest(self, ep: str) -> None:
         s = self.s
-        for key, n, every in (("ingest", s.ingest_transitions, 0), ("ingest_ckpt", s.ingest_checkpoint_transitions,
-                                                                    2000)):
-            task = self._task(key, f"1. ingest {n} transitions (checkpoint every {every or 'never'})", n)
-            res = measure_ingest(self.procs, ep, self.work, n=n, batch=s.batch, inflight=s.inflight,
-                                 checkpoint_every=every, seed=s.seed,
+        n = s.ingest_transitions
+        stages = (("ingest", n, 0, False, None, "no durability"),
+                  # the journal's schedule: a full checkpoint each time it holds a replay buffer's worth; a buffer of
+                  # n/2 puts two in this run, one mid-way (per transition as many buffer bytes as the default 200k
+                  # buffer's, and more model saves)
+                  ("ingest_journal", n, 0, True, max(1000, n // 2), "journal, timed to the last durable ack"),
+                  ("ingest_ckpt", s.ingest_checkpoint_transitions, 2000, False, None,
+                   "no journal, full checkpoint every 2000"))
+        for key, count, every, journal, buffer, what in stages:
+            task = self._task(key, f"1. ingest {count} transitions ({what})", count)
+            res = measure_ingest(self.procs, ep, self.work, n=count, batch=s.batch, inflight=s.inflight,
+                                 checkpoint_every=every, seed=s.seed, journal=journal, buffer_size=buffer,
                                  report=lambda k, n_, t=task: self.progress.update(t, completed=k, info=f"{k}/{n_}"))
             self.results[key] = res
-            self._done(task, f"{res['transitions_per_s']:,.0f} transitions/s", n)
+            rate = res["durable_transitions_per_s"] or res["transitions_per_s"]
+            self._done(task, f"{rate:,.0f} transitions/s", count)
 
     def train(self, ep: str) -> None:
         s = self.s

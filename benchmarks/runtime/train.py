@@ -122,7 +122,7 @@ def measure_train(procs: BenchProcs, ep: str, work: Path, *, seconds: float, rou
     # at this process's priority: khgrl up runs the learner at nice 5 so that training yields the CPU to the actors,
     # but what is compared here is the code, not the priority (niced, any other load on the machine slows it alone)
     learner = procs.learner(f"learner-{tag}", run, ep, work / tag, "--learning-starts", str(LEARNING_STARTS),
-                            "--checkpoint-every", "0", "--learner-nice", "0")
+                            "--checkpoint-every", "0", "--model-checkpoint-every", "0", "--learner-nice", "0")
     slice_s = seconds / rounds
     spans: list[tuple[float, int, float, int]] = []
     standalone: list[float] = []

@@ -22,6 +22,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import re
+import zlib
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, get_type_hints
@@ -124,8 +126,16 @@ class StreamSettings:
     learner_wait: float = _opt(10.0, "at start, an actor waits this long for a learner before acting without one, "
                                      "so processes started together are in lock-step from the first step (s)",
                                roles=(ACTOR,))
-    checkpoint_every: int = _opt(2000, "learner checkpoint every N ingested transitions (0: only at the end)",
+    journal: bool = _opt(True, "the learner journals every batch it stores (append-only, fsync'd segments in "
+                               "CHECKPOINT_DIR/journal): a batch is durable for its actor within milliseconds; "
+                               "--no-journal: only full checkpoints make batches durable", roles=(LEARNER,))
+    checkpoint_every: int = _opt(0, "full learner checkpoint (model and whole replay buffer) every N ingested "
+                                    "transitions; 0: with the journal, once it holds a replay buffer's worth since "
+                                    "the last one; always at the end, and without the journal when an actor asks",
                                  roles=(LEARNER,))
+    model_checkpoint_every: int = _opt(250, "the learner saves its model (model.zip and state.json, no replay "
+                                            "buffer) every N training iterations (0: only with full checkpoints)",
+                                       roles=(LEARNER,))
     lease_ms: int = _opt(3000, "Zenoh link lease: how fast a dead process is noticed (ms)", roles=_LAH)
 
     def validate(self, train_freq: int) -> None:
@@ -135,8 +145,9 @@ class StreamSettings:
             # the learner trains at multiples of train_freq: a smaller lead could wait forever after a short
             # end-of-episode batch
             raise ValueError(f"max_lead must be >= the learner's train frequency ({train_freq})")
-        if self.checkpoint_every < 0 or self.lease_ms < 500 or self.learner_wait < 0:
-            raise ValueError("checkpoint_every and learner_wait must be >= 0 and lease_ms >= 500")
+        if min(self.checkpoint_every, self.model_checkpoint_every) < 0 or self.lease_ms < 500 or self.learner_wait < 0:
+            raise ValueError("checkpoint_every, model_checkpoint_every and learner_wait must be >= 0 and lease_ms "
+                             ">= 500")
         if self.human_pause_s < 0 or self.human_hold_s < 0 or self.human_hold_refill <= 0:
             raise ValueError("human_pause_s and human_hold_s must be >= 0 and human_hold_refill > 0")
 
@@ -225,9 +236,14 @@ class RunConfig:
         return [f"a{i}" for i in range(self.actors)]
 
     def actor_seed(self, actor_id: str) -> int:
-        """Actor ``a<i>`` is seeded with ``seed + i`` (any other id: ``seed``)."""
-        ids = self.actor_ids()
-        return self.seed + (ids.index(actor_id) if actor_id in ids else 0)
+        """Actor ``a<i>`` is seeded with ``seed + i``, whether or not ``actors`` counts it; any other id with ``seed``
+        plus a number made from the id (CRC-32, below 10^6). Two actors never collect the same transitions (the
+        learner would take the second's batches for replays of the first's and not store them).
+
+        :param actor_id: the actor's id
+        """
+        m = re.fullmatch(r"a(0|[1-9][0-9]{0,8})", actor_id)
+        return self.seed + (int(m.group(1)) if m else zlib.crc32(actor_id.encode()) % 1_000_000)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -27,11 +27,13 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable
+from types import SimpleNamespace
+from typing import Any, Callable
 
 import numpy as np
 from khgrl.common.delivery import run_key
 from khgrl.common.delivery.outbox import Outbox
+from khgrl.common.wire.bounds import check_bounds
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
 from khgrl.common.wire.messages import Ack, Transitions
 from khgrl.common.wire.protocol import encode, with_base_seq
@@ -103,6 +105,8 @@ class TransitionStream:
         self.resends = 0
         self.resent_batches = 0
         self.refused_acks = 0
+        self.bounds: Any = None  # the task descriptor whose value bounds a transition must keep to be sent (None: any)
+        self.out_of_bounds = 0  # transitions not sent: a value outside the task's bounds (the learner refuses them)
         if len(outbox):  # batches an earlier process left: re-send them all shortly (as to a new learner)
             self.resend_at = clock() + LEARNER_APPEARED_RESEND_S
 
@@ -129,8 +133,25 @@ class TransitionStream:
         :param intervened: a human correction drove the step.
         :param clipped: the human action was clipped to [-1, 1].
         """
+        if self.bounds is not None and self._out_of_bounds(obs, next_obs, action, reward):
+            return
         self._buf.append((obs, next_obs, action, reward, terminated, truncated, intervened, clipped))
         self.count += 1
+
+    def _out_of_bounds(self, obs, next_obs, action, reward: float) -> bool:
+        """Whether a transition holds a value the learner would refuse (not finite, outside the task's bounds: a
+        sensor glitch, say); it is then not sent -- a batch holding it would be refused whole and never acked, and the
+        actor would wait for that ack for ever -- but counted (``out_of_bounds`` in the summary) and logged."""
+        row = SimpleNamespace(obs=np.reshape(obs, (1, -1)), next_obs=np.reshape(next_obs, (1, -1)),
+                              action=np.reshape(action, (1, -1)), reward=np.reshape(np.float32(reward), (1,)))
+        why = check_bounds(row, self.bounds)
+        if why is None:
+            return False
+        self.out_of_bounds += 1
+        if self.out_of_bounds in (1, 10) or self.out_of_bounds % 1000 == 0:
+            log.error("actor %s: transition %d not sent (%d so far): %s", self.actor, self.count, self.out_of_bounds,
+                      why)
+        return True
 
     def cut(self) -> None:
         """Publish what was collected since the last cut as one batch (nothing if empty)."""
@@ -307,4 +328,5 @@ class TransitionStream:
                 "last_seq": self.highest_sent,
                 "received": self.received, "durable": self.durable, "unconfirmed_transitions": self.unconfirmed(),
                 "outbox_spilled": self.outbox.spilled_total, "resends": self.resends,
-                "resent_batches": self.resent_batches, "refused_acks": self.refused_acks}
+                "resent_batches": self.resent_batches, "refused_acks": self.refused_acks,
+                "out_of_bounds": self.out_of_bounds}

@@ -111,7 +111,8 @@ def test_second_process_with_a_live_actor_id_is_refused(tmp_path):
     flags = [*FAST, "--rate", "50", "--episodes", "1000"]  # runs until stopped
     with ProcGroup(tmp_path) as g:
         ep = g.router()
-        learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "0")
+        # (--no-journal: a0's batches stay in its outbox until the end, which shows that it streams)
+        learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "0", "--no-journal")
         a0 = g.actor(run, ep, *flags)
         wait_for(lambda: len(batch_files(out)) >= 4, 180, "a0 streaming", procs=[learner, a0])
         same_dir = g.actor(run, ep, *flags)
@@ -150,7 +151,8 @@ def test_paused_actor_replaced_by_a_second_process_is_refused_when_it_wakes(tmp_
     run, run_dir, run2 = unique_run("pause"), tmp_path / "run", tmp_path / "run2"
     with ProcGroup(tmp_path) as g:
         ep = g.router()
-        learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "0")
+        # (--no-journal: the batches stay in the actors' outboxes until the end, which shows that they stream)
+        learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "0", "--no-journal")
         first = g.actor(run, ep, *FAST, "--rate", "50", "--episodes", "1000", "--lease-ms", "1000")
         wait_for(lambda: len(batch_files(run_dir / "actor-a0")) >= 4, 180, "a0 streaming", procs=[learner, first])
         first.signal(signal.SIGSTOP)

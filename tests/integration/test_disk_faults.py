@@ -1,9 +1,10 @@
 """Disk faults under a running learner: its checkpoint directory (``--checkpoint-dir``, a small tmpfs of its own)
 turns read-only or full while an actor streams. Real processes over a real router: the learner keeps ingesting
-and training, says why in its status, never acks as durable what no checkpoint holds, leaves no temporary
-directory behind, keeps the previous checkpoint, and once the disk is fixed the retried checkpoint holds every
-transition the actor made exactly once (provenance). A final checkpoint that fails ends the learner with 1 and a
-message, without a traceback. Faults come from ``mount`` (tests run as root here; chmod does not stop root).
+and training, says why in its status, never acks as durable what neither the checkpoint nor the journal holds,
+leaves no temporary directory behind, keeps the previous checkpoint, and once the disk is fixed the retried
+checkpoint and the journal after it hold every transition the actor made exactly once (provenance). A final
+checkpoint that fails ends the learner with 1 and a message, without a traceback. Faults come from ``mount``
+(tests run as root here; chmod does not stop root).
 (The same without processes: tests/unit/test_checkpoint.py.)
 """
 
@@ -90,15 +91,32 @@ def _checkpoint(ckpt_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
 
 
 def _assert_exactly_once(ckpt_dir: Path, actor: str, n: int) -> None:
-    """The checkpoint's replay buffer holds the actor's transitions 0..n-1, each once (provenance)."""
+    """The checkpoint's replay buffer and the journal after it (what a resumed learner replays) hold the actor's
+    transitions 0..n-1, each once (provenance)."""
+    from khgrl.learner.journal import read_records
+
     state, arrays = _checkpoint(ckpt_dir)
     pos = state["replay"]["size"] if state["replay"]["full"] else state["replay"]["pos"]
     codes, steps = arrays["provenance_actor"][:pos], arrays["provenance_step"][:pos]
     assert np.all(codes >= 0), "an empty slot inside the filled part of the replay buffer"
     mine = [code for code, entry in enumerate(state["codes"]) if entry["actor"] == actor]
-    got = sorted(steps[np.isin(codes, mine)].tolist())
-    assert got == list(range(n)), f"{actor}: {len(got)} transitions in the buffer, not 0..{n - 1} exactly once"
-    assert state["total_ingested"] == n
+    got = steps[np.isin(codes, mine)].tolist()
+    journal = [m for m in read_records(ckpt_dir / "journal", state["journal"]["next"]) if m.actor == actor]
+    got += [m.first_step + i for m in journal for i in range(m.n)]
+    assert sorted(got) == list(range(n)), f"{actor}: {len(got)} transitions held, not 0..{n - 1} exactly once"
+    assert state["total_ingested"] + sum(m.n for m in journal) == n
+
+
+def _durable_on_disk(ckpt_dir: Path, actor: str) -> int:
+    """The highest seq of ``actor`` that the full checkpoint and the journal after it hold."""
+    from khgrl.learner.journal import read_records
+
+    state = read_json(ckpt_dir / "checkpoint" / "state.json")
+    held = state["actors"][actor]["next_seq"] - 1
+    for msg in read_records(ckpt_dir / "journal", state["journal"]["next"]):
+        if msg.actor == actor and msg.envelope.seq == held + 1:
+            held += 1
+    return held
 
 
 def _temps(ckpt_dir: Path) -> list[str]:
@@ -113,7 +131,7 @@ def _fault_and_fix(fault: str, disk: Path, ckpt_dir: Path, view: _Statuses, proc
                      procs=procs)
     assert first.checkpoint_error.startswith(reason), first.checkpoint_error
     saved = read_json(ckpt_dir / "checkpoint" / "state.json")
-    assert saved["actors"]["a0"]["durable"] == first.durable["a0"]  # acks say durable what the checkpoint holds
+    assert first.durable["a0"] <= _durable_on_disk(ckpt_dir, "a0")  # acks say durable what checkpoint + journal hold
     # ingest and training go on, the failed save is retried (not at every turn), acks claim nothing new
     wait_for(lambda: (view.learner.checkpoint_failures >= 2 and view.learner.ingested >= first.ingested + 64
                       and view.learner.iterations > first.iterations), 90, "ingest, training and a retry",
@@ -121,6 +139,7 @@ def _fault_and_fix(fault: str, disk: Path, ckpt_dir: Path, view: _Statuses, proc
     during = view.learner
     assert during.checkpoint_error.startswith(reason) and during.checkpoints == first.checkpoints
     assert during.durable["a0"] == first.durable["a0"] < during.next_seq["a0"] - 1
+    assert during.durable["a0"] <= _durable_on_disk(ckpt_dir, "a0")
     wait_for(lambda: not _temps(ckpt_dir), 20, "no temporary checkpoint directory (a retry may be writing one)")
     assert read_json(ckpt_dir / "checkpoint" / "state.json") == saved  # the previous checkpoint, intact
     _checkpoint(ckpt_dir)  # ... and readable
@@ -166,12 +185,14 @@ def test_learner_survives_a_broken_checkpoint_disk_and_loses_nothing(tmp_path, s
             assert learner.stop(60) == 1, learner.tail()
             text = learner.text()
             assert "khgrl learner: error: the final checkpoint in" in text and "EROFS" in text, learner.tail()
-            assert "the last checkpoint holds every transition received" in text  # the actor had flushed
+            # the actor had flushed: its last batches are in the journal
+            assert "the last checkpoint and the journal hold every transition received" in text
         else:
             assert learner.stop(60) == 0, learner.tail()
         text = learner.text()
         assert "Traceback" not in text, learner.tail(60)
-        assert "checkpoint failed (" in text and "checkpoint recovered after" in text
+        # (the first failure may be the journal's write: "journal write failed (...)", then the snapshot's)
+        assert " failed (" in text and "checkpoint recovered after" in text
 
     summary = read_json(run_dir / "actor-a0" / "summary.json")
     n = summary["transitions"]

@@ -95,19 +95,32 @@ def test_actor_and_learner_end_to_end(tmp_path):
 @pytest.mark.integration
 @pytest.mark.timeout(300)
 def test_learner_killed_and_resumed_loses_and_duplicates_nothing(tmp_path):
+    """SIGKILL after the learner acked batches durable from its journal alone (no full checkpoint yet: the
+    default settings write one only at the end, or once the journal holds a replay buffer's worth); the actor
+    dropped those batches from its outbox, so only the journal's replay can bring them back."""
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.protocol import Keys, Status, decode
+
     run, run_dir = unique_run(), tmp_path / "run"
-    state_file = run_dir / "learner" / "checkpoint" / "state.json"
+    latest: list = [None]
     with ProcGroup(tmp_path) as g:
         ep = g.router()
-        learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "64")
+        learner = g.learner(run, ep, "--learning-starts", "16", "--model-checkpoint-every", "4")
         actor = g.actor(run, ep, *FAST, "--episodes", "2", "--max-lead", "100000", "--rate", "120")
-        # kill after the learner has acked and checkpointed some of the stream
-        wait_for(lambda: read_json(state_file)["total_ingested"] >= 128, 120, "a first checkpoint",
-                 procs=[learner, actor])
+        with open_client(ep, timeout=60) as s:
+            sub = s.declare_subscriber(Keys(run).status("learner", "*"),
+                                       lambda smp: latest.__setitem__(0, decode(Status, smp.payload.to_bytes()).info))
+            try:  # kill once the journal made at least 16 batches durable and no full checkpoint was written
+                info = wait_for(lambda: latest[0] if latest[0] and latest[0].durable.get("a0", -1) >= 15 else None,
+                                120, "batches durable in the journal", procs=[learner, actor])
+            finally:
+                sub.undeclare()
+        assert info.checkpoints == 0 and not (run_dir / "learner" / "checkpoint").exists()
         learner.kill()
-        killed_at = read_json(state_file)["total_ingested"]
+        durable_at_kill = info.durable["a0"]
+        assert list((run_dir / "learner" / "journal").glob("segment-*.bin"))
         time.sleep(0.5)
-        learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "64", "--resume")
+        learner = g.learner(run, ep, "--learning-starts", "16", "--resume")
         rc = actor.wait(150)
         assert rc == 0, actor.tail()
         assert learner.stop(60) == 0, learner.tail()
@@ -115,10 +128,13 @@ def test_learner_killed_and_resumed_loses_and_duplicates_nothing(tmp_path):
     summary = read_json(run_dir / "actor-a0" / "summary.json")
     n = summary["transitions"]
     assert summary["episodes"] == 2 and summary["unconfirmed_transitions"] == 0
-    assert summary["resends"] >= 1 and n > killed_at
+    assert summary["resends"] >= 1 and n > 8 * (durable_at_kill + 1)
     state, arrays = checkpoint(run_dir)
     assert_exactly_once(state, arrays, "a0", n)
     assert state["total_ingested"] == n
+    assert not list((run_dir / "learner" / "journal").glob("segment-*.bin"))  # the final checkpoint holds them
+    text = (run_dir / "learner" / "learner.log").read_text()
+    assert "journal: replayed" in text and "no full checkpoint under" in text, text[-3000:]
 
 
 @pytest.fixture(scope="module")
@@ -169,15 +185,14 @@ def test_two_actors_feed_one_learner(two_actors):
 @pytest.mark.timeout(300)
 def test_forged_ack_cannot_make_the_actor_drop_undelivered_batches(tmp_path):
     """Someone on the router acks every batch as durable (with the real stream id and epoch); then the learner
-    dies and resumes from a checkpoint that holds less. The actor refused the forged acks, so it still holds
-    and re-sends everything after that checkpoint: the learner ends up with every transition exactly once."""
+    dies and resumes from what its journal holds, which is less. The actor refused the forged acks, so it still
+    holds and re-sends everything after that: the learner ends up with every transition exactly once."""
     from khgrl.common.delivery.transport import open_client
     from khgrl.common.wire.messages import Ack, Control, Transitions
     from khgrl.common.wire.protocol import Keys, decode, encode
 
     run, run_dir = unique_run("forge"), tmp_path / "run"
     keys = Keys(run)
-    state_file = run_dir / "learner" / "checkpoint" / "state.json"
     seen: dict = {}
 
     def on_ack(sample) -> None:
@@ -197,11 +212,10 @@ def test_forged_ack_cannot_make_the_actor_drop_undelivered_batches(tmp_path):
             subs = [s.declare_subscriber(keys.ack("a0"), on_ack),
                     s.declare_subscriber(keys.transitions("a0"), on_transitions)]
             try:
-                wait_for(lambda: "stream" in seen and "ack" in seen and seen["ack"].received >= 8, 120,
-                         "the learner acking the actor's batches", procs=[learner, actor])
+                wait_for(lambda: "stream" in seen and "ack" in seen and seen["ack"].durable >= 8, 120,
+                         "the learner acking the actor's batches durable", procs=[learner, actor])
                 s.put(keys.control("learner"), encode(Control(command="checkpoint"), "tester", 0))
-                wait_for(state_file.exists, 60, "a learner checkpoint", procs=[learner, actor])
-                time.sleep(1.0)  # ~120 more transitions that the checkpoint does not hold
+                time.sleep(1.0)  # ~120 more transitions
                 forged = Ack(actor="a0", received=10**6, durable=10**6, trained=0, version=0,
                              epoch=seen["ack"].epoch, stream=seen["stream"])
                 for i in range(forged_sent):
@@ -212,7 +226,7 @@ def test_forged_ack_cannot_make_the_actor_drop_undelivered_batches(tmp_path):
             finally:
                 for sub in subs:
                     sub.undeclare()
-        at_kill = read_json(state_file)["total_ingested"]
+        at_kill = 8 * (seen["ack"].durable + 1)
         learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "0", "--resume")
         rc = actor.wait(150)
         assert rc == 0, actor.tail()

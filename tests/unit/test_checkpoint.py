@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import khgrl.learner.loop as loop_module
+import khgrl.learner.durability as loop_module  # (where the loop's checkpoints are saved)
 import numpy as np
 import pytest
 from khgrl.common.config.settings import TQCSettings
@@ -142,6 +142,10 @@ def test_khgrl_up_resume_looks_in_the_checkpoint_dir(tmp_path):
 
     save_checkpoint(tmp_path / "data", _FakeModel(), {"mark": 1})
     assert not has_checkpoint(tmp_path / "run") and has_checkpoint(tmp_path / "run", str(tmp_path / "data"))
+    # a learner killed before its first full checkpoint left its journal: that is resumed too
+    (tmp_path / "run" / "learner" / "journal").mkdir(parents=True)
+    (tmp_path / "run" / "learner" / "journal" / "segment-000000.bin").write_bytes(b"")
+    assert has_checkpoint(tmp_path / "run")
 
 
 def test_save_faults_back_off_and_log_once_per_reason(caplog):
@@ -255,13 +259,14 @@ def test_a_failed_final_checkpoint_is_one_clear_error(capsys):
 
     from khgrl.learner.main import _final_checkpoint_failed
 
-    loop = SimpleNamespace(trainer=SimpleNamespace(total=100), last_ckpt_total=40, ckpt_dir=Path("/data/ck"),
+    lost = {"n": 60}
+    loop = SimpleNamespace(not_durable=lambda: lost["n"], ckpt_dir=Path("/data/ck"),
                            saves=SimpleNamespace(error="ENOSPC No space left on device"))
     assert _final_checkpoint_failed(loop) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("khgrl learner: error: the final checkpoint in /data/ck failed "
                                                "(ENOSPC No space left on device): the 60 transitions received")
     assert "re-send it to a learner restarted with --resume" in err[0]
-    loop.last_ckpt_total = 100
+    lost["n"] = 0
     assert _final_checkpoint_failed(loop) == 1
-    assert "the last checkpoint holds every transition received" in capsys.readouterr().err
+    assert "the last checkpoint and the journal hold every transition received" in capsys.readouterr().err

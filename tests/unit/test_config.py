@@ -94,7 +94,7 @@ def test_every_setting_is_a_flag_whose_help_shows_its_default():
     text = text[text.index("run settings"):]  # the options, not the usage line
     for flag, default in (("--max-lead", "8"), ("--learning-starts", "100"), ("--net-arch", "256 256"),
                           ("--human-episodes", " ".join(map(str, PAPER_EPISODES))), ("--connect-timeout", "15.0"),
-                          ("--checkpoint-every", "2000"), ("--tensorboard", "True")):
+                          ("--checkpoint-every", "0"), ("--tensorboard", "True")):
         assert flag in text
         after = " ".join(text[text.index(flag):].split())
         shown = re.search(r"\(default: ([^)]*)\)", after)
@@ -116,6 +116,11 @@ def test_a_process_reads_the_run_file_and_its_flags_win(tmp_path):
 def test_actor_seeds_follow_the_actor_index():
     cfg = RunConfig(seed=10, actors=3)
     assert [cfg.actor_seed(a) for a in cfg.actor_ids()] == [10, 11, 12]
+    # an actor started by hand beyond ``actors`` still gets its own seed, and so does an id of another form: two
+    # actors never collect the same transitions (the learner would refuse the second's as replays)
+    assert RunConfig(seed=10).actor_seed("a1") == 11
+    assert len({cfg.actor_seed(a) for a in ("robot-left", "robot-right", "a0", "a1", "a2")}) == 5
+    assert cfg.actor_seed("robot-left") == RunConfig(seed=10).actor_seed("robot-left")  # (the same on every run)
 
 
 def test_settings_are_frozen_and_json_serialisable():

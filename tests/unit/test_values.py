@@ -266,3 +266,31 @@ def test_a_checkpoint_with_a_nan_parameter_is_refused_or_the_previous_one_taken(
     good.rename(ckpt.parent / "checkpoint.old")  # a save cut short after the new one was in place
     again = _loop(tmp_path, task, resume=True)
     assert again.trainer.algo.fault() is None and again.trainer.total == 32
+
+
+def test_an_actor_does_not_send_a_transition_the_learner_would_refuse(tmp_path, task, caplog):
+    """A sensor glitch (a reward of 3e38, an observation far outside the space) must not stall the actor: a batch
+    holding it would be refused whole and never acked. The actor leaves such a transition out, counts and logs it,
+    and sends the others."""
+    from khgrl.common.delivery.outbox import Outbox
+    from khgrl.common.delivery.stream import TransitionStream
+    from khgrl.common.wire.checks import RejectCounter
+
+    sent: list[bytes] = []
+    stream = TransitionStream("a0", "s1", Outbox(1000, tmp_path / "outbox"), sent.append, RejectCounter("a0"),
+                              task=task.digest)
+    stream.bounds = task
+    obs = np.full(task.obs_dim, 0.5, np.float32)
+    act = np.zeros(task.out_dim, np.float32)
+    glitches = [(obs, 3e38), (np.full(task.obs_dim, 1e9, np.float32), 0.0), (obs, float("nan"))]
+    with caplog.at_level(logging.ERROR, logger="khgrl.actor"):
+        stream.add(obs, obs, act, 1.0, False, False, False, False)
+        for o, r in glitches:
+            stream.add(o, obs, act, r, False, False, False, False)
+        stream.add(obs, obs, act, 2.0, False, False, False, False)
+    stream.cut()
+    assert stream.out_of_bounds == 3 and stream.summary()["out_of_bounds"] == 3
+    (batch,) = [decode(Transitions, p) for p in sent]
+    assert batch.reward.tolist() == [1.0, 2.0] and batch.first_step == 0 and stream.count == 2
+    assert check_bounds(batch, task) is None
+    assert "transition 1 not sent" in caplog.text and "3e+38" in caplog.text

@@ -1,0 +1,333 @@
+"""The learner's journal: every batch the learner stores, appended to fsync'd segment files, so that an actor's
+data is durable moments after it arrives rather than at the next full checkpoint.
+
+Layout: ``CHECKPOINT_DIR/journal/segment-000123.bin``. A segment is a sequence of records, one per batch stored in
+the replay buffer, in the order it was stored. A record is a 12-byte header -- ``b"KJ01"``, the body's length and
+its CRC-32 (little endian) -- and a body: a 4-byte length, a JSON map (``actor``, ``stream``, ``seq``, ``base``,
+``first``, ``n``, ``obs``, ``out``) and the arrays of the batch as raw little-endian bytes (``obs``, ``next_obs``,
+``action``, ``reward`` float32; ``terminated``, ``truncated``, ``intervened``, ``clipped`` uint8). A record whose
+header, length or checksum is wrong (the torn tail of a learner killed while writing) ends what is read of its
+segment; the next segment is read after it (a resumed learner starts a new one).
+
+Writing (group commit): the ingest thread :meth:`Journal.append`\\ s each stored batch to a list in memory (no I/O
+on the ingest path); :meth:`Journal.sync` -- the learner's *journal thread* calls it as soon as something waits,
+and the training thread before a model checkpoint or a full snapshot -- writes everything waiting in one go, fsyncs
+it and closes the file, and returns the highest seq per actor stream now on disk: those are durable (``durable`` in
+the acks). Everything that arrived while one fsync ran goes into the next one. The file is open only while a group
+is written. A failed write or fsync (disk full, read-only, I/O error) stops the journal: nothing more is journaled
+and no ack claims more (the actors keep those batches) until a full snapshot -- which holds everything -- has been
+saved; the learner retries that snapshot with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`).
+
+Snapshots: before a full snapshot (:func:`~khgrl.learner.checkpoint.save_checkpoint`, ingest paused) the learner
+:meth:`Journal.cut`\\ s the journal: what waits is written, and later batches go into a new segment whose index the
+snapshot records (``journal.next`` in its ``state.json``); once the snapshot is in place the segments before it are
+deleted (:meth:`Journal.snapshot_saved`). A resumed learner loads the snapshot and replays the records of the
+segments from that index on (:func:`read_records`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import struct
+import threading
+import zlib
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+from khgrl.common.wire.protocol import Envelope, Transitions
+
+__all__ = ["Journal", "JOURNAL_DIR", "SEGMENT_BYTES", "journal_dir", "segments", "read_records", "encode_record",
+           "finite_bad_rows", "RowCheck", "ARRAYS"]
+
+log = logging.getLogger("khgrl.learner")
+
+JOURNAL_DIR = "journal"
+SEGMENT_BYTES = 64 * 2**20  # a new segment once the current one holds this much
+MAGIC = b"KJ01"
+_HEAD = struct.Struct("<4sII")  # magic, body length, crc32(body)
+_META = struct.Struct("<I")
+MAX_BODY = 64 * 2**20  # a length beyond this is a damaged header (a batch is at most 4 MiB on the wire)
+MAX_WAITING_BYTES = 256 * 2**20  # batches waiting for a disk that does not keep up: beyond this the journal stops
+_NAME = re.compile(r"^segment-(\d{6,})\.bin$")
+# (field, dtype, columns: "obs" / "out" / None for a vector)
+ARRAYS = (("obs", "<f4", "obs"), ("next_obs", "<f4", "obs"), ("action", "<f4", "out"), ("reward", "<f4", None),
+          ("terminated", "|u1", None), ("truncated", "|u1", None), ("intervened", "|u1", None),
+          ("clipped", "|u1", None))
+
+RowCheck = Callable[[dict[str, np.ndarray], Any], np.ndarray]
+"""``check(arrays, descriptor) -> bad``: per row of a batch (``arrays`` by the names of :data:`ARRAYS`), whether it
+must not be stored (a boolean array of length n). ``descriptor``: the run's task descriptor (or None)."""
+
+
+def finite_bad_rows(arrays: dict[str, np.ndarray], descriptor: Any = None) -> np.ndarray:
+    """The default row check of journal replay: a row with a non-finite observation, next observation, action or
+    reward is bad.
+
+    :param arrays: the batch's arrays by name
+    :param descriptor: the run's task descriptor (unused here)
+    """
+    bad = ~np.isfinite(arrays["reward"])
+    for name in ("obs", "next_obs", "action"):
+        bad |= ~np.isfinite(arrays[name]).all(axis=1)
+    return bad
+
+
+def journal_dir(ckpt_dir: str | Path) -> Path:
+    """The journal directory of a learner's checkpoint directory.
+
+    :param ckpt_dir: ``RUN_DIR/learner`` or the learner's ``--checkpoint-dir``
+    """
+    return Path(ckpt_dir) / JOURNAL_DIR
+
+
+def _segment(directory: Path, index: int) -> Path:
+    return directory / f"segment-{index:06d}.bin"
+
+
+def segments(directory: str | Path) -> list[tuple[int, Path]]:
+    """The segment files of a journal directory, oldest first, with their indices.
+
+    :param directory: the journal directory
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in directory.iterdir() if (m := _NAME.match(p.name))]
+    return sorted(found)
+
+
+def encode_record(msg: Transitions, seq: int) -> bytes:
+    """One journal record of a stored batch.
+
+    :param msg: the batch
+    :param seq: its seq in the actor's stream
+    """
+    meta = json.dumps({"actor": msg.actor, "stream": msg.stream or "", "seq": int(seq),
+                       "base": int(msg.base_seq or 0), "first": int(msg.first_step), "n": msg.n,
+                       "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1])}).encode()
+    parts = [_META.pack(len(meta)), meta]
+    parts += [np.ascontiguousarray(getattr(msg, name), dtype=dt).tobytes() for name, dt, _ in ARRAYS]
+    body = b"".join(parts)
+    return _HEAD.pack(MAGIC, len(body), zlib.crc32(body)) + body
+
+
+def _decode_body(body: memoryview) -> Transitions:
+    (mlen,) = _META.unpack_from(body, 0)
+    meta = json.loads(bytes(body[_META.size:_META.size + mlen]))
+    n, off = int(meta["n"]), _META.size + mlen
+    arrays = {}
+    for name, dt, cols in ARRAYS:
+        shape = (n,) if cols is None else (n, int(meta[cols]))
+        count = int(np.prod(shape))
+        arr = np.frombuffer(body, dtype=dt, count=count, offset=off).reshape(shape)
+        arrays[name] = arr
+        off += arr.nbytes
+    if off != len(body):
+        raise ValueError(f"{len(body) - off} bytes left over")
+    msg = Transitions(actor=meta["actor"], first_step=int(meta["first"]), stream=meta["stream"] or None,
+                      base_seq=int(meta["base"]), **arrays)
+    object.__setattr__(msg, "envelope", Envelope(kind=Transitions.KIND, sender=meta["actor"], seq=int(meta["seq"]),
+                                                 ts=0.0))
+    return msg
+
+
+def _records(path: Path) -> Iterator[Transitions]:
+    """The whole records of one segment, in order; the first damaged one (a torn tail) ends it, logged."""
+    data = memoryview(path.read_bytes())
+    off = 0
+    while off < len(data):
+        problem = ""
+        if len(data) - off < _HEAD.size:
+            problem = f"{len(data) - off} bytes, shorter than a header"
+        else:
+            magic, size, crc = _HEAD.unpack_from(data, off)
+            body = data[off + _HEAD.size:off + _HEAD.size + size]
+            if magic != MAGIC or size > MAX_BODY:
+                problem = "not a record header"
+            elif len(body) < size:
+                problem = f"{len(body)} of {size} bytes"
+            elif zlib.crc32(body) != crc:
+                problem = "checksum mismatch"
+        if problem:
+            log.warning("journal %s: the record at byte %d is damaged (%s: a write cut short); the %d bytes from "
+                        "there are ignored", path.name, off, problem, len(data) - off)
+            return
+        try:
+            msg = _decode_body(body)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("journal %s: the record at byte %d does not decode (%s); the rest is ignored", path.name, off,
+                        exc)
+            return
+        yield msg
+        off += _HEAD.size + size
+
+
+def read_records(directory: str | Path, start: int = 0) -> Iterator[Transitions]:
+    """Every whole record of the segments from index ``start`` on, in the order they were written (each a
+    :class:`~khgrl.common.wire.protocol.Transitions` whose ``envelope.seq`` is the batch's seq).
+
+    :param directory: the journal directory
+    :param start: the first segment to read (a snapshot's ``journal.next``)
+    """
+    for index, path in segments(directory):
+        if index >= start:
+            yield from _records(path)
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError:  # a filesystem that cannot fsync a directory
+        pass
+    finally:
+        os.close(fd)
+
+
+class Journal:
+    """The append-only journal of one learner incarnation (see the module's docstring).
+
+    :param directory: the journal directory (created)
+    :param fresh: delete the segments there (a learner started anew); else a new segment follows the last one
+    :param segment_bytes: start a new segment once the current one holds this much
+    """
+
+    def __init__(self, directory: str | Path, *, fresh: bool = False, segment_bytes: int = SEGMENT_BYTES) -> None:
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        if fresh:
+            for _, path in segments(self.dir):
+                path.unlink()
+        found = segments(self.dir)
+        self.index = found[-1][0] + 1 if found else 0  # the segment written to
+        self.segment_bytes = int(segment_bytes)
+        self.size = 0  # bytes in the current segment
+        self.rows = 0  # transitions journaled since the last cut
+        self.synced_rows = 0  # transitions on disk since the last snapshot saved
+        self.error = ""  # set when a write failed: nothing more is journaled until a snapshot
+        self.failures = 0  # writes that failed (this process)
+        self._cut_failures = 0  # ... when the last cut was made
+        self._cut_synced = 0  # synced_rows then
+        self.records = 0  # records written (this process)
+        self.syncs = 0  # groups written and fsynced (this process)
+        self.wake = threading.Event()  # something waits to be written
+        self._pending: list[tuple[Any, Transitions]] = []
+        self._waiting_bytes = 0
+        self._mu = threading.Lock()  # _pending, rows, error
+        self._io = threading.Lock()  # the files (one group written at a time)
+
+    def append(self, msg: Transitions, stream: Any) -> None:
+        """A batch was stored in the replay buffer (ingest thread): journal it with the next group.
+
+        :param msg: the batch (its ``envelope.seq``)
+        :param stream: its actor's :class:`~khgrl.common.delivery.ingest.ActorStream` (``durable`` is raised there
+            once the record is on disk)
+        """
+        size = sum(getattr(msg, name).nbytes for name, _, _ in ARRAYS)
+        with self._mu:
+            if self.error:
+                return
+            if self._waiting_bytes + size > MAX_WAITING_BYTES:  # (a stalled disk must not cost the learner memory)
+                self.error = f"EIO {self._waiting_bytes >> 20} MiB wait for a journal disk that does not keep up"
+                self.failures += 1
+                self._pending, self._waiting_bytes = [], 0
+                log.warning("journal: %s; off until the next full checkpoint", self.error)
+                return
+            self._pending.append((stream, msg))
+            self._waiting_bytes += size
+            self.rows += msg.n
+        self.wake.set()
+
+    @property
+    def waiting(self) -> int:
+        """Batches appended but not written yet."""
+        return len(self._pending)
+
+    def sync(self) -> tuple[dict[int, tuple[Any, int]], OSError | None]:
+        """Write and fsync everything appended so far. Returns ``({id(stream): (stream, highest seq)}, None)`` for
+        what is now on disk, or ``({}, the error)`` if the write failed (the journal then stops, see the module)."""
+        with self._io:
+            with self._mu:
+                items, self._pending, self._waiting_bytes = self._pending, [], 0
+                if self.error:
+                    return {}, None
+            if not items:
+                return {}, None
+            try:
+                self._write(items)
+            except OSError as exc:
+                with self._mu:
+                    self.error = str(exc) or type(exc).__name__
+                    self.failures += 1
+                    self._pending, self._waiting_bytes = [], 0
+                return {}, exc
+        marks: dict[int, tuple[Any, int]] = {}
+        for stream, msg in items:
+            marks[id(stream)] = (stream, msg.envelope.seq)
+        return marks, None
+
+    def _write(self, items: list[tuple[Any, Transitions]]) -> None:
+        if self.size >= self.segment_bytes:
+            self.index, self.size = self.index + 1, 0
+        data = b"".join(encode_record(msg, msg.envelope.seq) for _, msg in items)
+        path = _segment(self.dir, self.index)
+        new = not path.exists()
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        if new:
+            _fsync_dir(self.dir)
+        self.size += len(data)
+        self.synced_rows += sum(msg.n for _, msg in items)
+        self.records += len(items)
+        self.syncs += 1
+
+    def cut(self) -> tuple[int, dict[int, tuple[Any, int]], OSError | None]:
+        """Before a full snapshot (ingest paused): write what waits, then start a new segment. Returns its index
+        (the snapshot's ``journal.next``) and what :meth:`sync` returned."""
+        marks, exc = self.sync()
+        with self._io:
+            if self.size or _segment(self.dir, self.index).exists():
+                self.index, self.size = self.index + 1, 0
+            self.rows = 0
+            self._cut_failures, self._cut_synced = self.failures, self.synced_rows
+            return self.index, marks, exc
+
+    def snapshot_saved(self, index: int) -> list[Path]:
+        """A full snapshot holding everything before segment ``index`` is in place: delete those segments, and
+        journal again if a write had failed before the cut (one that failed since -- while the snapshot was
+        written -- left a gap that only the next snapshot covers). Returns the deleted files (one that cannot be
+        deleted is logged).
+
+        :param index: what :meth:`cut` returned
+        """
+        removed = []
+        with self._io:
+            for i, path in segments(self.dir):
+                if i < index:
+                    try:
+                        path.unlink()
+                        removed.append(path)
+                    except OSError as exc:
+                        log.warning("cannot delete the old journal segment %s (%s)", path, exc)
+            self.synced_rows = max(0, self.synced_rows - self._cut_synced)
+            self._cut_synced = 0
+            with self._mu:
+                if self.error and self.failures == self._cut_failures:
+                    log.warning("journal: on again (the snapshot holds what it missed since: %s)", self.error)
+                    self.error = ""
+        return removed
+
+    def info(self) -> dict[str, Any]:
+        """Counters for the log."""
+        return {"segment": self.index, "records": self.records, "syncs": self.syncs, "rows_since_snapshot": self.rows,
+                "error": self.error}
