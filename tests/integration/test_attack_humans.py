@@ -13,7 +13,7 @@ actor's rate is its own, not the learner's), attacked in turn from sessions hold
 4. 1,000 ``get learner/weights`` a second for 6 s from the ``monitor``: the learner answers at most its reply budget
    (the old one answered every query); its gradient steps/s during the flood against before it are printed (this
    test's own process sends the flood, on the same cores: ``khgrl bench queries`` measures it from a separate
-   process, docs/attacks_humans.md).
+   process, docs/attacks.md).
 5. a pause (``human/user/request``) that is never renewed, with ``--human-pause-s 3``: the actor resumes by itself
    and the run ends by itself (the old actor stayed paused: the run hung).
 
