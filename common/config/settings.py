@@ -28,6 +28,7 @@ from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any, get_type_hints
 
+from khgrl.common.config.assignments import parse_assignments
 from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
 
 __all__ = ["METHODS", "HUMANS", "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "RunConfig",
@@ -236,9 +237,8 @@ class RunConfig:
         return [f"a{i}" for i in range(self.actors)]
 
     def actor_seed(self, actor_id: str) -> int:
-        """Actor ``a<i>`` is seeded with ``seed + i``, whether or not ``actors`` counts it; any other id with ``seed``
-        plus a number made from the id (CRC-32, below 10^6). Two actors never collect the same transitions (the
-        learner would take the second's batches for replays of the first's and not store them).
+        """``a<i>``: ``seed + i`` (counted in ``actors`` or not); another id: ``seed`` + its CRC-32 mod 10^6. Two
+        actors never collect the same transitions (the learner would refuse the second's as replays).
 
         :param actor_id: the actor's id
         """
@@ -247,25 +247,6 @@ class RunConfig:
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
-
-
-def parse_assignments(spec: str) -> dict[str, frozenset[str]] | None:
-    """The ``human_clients`` setting: ``"h0=a0,a1;user=a0 scripted=*"`` -> {client: actor ids} (``*``: every
-    actor); "" -> None (every client may drive every actor). Entries are separated by ``;`` or spaces; raises
-    :class:`ValueError` on a malformed one.
-
-    :param spec: the setting.
-    """
-    if not spec.strip():
-        return None
-    out: dict[str, frozenset[str]] = {}
-    for entry in spec.replace(";", " ").split():
-        client, sep, actors = entry.partition("=")
-        ids = frozenset(a for a in actors.split(",") if a)
-        if not sep or not client or not ids or any(c in client + actors for c in "/$?#"):
-            raise ValueError(f"human_clients: {entry!r} is not CLIENT=ACTOR[,ACTOR...] (or CLIENT=*)")
-        out[client] = out.get(client, frozenset()) | ids
-    return out
 
 
 # ------------------------------------------------------------------------------------ flags
