@@ -96,7 +96,8 @@ class WeightsReceiver:
     def parse(self, payload) -> WeightsUpdate:
         """Decode and check one weights payload (raises :class:`ProtocolError`): first its length against the size
         of this network's weights (before anything is copied or decoded), then the message, then the tensors'
-        names and shapes (the data is still a view of the payload), and only then the copy into tensors.
+        names and shapes (the data is still a view of the payload), then (with the run's key) the learner's ``mac``,
+        and only then the copy into tensors.
 
         :param payload: the encoded message (bytes, or Zenoh's ZBytes: copied only once its length fits).
         """
@@ -108,14 +109,14 @@ class WeightsReceiver:
         if not isinstance(payload, (bytes, bytearray, memoryview)):
             payload = payload.to_bytes()
         msg = decode(Weights, payload)
-        if self.gate is not None:
-            self.gate.authentic(msg)  # with the run's key: the learner's mac, before anything is copied
         tensors = msg.tensors
         if set(tensors) != set(self.template):
             raise ProtocolError(f"tensors: names {sorted(tensors)} do not match the actor network")
         for k, shape in self.template.items():
             if tuple(tensors[k].shape) != shape:
                 raise ProtocolError(f"tensors[{k}]: shape {tensors[k].shape}, the actor network has {shape}")
+        if self.gate is not None:
+            self.gate.authentic(msg)  # with the run's key: the learner's mac (hashing costs more than the checks above)
         sd = {k: torch.from_numpy(np.array(v, dtype=np.float32)) for k, v in tensors.items()}
         return WeightsUpdate(msg.epoch, msg.version, dict(msg.trained), sd, float(msg.envelope.ts))
 

@@ -419,7 +419,10 @@ def _generic(kind: str, valid: dict, other_kind: str) -> list[tuple[str, bytes, 
         ("schema version 1.0", _pack(dict(valid, v=1.0)), "schema version 1.0, expected the integer 1"),
         ("wrong kind", _pack(dict(valid, kind=other_kind)), f"kind '{other_kind}' on a {kind} topic"),
         ("bad sender", _pack(dict(valid, sender="a/b")), "sender: bad identifier"),
-        ("oversize", _padded(valid, limit + 1), f"{limit + 1} bytes exceeds the {kind} limit"),
+        ("oversize", _padded(valid, limit + 1),
+         # (an actor refuses weights longer than its own network's take, before decoding: issue 21)
+         f"{limit + 1} bytes: the actor network's weights take at most" if kind == "weights" else
+         f"{limit + 1} bytes exceeds the {kind} limit"),
     ]
 
 
