@@ -203,6 +203,22 @@ def test_a_batch_replayed_under_another_id_is_not_stored_again(tmp_path):
     assert loop.offer(decode(Transitions, encode(again, "a0", 0))) == "accepted" and trainer.total == 48
 
 
+def test_identical_human_driven_batches_of_two_actors_are_both_stored(tmp_path):
+    """A scripted human in a deterministic world drives two actors through the same steps: their batches are
+    byte-identical and both honest. Only a batch with a step of the policy can be a replay."""
+    loop, trainer = _loop(tmp_path, None)
+    human = batch(0, 0, 8).replace(intervened=np.ones(8, np.uint8), envelope=None)
+    for actor in ("a0", "a1"):
+        twin = human.replace(actor=actor, stream="s0" if actor == "a0" else "s-a1")
+        assert loop.offer(decode(Transitions, encode(twin, actor, 0))) == "accepted"
+    assert trainer.total == 16 and "replayed" not in loop.ingest.rejects.by_kind()
+    policy = batch(1, 8, 8)  # (intervened all 0) from a0, then the same content from a1: a replay
+    assert loop.offer(policy) == "accepted"
+    copy = policy.replace(actor="a1", stream="s-a1", envelope=None)
+    assert loop.offer(decode(Transitions, encode(copy, "a1", 1))) == "accepted"
+    assert trainer.total == 24 and loop.ingest.rejects.by_kind()["replayed"] == 1
+
+
 def test_batch_digest_costs_little_per_4_mib_batch():
     n = 4096
     obs = np.random.default_rng(0).random((n, 128), dtype=np.float32)
