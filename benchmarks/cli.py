@@ -24,6 +24,17 @@ def _flag(*names: str, **kw: Any) -> tuple[tuple[str, ...], dict[str, Any]]:
     return names, kw
 
 
+def _at_least_one(text: str) -> int:
+    """An argparse type: an integer >= 1 (``--senders 0`` is a usage error, not a division by zero)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{n} is not >= 1")
+    return n
+
+
 SEED = _flag("--seed", type=int, default=0, help="seed (default: %(default)s)")
 OUT = _flag("--out", default=None, help="also write the results as JSON here (default: none)")
 RATE = _flag("--rate", type=float, default=50.0, help="the actors' control rate in Hz (default: %(default)s)")
@@ -92,14 +103,15 @@ BENCHMARKS: dict[str, Benchmark] = {
         OUT)),
     "ingest": Benchmark("khgrl.benchmarks.ingest_many", "run_ingest_benchmark",
                         "S sender processes into one learner: transitions/s acknowledged", (
-        _flag("--senders", type=int, default=8, help="sender processes (default: %(default)s)"),
+        _flag("--senders", type=_at_least_one, default=8, help="sender processes (default: %(default)s)"),
         _flag("--transitions", type=int, default=400_000, help="transitions in all (default: %(default)s)"),
         _flag("--batch", type=int, default=256, help="transitions per batch (default: %(default)s)"),
         _flag("--window", type=int, default=16, help="unacknowledged batches per sender (default: %(default)s)"),
         SEED, OUT)),
     "secure": Benchmark("khgrl.benchmarks.secure", "run_secure_benchmark",
                         "mutual TLS + access control vs plain TCP: ingest/s and weights latency", (
-        _flag("--senders", type=int, default=8, help="senders of the ingest measurement (default: %(default)s)"),
+        _flag("--senders", type=_at_least_one, default=8,
+              help="senders of the ingest measurement (default: %(default)s)"),
         _flag("--transitions", type=int, default=200_000, help="transitions per ingest (default: %(default)s)"),
         _flag("--actors", type=int, default=2, help="actors of the khgrl up measurement (default: %(default)s)"),
         RATE,

@@ -273,3 +273,13 @@ def test_bench_runs_through_khgrl_by_module_name(capsys):
     setting is one line and exit 2."""
     assert main(["bench", "kmp", "--repeats", "5"]) == 2
     assert "khgrl bench: error: repeats must be >= 20" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("bench", ["ingest", "secure"])
+def test_bench_senders_must_be_at_least_one(bench, capsys):
+    """``khgrl bench ingest --senders 0`` used to end in a ZeroDivisionError after starting a learner."""
+    from khgrl.benchmarks.cli import build_parser as bench_parser
+
+    with pytest.raises(SystemExit) as exc:
+        bench_parser().parse_args([bench, "--senders", "0"])
+    assert exc.value.code == 2 and "--senders: 0 is not >= 1" in capsys.readouterr().err
