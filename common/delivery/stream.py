@@ -33,7 +33,7 @@ from typing import Any, Callable
 import numpy as np
 from khgrl.common.delivery import run_key
 from khgrl.common.delivery.outbox import Outbox
-from khgrl.common.wire.bounds import check_bounds
+from khgrl.common.wire.bounds import check_bounds, limits
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
 from khgrl.common.wire.messages import Ack, Transitions
 from khgrl.common.wire.protocol import encode, with_base_seq
@@ -107,6 +107,7 @@ class TransitionStream:
         self.refused_acks = 0
         self.bounds: Any = None  # the task descriptor whose value bounds a transition must keep to be sent (None: any)
         self.out_of_bounds = 0  # transitions not sent: a value outside the task's bounds (the learner refuses them)
+        self._limits: tuple | None = None  # (bounds, obs low, obs high, reward bound), computed once per bounds
         if len(outbox):  # batches an earlier process left: re-send them all shortly (as to a new learner)
             self.resend_at = clock() + LEARNER_APPEARED_RESEND_S
 
@@ -142,9 +143,16 @@ class TransitionStream:
         """Whether a transition holds a value the learner would refuse (not finite, outside the task's bounds: a
         sensor glitch, say); it is then not sent -- a batch holding it would be refused whole and never acked, and the
         actor would wait for that ack for ever -- but counted (``out_of_bounds`` in the summary) and logged."""
+        if self._limits is None or self._limits[0] is not self.bounds:
+            lim = limits(self.bounds, np.size(obs))
+            self._limits = (self.bounds, *lim["obs"], lim["reward"][1])
+        _, low, high, reward_bound = self._limits
+        if -reward_bound <= reward <= reward_bound and ((obs >= low) & (obs <= high)).all() and \
+                ((next_obs >= low) & (next_obs <= high)).all():  # (the usual case: NaN compares false)
+            return False
         row = SimpleNamespace(obs=np.reshape(obs, (1, -1)), next_obs=np.reshape(next_obs, (1, -1)),
                               action=np.reshape(action, (1, -1)), reward=np.reshape(np.float32(reward), (1,)))
-        why = check_bounds(row, self.bounds)
+        why = check_bounds(row, self.bounds)  # (the reason, as the learner would give it)
         if why is None:
             return False
         self.out_of_bounds += 1
