@@ -13,6 +13,8 @@ settings
 * the value bounds the learner holds the task's transitions to: ``reward_bound`` (the largest |reward| of the
   environment, default 1e6) and ``obs_bound`` (the largest |observation| in any dimension, default 1e6; within it the
   observation space's own bounds apply): a batch beyond them is refused (:func:`value_bounds`);
+* optionally: ``scene``, a scene that changes every episode and the via-points that adapt the KMP to it
+  (:class:`~khgrl.common.tasks.scene.Scene`);
 * optionally: ``position`` (where the robot is, in command coordinates, from the environment's observation;
   default: the command last sent), ``scripted_human`` (P_h or None for the step whose KMP mean is given; it may
   also ask for the step, the phase, the robot's position and the observation: :func:`call_scripted_human`),
@@ -36,10 +38,11 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 from khgrl.common.kmp.fit import KMPConfig
+from khgrl.common.tasks.scene import Scene, ViaPoint, scene_seed
 from khgrl.common.wire.descriptor import MAX_BOUND, OBS_BOUND, REWARD_BOUND
 
-__all__ = ["Task", "View", "Cuboid", "Sphere", "Point", "TaskError", "load_task", "BUILTIN_TASKS",
-           "MAX_DIM", "HUMAN_INPUTS", "scripted_human_inputs", "call_scripted_human", "value_bounds",
+__all__ = ["Task", "View", "Scene", "ViaPoint", "scene_seed", "Cuboid", "Sphere", "Point", "TaskError", "load_task",
+           "BUILTIN_TASKS", "MAX_DIM", "HUMAN_INPUTS", "scripted_human_inputs", "call_scripted_human", "value_bounds",
            "MAX_DECLARED_BOUND"]
 
 MAX_DIM = 64  # command (O) and observation sizes a task may have (also the wire's bound)
@@ -124,6 +127,8 @@ class Task:
         a reward beyond it plus the largest action cost (:func:`value_bounds`).
     :param obs_bound: the largest |observation| in any dimension (default 1e6), whatever the observation space
         says; within it the space's own bounds apply (with a margin of a tenth of their width).
+    :param scene: how the scene varies per episode and adapts the KMP (None: one fixed scene;
+        :mod:`khgrl.common.tasks.scene`).
     """
 
     name: str
@@ -142,6 +147,7 @@ class Task:
     success_key: str = "success"
     reward_bound: float = REWARD_BOUND
     obs_bound: float = OBS_BOUND
+    scene: Scene | None = None
 
     def with_demos(self, demos: Any) -> "Task":
         """This task with other demonstrations (``--demos FILE``)."""
