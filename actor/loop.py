@@ -109,7 +109,7 @@ class ActorLoop:
 
     def _episode(self, acc: EpisodeAccumulator) -> bool:
         env = self.p.env
-        obs, _ = env.reset()
+        obs, _ = env.reset_episode(self.episode + 1)
         acc.start()
         self.episode = acc.episode
         self.p.arbiter.new_episode(self.episode)

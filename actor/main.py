@@ -159,7 +159,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
 
     t0 = time.perf_counter()
     try:
-        env = KGRLEnv(load_task(cfg.task_spec, cfg.demos or None), seed=seed)
+        env = KGRLEnv(load_task(cfg.task_spec, cfg.demos or None), seed=seed, adapt=cfg.adapt)
         task = env.descriptor(cfg.task_spec)
     except TaskError as exc:
         return _error(actor, exc)

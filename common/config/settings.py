@@ -165,6 +165,9 @@ class RunConfig:
                       roles=(ACTOR, HUMAN))
     method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither", METHODS,
                        roles=(ACTOR, REFERENCE))
+    adapt: bool = _opt(True, "refit the KMP through the via-points of a task whose scene changes every episode, at "
+                             "every reset (a task with a Scene; --no-adapt: the demonstrations' KMP in every scene)",
+                       roles=(ACTOR,))
     algo: str = _opt("tqc", "the learner's algorithm, by its name in khgrl.learner.algorithm.REGISTRY (tqc: "
                             "sb3-contrib TQC, the paper's; it takes the [tqc] settings that apply to it)",
                      roles=(LEARNER, ACTOR))

@@ -151,6 +151,15 @@ class LCNSKMP:
         return 0 if self._G is None else self._G.shape[1]
 
     @property
+    def constraints(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The hard constraints as normalised at construction, (G (N, F, O), c (N, F)), or None; read-only views."""
+        if self._G is None:
+            return None
+        G, c = self._G.view(), self._c.view()
+        G.flags.writeable = c.flags.writeable = False
+        return G, c
+
+    @property
     def grid_mean(self) -> np.ndarray:
         """(N, O) unconstrained grid mean K A mu (xi = 0); a read-only view."""
         return self._eta0

@@ -60,6 +60,14 @@ class KGRLMapping:
         self._table: np.ndarray | None = None
         self.refresh_scale()
 
+    def use_model(self, model: LCNSKMP) -> None:
+        """Drive with ``model`` from now on: the same grid and outputs, another reference database (a KMP adapted
+        to this episode's via-points, :func:`khgrl.common.kmp.adapt.adapt_model`). L is tabulated over the phase
+        and stays as it is."""
+        if model.out_dim != self.model.out_dim or not np.array_equal(model.s, self.model.s):
+            raise ValueError("use_model needs a model on the same grid with the same outputs")
+        self.model = model
+
     def refresh_scale(self) -> None:
         """Re-tabulate L on the grid (call after the scale model changed)."""
         if self.scale_model.config.input == "phase":

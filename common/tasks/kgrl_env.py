@@ -17,6 +17,14 @@ Observation (float32): the environment's observation, the phase s, and the robot
 mean at this phase clipped to [-1, 1]^O (the robot: ``task.position(obs)``, or the command last sent).
 
 Action: a in [-1, 1]^O (float32), the null-space action of eq. 5.
+
+Scenes that change every episode (a task with a :class:`~khgrl.common.tasks.scene.Scene`): at every reset the
+placement is read from the first observation (``env.placement``, ``info["scene"]``) and, with ``adapt`` and the
+scene's via-points, the LC-NS-KMP is refitted through them (:func:`khgrl.common.kmp.adapt.adapt_model`): the mean,
+the projector, the band, eqs. 5-6 and the action cost follow the adapted model for that episode. The exploration
+scale L stays a function of the phase: it scales the null-space action about whatever mean the episode has.
+:meth:`KGRLEnv.reset_episode` resets episode ``e`` of a run to the scene :func:`~khgrl.common.tasks.scene.scene_seed`
+gives.
 """
 
 from __future__ import annotations
@@ -26,7 +34,9 @@ import numpy as np
 from gymnasium import spaces
 from khgrl.common.kmp.mapping import KGRLMapping
 from khgrl.common.kmp.scale import ScaleModel
+from khgrl.common.tasks.adapted import episode_scene
 from khgrl.common.tasks.api import Task, TaskError, value_bounds
+from khgrl.common.tasks.scene import scene_seed
 from khgrl.common.tasks.world import TaskWorld, build_task_world
 
 __all__ = ["KGRLEnv", "make_inner_env"]
@@ -57,12 +67,14 @@ class KGRLEnv(gym.Env):
     :param render_mode: None or "rgb_array" (the task's views, :mod:`khgrl.common.tasks.render`).
     :param world: a built world (skips fitting; e.g. cached).
     :param inner: the task's environment (default: ``task.make_env(seed)``).
+    :param adapt: refit the KMP through the scene's via-points at every reset (tasks with a varying scene).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
 
     def __init__(self, task: Task | None = None, *, seed: int = 0, scale_model: ScaleModel | None = None,
-                 render_mode: str | None = None, world: TaskWorld | None = None, inner: gym.Env | None = None) -> None:
+                 render_mode: str | None = None, world: TaskWorld | None = None, inner: gym.Env | None = None,
+                 adapt: bool = True) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.world = world if world is not None else build_task_world(task)
@@ -81,8 +93,13 @@ class KGRLEnv(gym.Env):
             high=np.concatenate([ob.high.astype(np.float64), [1.0], np.ones(o)]).astype(np.float32),
             dtype=np.float32)
         self._inner_seed: int | None = int(seed)
+        self.seed_base = int(seed)
+        self.adapt = bool(adapt)
+        self.placement: dict[str, float] = {}
+        self.via_points: list = []  # (grid step, position) of this episode's via-points
         self._correction: np.ndarray | None = None
         self._renderer = None
+        self._scene_cache = None
         self._reset_state(np.asarray(self.mapping.mean(0), dtype=np.float64).copy(), None)
 
     def _check_command_space(self, o: int) -> None:
@@ -147,10 +164,34 @@ class KGRLEnv(gym.Env):
         inner_seed = seed if seed is not None else self._inner_seed
         self._inner_seed = None
         inner_obs, info = self.inner.reset(seed=inner_seed, options=options)
+        self._new_scene(inner_obs)
         start = np.asarray(self.mapping.mean(0), dtype=np.float64)
         self._reset_state(self._locate(inner_obs, start), inner_obs)
         self._correction = None
-        return self._obs(), {**info, "phase": 0.0}
+        extra = {"scene": dict(self.placement)} if self.task.scene is not None else {}
+        return self._obs(), {**info, **extra, "phase": 0.0}
+
+    @property
+    def varies(self) -> bool:
+        """Whether the task's scene changes every episode."""
+        return self.task.scene is not None
+
+    def reset_episode(self, episode: int):
+        """Reset for episode ``episode`` (1-based) of the run: a varying scene is drawn from
+        ``scene_seed(seed, episode)``; a fixed scene is reset as :meth:`reset` without a seed does.
+
+        :param episode: the run's episode number.
+        """
+        return self.reset(seed=scene_seed(self.seed_base, episode) if self.varies else None)
+
+    def _new_scene(self, inner_obs: np.ndarray) -> None:
+        """Read the placement and (with ``adapt``) refit the KMP through the scene's via-points."""
+        if self.task.scene is None:
+            return
+        scene = episode_scene(self.world, inner_obs, adapt=self.adapt, cache=self._scene_cache)
+        self._scene_cache = scene
+        self.placement, self.via_points = scene.placement, scene.via_points
+        self.mapping.use_model(scene.model)
 
     def _command(self, t: int, a: np.ndarray, L: np.ndarray, info: dict):
         """Eq. 5 (policy) or eq. 6 (correction): (P_t, xi, the action the transition stores)."""
