@@ -182,7 +182,7 @@ class ActorLoop:
         st = acc.finish(time.perf_counter() - ep.started)
         p.record.flush()
         p.tensorboard.episode(st)
-        p.episodes.add(st)
+        p.episodes.add(st, p.env.scene_row())
         p.link.publish(EpisodeReport(actor=self.id, stats=asdict(st)))
         log.info("episode %d: %d steps, return %.1f, success %s, interventions %d (%d steps), weights v%d",
                  st.episode, st.steps, st.ret, st.success, st.interventions, st.intervention_steps,

@@ -1,5 +1,6 @@
 """The actor's result files in RUN_DIR/actor-ID/: ``episodes.csv`` and ``episodes.json`` (a row per finished
-episode, written as it finishes, so a killed actor keeps its history), ``config.json`` and ``summary.json``.
+episode, written as it finishes, so a killed actor keeps its history), ``config.json`` and ``summary.json``; for a task whose scene changes every episode also ``scenes.csv`` (a row per
+episode: its reset seed, placement, via-points and the checks of the adapted KMP, ``KGRLEnv.scene_row``).
 The columns of ``episodes.csv`` (:class:`khgrl.common.metrics.EpisodeStats`) are documented in the README,
 section "episodes.csv" (tests/unit/test_newcomer_fixes.py checks that every column is).
 
@@ -17,7 +18,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from khgrl.actor.record import trim_partial_line
-from khgrl.common.metrics import EpisodeStats, append_episode_row
+from khgrl.common.metrics import EpisodeStats, append_episode_row, append_row
 
 __all__ = ["EpisodeLog"]
 
@@ -59,7 +60,7 @@ class EpisodeLog:
             trim_partial_line(self.csv)  # (an actor killed while appending a row)
             self.earlier = self._read_earlier()
         else:
-            for p in (self.csv, self.json):
+            for p in (self.csv, self.json, self.dir / "scenes.csv"):
                 p.unlink(missing_ok=True)
         self.new: list[EpisodeStats] = []
 
@@ -84,13 +85,16 @@ class EpisodeLog:
         """Transitions (steps) the earlier parts took."""
         return sum(int(e["steps"]) for e in self.earlier)
 
-    def add(self, st: EpisodeStats) -> None:
+    def add(self, st: EpisodeStats, scene: dict | None = None) -> None:
         """Record a finished episode (appended to episodes.csv; episodes.json rewritten).
 
         :param st: the episode's statistics.
+        :param scene: the episode's scene (``KGRLEnv.scene_row()``) for ``scenes.csv``; None: a fixed scene.
         """
         self.new.append(st)
         append_episode_row(self.csv, st)
+        if scene is not None:
+            append_row(self.dir / "scenes.csv", {"episode": st.episode, **scene})
         tmp = self.json.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(self.earlier + [asdict(e) for e in self.new], indent=2))
         tmp.replace(self.json)

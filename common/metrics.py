@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["EpisodeStats", "EpisodeAccumulator", "write_episodes", "append_episode_row"]
+__all__ = ["EpisodeStats", "EpisodeAccumulator", "write_episodes", "append_episode_row", "append_row"]
 
 
 @dataclass
@@ -91,8 +91,16 @@ def append_episode_row(path: str | Path, st: EpisodeStats) -> None:
     :param path: the CSV file.
     :param st: the finished episode.
     """
+    append_row(path, st.to_row())
+
+
+def append_row(path: str | Path, row: dict) -> None:
+    """Append one row to a CSV file (the header, the row's keys, first if the file is new or empty).
+
+    :param path: the CSV file.
+    :param row: column -> value.
+    """
     path = Path(path)
-    row = st.to_row()
     header = not path.is_file() or path.stat().st_size == 0
     with open(path, "a", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(row.keys()))

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from khgrl.deploy.figures import axis_names, figure_name, plot_learning, plot_scale
 from khgrl.deploy.run_results import (
+    METHOD_LABEL,
     STABLE_WINDOW,
     RunResult,
     corrected_phases,
@@ -69,7 +70,7 @@ def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, sce
     _write_scale(found, scales, out / "scale.csv")
     for scenario in sorted({k[0] for k in data}):
         name, title = figure_name(scenario)
-        groups = {m: data[(scenario, m)] for m in ("khgrl", "kgrl") if (scenario, m) in data}
+        groups = {m: data[(scenario, m)] for m in METHOD_LABEL if (scenario, m) in data}
         plot_learning(scenario, groups, episodes, out / name, title)
     plot_scale(scales, out / "fig6_scale.png")
     text = summary_markdown(results, episodes)

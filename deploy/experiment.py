@@ -37,6 +37,7 @@ from pathlib import Path
 
 from khgrl.common.config.settings import METHODS, PAPER_EPISODES, TQCSettings, read_table
 from khgrl.common.tasks.passage.scenarios import SCENARIOS
+from khgrl.deploy.run_results import METHOD_LABEL
 
 __all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main",
            "build_parser"]
@@ -62,9 +63,12 @@ class ExperimentConfig:
     timeout: float = 0.0  # seconds per run (0: none)
 
     def validate(self) -> "ExperimentConfig":
-        bad = [s for s in self.scenarios if s not in SCENARIOS] + [m for m in self.methods if m not in METHODS]
+        bad = [s for s in self.scenarios if s not in SCENARIOS] + [m for m in self.methods if m not in METHOD_LABEL]
         if bad:
-            raise ValueError(f"unknown scenario/method {bad}; choose from {tuple(SCENARIOS)} and {METHODS}")
+            raise ValueError(f"unknown scenario/method {bad}; choose from {tuple(SCENARIOS)} and "
+                             f"{tuple(METHOD_LABEL)}")
+        if self.system == "reference" and any(m not in METHODS for m in self.methods):
+            raise ValueError(f"the single-process reference runs the methods {METHODS} only")
         bad_tasks = [t for t in self.tasks if not isinstance(t, str) or ":" not in t]
         if bad_tasks:
             raise ValueError(f"tasks {bad_tasks}: expected 'passage:SCENARIO', 'fetch:SCENARIO' or "
@@ -146,10 +150,11 @@ def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
         return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
                 "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]
     world = ["--task", spec.task] if spec.task else ["--scenario", spec.scenario]
-    argv = [*khgrl, "up", *world, "--method", spec.method, "--seed", str(spec.seed),
+    method, _, variant = spec.method.partition("_")  # kgrl_noadapt: khgrl up --method kgrl --no-adapt
+    argv = [*khgrl, "up", *world, "--method", method, "--seed", str(spec.seed),
             "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead),
-            "--no-progress"]
-    if spec.method == "khgrl":
+            "--no-progress", *(["--no-adapt"] if variant == "noadapt" else [])]
+    if method == "khgrl":
         argv += ["--human", "scripted", "--human-episodes", *map(str, cfg.human_episodes)]
     else:
         argv += ["--human", "none"]
@@ -345,8 +350,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tasks", nargs="+", default=None, metavar="TASK",
                    help="tasks (khgrl up --task), instead of the passage world's scenarios, e.g. fetch:control "
                         "fetch:moved (default: none)")
-    p.add_argument("--methods", nargs="+", default=None, choices=METHODS,
-                   help=f"methods (default: {' '.join(METHODS)})")
+    p.add_argument("--methods", nargs="+", default=None, choices=tuple(METHOD_LABEL),
+                   help=f"methods (default: {' '.join(METHODS)}; a _noadapt method runs with --no-adapt: the "
+                        "demonstrations' KMP in every scene)")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default 0 1 2 3 4)")
     p.add_argument("--episodes", type=int, default=None, help="episodes per run (default 60)")
     p.add_argument("--human-episodes", type=int, nargs="+", default=None,

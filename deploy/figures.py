@@ -9,7 +9,7 @@ from khgrl.deploy.run_results import METHOD_LABEL, episode_matrix, human_episode
 
 __all__ = ["FIGURE", "METHOD_COLOR", "figure_name", "plot_learning", "plot_scale", "axis_names"]
 
-METHOD_COLOR = {"khgrl": "C3", "kgrl": "C0"}
+METHOD_COLOR = {"khgrl": "C3", "kgrl": "C0", "khgrl_noadapt": "C1", "kgrl_noadapt": "C7"}
 FIGURE = {"high_cov": ("fig4_high_cov.png", "Fig. 4 (high-covariance scenario A)"),
           "low_cov": ("fig5_low_cov.png", "Fig. 5 (low-covariance scenario B)")}
 
@@ -47,7 +47,7 @@ def plot_learning(scenario: str, groups: dict[str, list[list[dict]]], episodes: 
             if key != "success":
                 std = np.nanstd(m, axis=0)
                 ax.fill_between(ep, mean - std, mean + std, color=color, alpha=0.18, lw=0)
-        if method == "khgrl":
+        if method.startswith("khgrl"):
             for h in human_episodes(runs):
                 for ax in axes:
                     ax.axvspan(h - 0.5, h + 0.5, color="0.85", zorder=0, lw=0)

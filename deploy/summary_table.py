@@ -104,12 +104,24 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
     evaluated = all(r.eval_success is not None for r in results)
     heads = [c.replace("_", " ").replace("without", "w/o") for c in criteria] + ["success, last 10"] + (
         ["eval success"] if evaluated else [])
-    comp = ["", "KhGRL vs KGRL (episode criteria: median KhGRL vs median KGRL over seeds, 'never' ranked last, and "
-                "the one-sided Mann–Whitney U p-value that KhGRL's episodes come earlier; success rates: "
-                "mean KhGRL − mean KGRL and the one-sided p-value that KhGRL's is higher):", "",
-            "| scenario | seeds (KhGRL/KGRL) | " + " | ".join(heads) + " |", "|---|---|" + "---|" * len(heads)]
+    comp: list[str] = []
+    for a_method, b_method in COMPARISONS:
+        comp += _comparison(groups, a_method, b_method, criteria, heads, evaluated, episodes)
+    return "\n".join(lines + comp) + "\n"
+
+
+# (a, b): "a vs b" tables, where both ran: what the human adds (KhGRL vs KGRL, with and without adaptation) and
+# what adapting the KMP to the scene adds (KGRL vs KGRL without adaptation)
+COMPARISONS = (("khgrl", "kgrl"), ("kgrl", "kgrl_noadapt"), ("khgrl_noadapt", "kgrl_noadapt"))
+
+
+def _comparison(groups: dict, a_method: str, b_method: str, criteria: list[str], heads: list[str], evaluated: bool,
+                episodes: int) -> list[str]:
+    """The markdown lines of one "a vs b" table (none if no scenario has runs of both methods)."""
+    a_name, b_name = METHOD_LABEL[a_method], METHOD_LABEL[b_method]
+    rows = []
     for scenario in sorted({k[0] for k in groups}):
-        a, b = groups.get((scenario, "khgrl")), groups.get((scenario, "kgrl"))
+        a, b = groups.get((scenario, a_method)), groups.get((scenario, b_method))
         if not a or not b:
             continue
         cells = []
@@ -120,5 +132,12 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
         cells.append(_higher([r.success_last_10 for r in a], [r.success_last_10 for r in b]))
         if evaluated:
             cells.append(_higher([r.eval_success for r in a], [r.eval_success for r in b]))
-        comp.append(f"| {scenario} | {len(a)}/{len(b)} | " + " | ".join(cells) + " |")
-    return "\n".join(lines + comp) + "\n"
+        rows.append(f"| {scenario} | {len(a)}/{len(b)} | " + " | ".join(cells) + " |")
+    if not rows:
+        return []
+    return ["", f"{a_name} vs {b_name} (episode criteria: median {a_name} vs median {b_name} over seeds, 'never' "
+                f"ranked last, and the one-sided Mann–Whitney U p-value that {a_name}'s episodes come earlier; "
+                f"success rates: mean {a_name} − mean {b_name} and the one-sided p-value that {a_name}'s is "
+                f"higher):", "",
+            f"| scenario | seeds ({a_name}/{b_name}) | " + " | ".join(heads) + " |",
+            "|---|---|" + "---|" * len(heads), *rows]

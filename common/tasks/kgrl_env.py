@@ -94,6 +94,8 @@ class KGRLEnv(gym.Env):
             dtype=np.float32)
         self._inner_seed: int | None = int(seed)
         self.seed_base = int(seed)
+        self.scene_seed: int | None = None
+        self.via_error, self.max_violation = 0.0, -np.inf
         self.adapt = bool(adapt)
         self.placement: dict[str, float] = {}
         self.via_points: list = []  # (grid step, position) of this episode's via-points
@@ -182,7 +184,8 @@ class KGRLEnv(gym.Env):
 
         :param episode: the run's episode number.
         """
-        return self.reset(seed=scene_seed(self.seed_base, episode) if self.varies else None)
+        self.scene_seed = scene_seed(self.seed_base, episode) if self.varies else None
+        return self.reset(seed=self.scene_seed)
 
     def _new_scene(self, inner_obs: np.ndarray) -> None:
         """Read the placement and (with ``adapt``) refit the KMP through the scene's via-points."""
@@ -192,6 +195,19 @@ class KGRLEnv(gym.Env):
         self._scene_cache = scene
         self.placement, self.via_points = scene.placement, scene.via_points
         self.mapping.use_model(scene.model)
+        mean = scene.model.grid_mean
+        self.via_error = max((float(np.max(np.abs(mean[n] - p))) for n, p in scene.via_points), default=0.0)
+        self.max_violation = -np.inf
+
+    def scene_row(self) -> dict | None:
+        """This episode's scene for ``scenes.csv`` (None for a task whose scene does not vary): the reset seed,
+        whether the KMP was adapted, the via-points, the largest |adapted mean - via-point| at their steps, the
+        largest violation of a hard constraint by a commanded P_t (``max(c - G P_t)``, <= 0 when every one held)
+        and the placement."""
+        if not self.varies:
+            return None
+        return {"seed": self.scene_seed, "adapted": bool(self.via_points), "via_points": len(self.via_points),
+                "via_error": self.via_error, "max_violation": self.max_violation, **self.placement}
 
     def _command(self, t: int, a: np.ndarray, L: np.ndarray, info: dict):
         """Eq. 5 (policy) or eq. 6 (correction): (P_t, xi, the action the transition stores)."""
@@ -223,6 +239,8 @@ class KGRLEnv(gym.Env):
         self._inner_obs = inner_obs
         self.position = self._locate(inner_obs, desired)
         self.desired = desired
+        if self.task.scene is not None:
+            self.max_violation = max(self.max_violation, float(np.max(self.world.c - self.world.G @ desired)))
         self.trail.append(self.position.copy())
         self.t += 1
         terminated = bool(term)
