@@ -9,7 +9,10 @@ Problem: the high-covariance passage world's 9 demonstrations, N = 400, O = 2, F
 * grid step with active constraints (xi pushes P_t through the workspace bound; warm-started active set
   along a sweep of consecutive steps), and the same without warm start (first step of an episode);
 * the direct formula (general ``predict`` at s* = s_hat = s_n: Cholesky solves + dual QP);
-* ``lc-ns-kmp`` 0.1.0's ``predict_LCNS`` on the same inputs, when installed (inactive / active).
+* ``lc-ns-kmp`` 0.1.0's ``predict_LCNS`` on the same inputs, when installed (inactive / active);
+* the via-point refit of a varying scene (:func:`khgrl.common.kmp.adapt.adapt_model`, what the actor does at every
+  reset of such a task): the Fetch teacher's demonstrations at N = 100 and N = 400, O = 3, F = 6 (the workspace
+  box), two via-points at the grasp.
 """
 
 from __future__ import annotations
@@ -42,6 +45,21 @@ def _fmt(seconds: float) -> str:
     if seconds < 1.0:
         return f"{seconds * 1e3:9.2f} ms"
     return f"{seconds:9.2f} s "
+
+
+def _refit_times(repeats: int = 5) -> dict[int, float]:
+    """Median time of one via-point refit (``adapt_model``) of the Fetch task's KMP, by grid size N."""
+    from khgrl.common.kmp.adapt import adapt_model
+    from khgrl.common.tasks.fetch.task import DEMO_OBJECT, WORKSPACE, teacher_demos
+    from khgrl.common.tasks.scene import ViaPoint
+
+    G, c = box_constraints(*WORKSPACE)
+    out = {}
+    for n in (100, 400):
+        model, _ = fit_model(teacher_demos(n=n), KMPConfig(), (G, c))
+        via = [ViaPoint(p, DEMO_OBJECT + [0.05, -0.1, 0.0]) for p in (0.32, 0.42)]
+        out[n] = _median_time(lambda _: adapt_model(model, via), repeats)
+    return out
 
 
 def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None) -> dict:
@@ -140,6 +158,9 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
     table.add_row("build LCNSKMP (N=400, F=4)", _fmt(t_build), "")
     table.add_row("fit GMM/GMR + build, no constraints", _fmt(t_fit_free), "")
     table.add_row("fit GMM/GMR + build, box constraints", _fmt(t_fit_boxed), "")
+    refits = _refit_times()
+    for n, value in refits.items():
+        table.add_row(f"via-point refit at reset (N={n}, O=3, F=6)", _fmt(value), "")
     for name, value in results.items():
         key = next((k for k in base if name.endswith(k) or f"{k} (" in name), None)
         ratio = f"{value / base[key]:,.0f}×" if key and not name.startswith("grid step") else ""
@@ -152,6 +173,7 @@ def run_kmp_benchmark(repeats: int = 2000, seed: int = 0, out: str | None = None
         "repeats": repeats,
         "seed": seed,
         "build_s": t_build,
+        "refit_s": {str(n): v for n, v in refits.items()},
         "median_s": results,
         "active_rows_mean": float(np.mean(active_counts)),
         "machine": platform.platform(),
