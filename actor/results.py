@@ -1,6 +1,7 @@
 """The actor's result files in RUN_DIR/actor-ID/: ``episodes.csv`` and ``episodes.json`` (a row per finished
-episode, written as it finishes, so a killed actor keeps its history), ``config.json`` and ``summary.json``; for a task whose scene changes every episode also ``scenes.csv`` (a row per
-episode: its reset seed, placement, via-points and the checks of the adapted KMP, ``KGRLEnv.scene_row``).
+episode, written as it finishes, so a killed actor keeps its history), ``config.json`` and ``summary.json``; for a
+task whose scene changes every episode also ``scenes.csv`` (a row per episode: its reset seed, placement, via-points
+and the checks of the adapted KMP, ``KGRLEnv.scene_row``).
 The columns of ``episodes.csv`` (:class:`khgrl.common.metrics.EpisodeStats`) are documented in the README,
 section "episodes.csv" (tests/unit/test_newcomer_fixes.py checks that every column is).
 
