@@ -89,15 +89,17 @@ class FetchPosition(gym.Env):
     :param gripper: the gripper command by phase.
     :param object_xy: where the object is placed at reset (None: Fetch's own random placement).
     :param goal: the target position (None: Fetch's own random goal).
+    :param env_kwargs: further keyword arguments of ``gym.make(env_id, ...)`` (e.g. another scene's model file).
     """
 
     metadata = {"render_modes": []}
 
     def __init__(self, env_id: str = "FetchPickAndPlace-v4", horizon: int = 100,
                  workspace: tuple = ((1.05, 0.4, 0.42), (1.55, 1.1, 0.9)), gripper: GripperSchedule = GripperSchedule(),
-                 object_xy: tuple[float, float] | None = None, goal: tuple[float, float, float] | None = None) -> None:
+                 object_xy: tuple[float, float] | None = None, goal: tuple[float, float, float] | None = None,
+                 env_kwargs: dict | None = None) -> None:
         gym.register_envs(import_robotics())
-        self.env = gym.make(env_id, max_episode_steps=horizon)
+        self.env = gym.make(env_id, max_episode_steps=horizon, **(env_kwargs or {}))
         self.horizon = int(horizon)
         self.gripper = gripper
         self.object_xy = None if object_xy is None else np.asarray(object_xy, np.float64)
