@@ -189,6 +189,22 @@ def test_gif_frames_draw_each_episodes_adapted_mean(reach: KGRLEnv) -> None:
     assert np.linalg.norm(ends[0] - demo_end) > 20
 
 
+def test_the_eval_gif_recorder_shows_each_scene(reach: KGRLEnv) -> None:
+    """``khgrl eval --gif`` (deploy/gif.py, unchanged) gets each episode's scene through frame_from_env."""
+    from khgrl.common.tasks.render_parts import COLORS
+    from khgrl.deploy.gif import GifRecorder
+
+    gif = GifRecorder(reach)
+    ends = []
+    for e in (1, 2):
+        reach.reset_episode(e)
+        reach.step(np.zeros(2, np.float32))
+        gif(reach, False)
+        ends.append(gif.renderer.to_pixel(0, reach.via_points[0][1]))
+    for k in (0, 1):
+        assert _near(gif.frames[k], ends[k], COLORS["via"]) and not _near(gif.frames[1 - k], ends[k], COLORS["via"])
+
+
 def test_a_fixed_scene_renders_as_without_scene_fields() -> None:
     """frame_from_env of a fixed-scene task brings no scene: the image is the one the renderer drew before issue 22
     (checked against main's renderer by hand: identical arrays for passage high_cov / low_cov and own_task)."""
