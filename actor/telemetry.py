@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 from khgrl.common.delivery.actor_side import RateLimitStats
+from khgrl.common.tasks.scene_frame import frame_scene
 from khgrl.common.wire.descriptor import MAX_DIM
 from khgrl.common.wire.messages import ActorInfo, Frame
 
@@ -67,7 +68,9 @@ class TensorBoard:
 
 
 def frame(env, actor: str, episode: int, info: dict, t: int, intervening: bool, ret: float, last: bool) -> Frame:
-    """The frame the actor publishes after a step.
+    """The frame the actor publishes after a step. The first frame of an episode (t = 0) of a varying-scene task
+    whose KMP was adapted carries the episode's adapted mean, projector and via-points (``scene_*``,
+    :func:`~khgrl.common.tasks.scene_frame.frame_scene`); other frames are as before.
 
     :param env: the actor's :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv`.
     :param actor: actor id.
@@ -83,7 +86,8 @@ def frame(env, actor: str, episode: int, info: dict, t: int, intervening: bool, 
                  mean=np.asarray(env.mapping.mean(t), np.float64), scale=np.asarray(info["scale"], np.float64),
                  intervening=intervening, task=env.task.name, ret=float(ret),
                  next_mean=np.asarray(env.mapping.mean(t + 1), np.float64) if t + 1 < env.horizon else None,
-                 last=True if last else None, obs=_frame_obs(getattr(env, "_inner_obs", None)))
+                 last=True if last else None, obs=_frame_obs(getattr(env, "_inner_obs", None)),
+                 **frame_scene(env, t, Frame.MAX_BYTES))
 
 
 def _frame_obs(obs) -> np.ndarray | None:

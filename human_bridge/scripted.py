@@ -58,7 +58,10 @@ class ScriptedAnswers:
         self.human = human
         self.pub = pub
         self.phases = np.linspace(0.0, 1.0, horizon) if horizon and horizon > 1 else None
-        self.means: dict[int, np.ndarray] = {}  # step -> KMP mean, from the frames seen (the same every episode)
+        # step -> KMP mean, from the latest frame of that step: the latest episode's (a varying-scene task's mean
+        # changes every episode; the next episode's step-0 word is decided from the current episode's mean, the
+        # best known before that episode's reset adapts it)
+        self.means: dict[int, np.ndarray] = {}
         self.announced: set[tuple[str, int]] = set()  # (actor, episode) whose lock-step was announced
 
     def _phase(self, step: int) -> float | None:
@@ -70,7 +73,7 @@ class ScriptedAnswers:
         :param f: the actor's frame of step ``f.t``.
         """
         ep, t, actor = f.episode, f.t, f.actor
-        self.means.setdefault(t, f.mean)
+        self.means[t] = f.mean
         if self.human.active_in(ep) and f.next_mean is not None:
             p_h = self.human.correction(ep, f.next_mean, step=t + 1, phase=self._phase(t + 1), position=f.robot,
                                         obs=f.obs)

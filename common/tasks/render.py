@@ -11,6 +11,11 @@ Static content (grid, ticks, workspace box, shapes, demonstrations in thin grey,
 drawn once; the exploration band (which changes only with L) is composited into it and cached by its content.
 A frame is then one blit plus the trail, the robot, the desired position P_t and the human's correction.
 
+Scenes that change every episode (issue 22): a frame may bring its episode's adapted KMP mean and via-points
+(:attr:`TaskFrame.mean`, :attr:`TaskFrame.via`; :func:`frame_from_env` takes them from a varying-scene env after
+its reset): the red mean is then the adapted one, the via-points are marked (teal diamonds), and the static layers
+are cached per scene. A frame without them draws the descriptor's mean, exactly as before.
+
 Coordinates: :meth:`TaskRenderer.to_pixel` maps a point in command coordinates (O,) to pixel coordinates of
 the renderer's own surface (x right, y down); :meth:`TaskRenderer.to_world` maps a pixel of a view back to
 that view's two axis values; :meth:`TaskRenderer.view_at` says which view a pixel is in and
@@ -19,17 +24,18 @@ that view's two axis values; :meth:`TaskRenderer.view_at` says which view a pixe
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 import pygame
+from khgrl.common.tasks.render_frame import TaskFrame, frame_from_env
 from khgrl.common.tasks.render_parts import (
     COLORS,
     SurfaceCache,
     band_key,
     band_layer,
     draw_legend,
+    draw_via,
     get_font,
     nice_ticks,
     surface_rgb,
@@ -47,30 +53,11 @@ _SHAPE = {"box": (70, 70, 78, 200), "box_aside": (70, 70, 78, 45), "sphere": COL
 _POINTS = {"goal": COLORS["goal"], "start": COLORS["start"]}
 
 
-@dataclass
-class TaskFrame:
-    """What changes from frame to frame, in command coordinates (O outputs).
-
-    :param position: (O,) where the robot is.
-    :param desired: (O,) the desired position P_t.
-    :param phase: s in [0, 1].
-    :param t: the step index.
-    :param trail: (k, O) the robot's positions so far this episode, or None.
-    :param band: (N, 2, O) the exploration band [low, high] per grid point, or None.
-    :param correction: (O,) the human's P_h while intervening, or None.
-    :param human_active: a human is intervening (orange frame, badge).
-    :param text: status lines for the bottom strip.
-    """
-
-    position: np.ndarray
-    desired: np.ndarray
-    phase: float = 0.0
-    t: int = 0
-    trail: np.ndarray | None = None
-    band: np.ndarray | None = None
-    correction: np.ndarray | None = None
-    human_active: bool = False
-    text: list[str] = field(default_factory=list)
+@dataclass(frozen=True, eq=False)
+class _Scene:
+    mean: np.ndarray | None  # (N, O) the episode's adapted mean
+    via: np.ndarray | None  # (V, 1 + O)
+    key: tuple  # what the static layers are cached by
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,7 +95,7 @@ class TaskRenderer:
         pw = w // n
         self.views: list[_View] = [self._layout(pygame.Rect(k * pw, 0, pw, h - strip_height), (a, b), lo, hi,
                                                 equal_aspect) for k, (a, b) in enumerate(pairs)]
-        self._static: dict[tuple[bool, bool], tuple[pygame.Surface, pygame.Surface]] = {}
+        self._static = SurfaceCache(_CACHE_SIZE)  # (show_demos, show_mean, scene key) -> (background, foreground)
         self._composites = SurfaceCache(_CACHE_SIZE)
         self._offscreen: pygame.Surface | None = None
         self._text: dict[tuple[int, str], pygame.Surface] = {}
@@ -169,27 +156,32 @@ class TaskRenderer:
         return out
 
     # ------------------------------------------------------------------ static layers
-    def _static_layers(self, show_demos: bool, show_mean: bool) -> tuple[pygame.Surface, pygame.Surface]:
-        key = (show_demos, show_mean)
-        if key not in self._static:
-            size = (self.width, self.height - self.strip_height)
-            bg, fg = pygame.Surface(size), pygame.Surface(size, pygame.SRCALPHA)
-            bg.fill(_PANEL)
-            fg.fill((0, 0, 0, 0))
-            for k, v in enumerate(self.views):
-                self._draw_axes(bg, v)
-                fg.set_clip(v.rect)
-                self._draw_content(fg, k, show_demos, show_mean)
-                fg.set_clip(None)
-            if self.legend:
-                entries = [("demo", "demonstrations")] * show_demos + [("mean", "KMP mean")] * show_mean + [
-                    ("band", "exploration band"), ("robot", "robot"), ("desired", "desired P_t"),
-                    ("correction", "human P_h")]
-                fg.set_clip(self.views[0].rect)
-                draw_legend(fg, (self.views[0].rect.left + 6, self.views[0].rect.top + 6), entries)
-                fg.set_clip(None)
-            self._static[key] = (bg, fg)
-        return self._static[key]
+    def _static_layers(self, show_demos: bool, show_mean: bool, scene: _Scene | None = None
+                       ) -> tuple[pygame.Surface, pygame.Surface]:
+        key = (show_demos, show_mean, None if scene is None else scene.key)
+        got = self._static.get(key)
+        if got is not None:
+            return got
+        size = (self.width, self.height - self.strip_height)
+        bg, fg = pygame.Surface(size), pygame.Surface(size, pygame.SRCALPHA)
+        bg.fill(_PANEL)
+        fg.fill((0, 0, 0, 0))
+        for k, v in enumerate(self.views):
+            self._draw_axes(bg, v)
+            fg.set_clip(v.rect)
+            self._draw_content(fg, k, show_demos, show_mean, scene)
+            fg.set_clip(None)
+        if self.legend:
+            adapted = scene is not None and scene.mean is not None
+            entries = [("demo", "demonstrations")] * show_demos + \
+                [("mean", "KMP mean (adapted)" if adapted else "KMP mean")] * show_mean + \
+                [("via", "via-point")] * (show_mean and scene is not None and scene.via is not None) + [
+                ("band", "exploration band"), ("robot", "robot"), ("desired", "desired P_t"),
+                ("correction", "human P_h")]
+            fg.set_clip(self.views[0].rect)
+            draw_legend(fg, (self.views[0].rect.left + 6, self.views[0].rect.top + 6), entries)
+            fg.set_clip(None)
+        return self._static.put(key, (bg, fg))
 
     def _draw_axes(self, bg: pygame.Surface, v: _View) -> None:
         """Plot background, grid at round values, tick labels, axis names."""
@@ -216,8 +208,10 @@ class TaskRenderer:
             b = pygame.transform.rotate(b, 90)
             bg.blit(b, (v.panel.left + 1, v.rect.centery - b.get_height() // 2))
 
-    def _draw_content(self, fg: pygame.Surface, k: int, show_demos: bool, show_mean: bool) -> None:
-        """Workspace box, shapes, demonstrations and the KMP mean of view k."""
+    def _draw_content(self, fg: pygame.Surface, k: int, show_demos: bool, show_mean: bool,
+                      scene: _Scene | None = None) -> None:
+        """Workspace box, shapes, demonstrations, the KMP mean (the episode's, if ``scene`` has one) and the
+        scene's via-points of view k."""
         d, v = self.descriptor, self.views[k]
         a, b = v.axes
         lo = self._v2p(v, np.array([d.workspace_low[a], d.workspace_high[b]]))
@@ -229,10 +223,14 @@ class TaskRenderer:
         if show_demos:
             for demo in self.demos:
                 pygame.draw.aalines(fg, _DEMO, False, self.to_pixel(k, demo))
-        if show_mean and len(self.mean) >= 2:
-            pts = self.to_pixel(k, self.mean)
+        mean = self.mean if scene is None or scene.mean is None else scene.mean
+        if show_mean and len(mean) >= 2:
+            pts = self.to_pixel(k, mean)
             pygame.draw.lines(fg, COLORS["mean"] + (255,), False, pts, 2)
             pygame.draw.aalines(fg, COLORS["mean"] + (255,), False, pts)
+        if show_mean and scene is not None and scene.via is not None:
+            for x, y in self.to_pixel(k, scene.via[:, 1:]):
+                draw_via(fg, (x, y), 7)
         for s in d.shapes:
             if s["kind"] == "point":
                 self._draw_shape(fg, v, s)
@@ -273,13 +271,14 @@ class TaskRenderer:
             white = s["kind"] == "sphere" or (s["kind"] == "box" and not self._aside(v, s))  # on the fill
             fg.blit(font.render(s["name"], True, (255, 255, 255) if white else COLORS["text"]), label_at)
 
-    def _composite(self, band: np.ndarray | None, show_demos: bool, show_mean: bool) -> pygame.Surface:
+    def _composite(self, band: np.ndarray | None, show_demos: bool, show_mean: bool,
+                   scene: _Scene | None = None) -> pygame.Surface:
         digest = band_key(band)
-        key = (digest, show_demos, show_mean)
+        key = (digest, show_demos, show_mean, None if scene is None else scene.key)
         surf = self._composites.get(key)
         if surf is not None:
             return surf
-        bg, fg = self._static_layers(show_demos, show_mean)
+        bg, fg = self._static_layers(show_demos, show_mean, scene)
         surf = bg.copy()
         if digest is not None:
             b = np.asarray(band, dtype=np.float64)
@@ -295,7 +294,8 @@ class TaskRenderer:
     def draw(self, surface: pygame.Surface, frame: TaskFrame, *, show_demos: bool = True, show_mean: bool = True,
              show_band: bool = True) -> None:
         """Draw one frame onto ``surface`` (at least W x H) at its top-left corner."""
-        surface.blit(self._composite(frame.band if show_band else None, show_demos, show_mean), (0, 0))
+        scene = self._scene(frame)
+        surface.blit(self._composite(frame.band if show_band else None, show_demos, show_mean, scene), (0, 0))
         for k, v in enumerate(self.views):
             surface.set_clip(v.rect)
             self._draw_dynamic(surface, k, frame)
@@ -304,6 +304,21 @@ class TaskRenderer:
                 pygame.draw.rect(surface, COLORS["human"], v.rect, 3)
         if self.strip_height > 0:
             self._draw_strip(surface, frame)
+
+    def _scene(self, frame: TaskFrame) -> _Scene | None:
+        """The frame's episode scene (adapted mean, via-points), checked against the task's sizes; None: none."""
+        if frame.mean is None and frame.via is None:
+            return None
+        o = self.descriptor.out_dim
+        mean = None if frame.mean is None else np.asarray(frame.mean, np.float64)
+        if mean is not None and mean.shape != self.mean.shape:
+            mean = None
+        via = None if frame.via is None else np.asarray(frame.via, np.float64)
+        if via is not None and (via.ndim != 2 or via.shape[1] != 1 + o or len(via) == 0):
+            via = None
+        if mean is None and via is None:
+            return None
+        return _Scene(mean, via, (band_key(mean), band_key(via)))
 
     def _draw_dynamic(self, surface: pygame.Surface, k: int, frame: TaskFrame) -> None:
         o = self.descriptor.out_dim
@@ -315,8 +330,10 @@ class TaskRenderer:
                 pygame.draw.aalines(surface, COLORS["trail"], False, pts)
         if frame.correction is not None:
             ph = self.to_pixel(k, np.asarray(frame.correction, np.float64).reshape(o))
-            n = int(round(float(np.clip(frame.phase, 0.0, 1.0)) * (len(self.mean) - 1)))
-            origin = self.to_pixel(k, self.mean[n])
+            mean = self.mean if frame.mean is None or np.shape(frame.mean) != self.mean.shape else \
+                np.asarray(frame.mean, np.float64)
+            n = int(round(float(np.clip(frame.phase, 0.0, 1.0)) * (len(mean) - 1)))
+            origin = self.to_pixel(k, mean[n])
             pygame.draw.line(surface, COLORS["correction"], origin, ph, 2)
             pygame.draw.circle(surface, COLORS["correction"], origin, 3)
             for sx in (-1, 1):
@@ -359,22 +376,3 @@ class TaskRenderer:
             self._offscreen = pygame.Surface((self.width, self.height))
         self.draw(self._offscreen, frame, **flags)
         return surface_rgb(self._offscreen)
-
-
-def frame_from_env(env: Any, text: list[str] | None = None) -> TaskFrame:
-    """The current frame of a :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv` (robot, P_t, phase, trail, band,
-    correction).
-
-    :param env: a KGRLEnv (or subclass, e.g. PassageEnv).
-    :param text: strip lines (default: task name, step, phase, whether a human intervenes).
-    """
-    mapping = env.mapping
-    correction = getattr(env, "correction", None)
-    if text is None:
-        text = [f"{env.task.name}  t={env.t:3d}/{env.horizon}  s={env.phase:.2f}",
-                "human: " + ("intervening" if correction is not None else "-")]
-    return TaskFrame(position=np.array(env.position, np.float64), desired=np.array(env.desired, np.float64),
-                     phase=float(env.phase), t=int(env.t), trail=np.array(env.trail, np.float64),
-                     band=mapping.band() if mapping.scale_table is not None else None,
-                     correction=None if correction is None else np.array(correction, np.float64),
-                     human_active=correction is not None, text=list(text))

@@ -10,13 +10,14 @@ import hashlib
 import sys
 from collections import OrderedDict
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pygame
 from khgrl.common.wire.descriptor import TaskDescriptor
 
 __all__ = ["COLORS", "BAND_ALPHA", "get_font", "nice_ticks", "view_extent", "band_layer", "band_key",
-           "SurfaceCache", "draw_legend", "surface_rgb"]
+           "SurfaceCache", "draw_legend", "draw_via", "surface_rgb"]
 
 # Colours (RGB), matplotlib's tab palette where the paper's Fig. 3 (and common/kmp/plots.py) uses it.
 COLORS: dict[str, tuple[int, int, int]] = {
@@ -40,6 +41,7 @@ COLORS: dict[str, tuple[int, int, int]] = {
     "text": (25, 25, 30),
     "human": (255, 140, 0),
     "phase_bar": (120, 120, 135),
+    "via": (0, 140, 140),
 }
 BAND_ALPHA = 95  # 0..255, translucency of the exploration band
 
@@ -184,17 +186,25 @@ class SurfaceCache:
         self.size = int(size)
         self._items: OrderedDict[tuple, pygame.Surface] = OrderedDict()
 
-    def get(self, key: tuple) -> pygame.Surface | None:
+    def get(self, key: tuple) -> Any:
         surf = self._items.get(key)
         if surf is not None:
             self._items.move_to_end(key)
         return surf
 
-    def put(self, key: tuple, surf: pygame.Surface) -> pygame.Surface:
+    def put(self, key: tuple, surf: Any) -> Any:
         self._items[key] = surf
         while len(self._items) > self.size:
             self._items.popitem(last=False)
         return surf
+
+
+def draw_via(surface: pygame.Surface, at, r: int) -> None:
+    """A via-point's marker: a teal diamond of half-width ``r`` pixels with a dot, centred on ``at`` (x, y)."""
+    x, y = float(at[0]), float(at[1])
+    col = COLORS["via"] + (255,)
+    pygame.draw.polygon(surface, col, [(x - r, y), (x, y - r), (x + r, y), (x, y + r)], 2)
+    pygame.draw.circle(surface, col, (x, y), 2)
 
 
 def _legend_symbol(surface: pygame.Surface, kind: str, x0: int, cy: int, w: int) -> None:
@@ -207,6 +217,8 @@ def _legend_symbol(surface: pygame.Surface, kind: str, x0: int, cy: int, w: int)
     elif kind == "band":
         col = tuple(round(255 + (c - 255) * BAND_ALPHA / 255) for c in COLORS["band"])
         pygame.draw.rect(surface, col + (255,), pygame.Rect(x0, cy - 5, w, 10))
+    elif kind == "via":
+        draw_via(surface, (cx, cy), 6)
     elif kind == "robot":
         pygame.draw.circle(surface, COLORS["robot"] + (255,), (cx, cy), 5)
     elif kind == "desired":
@@ -221,7 +233,7 @@ def draw_legend(surface: pygame.Surface, at: tuple[int, int], entries: list[tupl
 
     :param surface: where to draw (straight alpha or opaque).
     :param at: (x, y) pixel of the box's top-left corner.
-    :param entries: (kind, label) with kind one of demo, mean, band, robot, desired, correction.
+    :param entries: (kind, label) with kind one of demo, mean, via, band, robot, desired, correction.
     """
     font = get_font(12)
     if font is None or not entries:

@@ -12,7 +12,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from khgrl.common.wire.checks import ProtocolError, ident, opt, typ, unpack_array, vec
-from khgrl.common.wire.descriptor import MAX_DIM, TaskDescriptor
+from khgrl.common.wire.descriptor import MAX_DIM, MAX_HORIZON, TaskDescriptor
 from khgrl.common.wire.status import _INFO, ActorInfo, HumanInfo, LearnerInfo, check_info
 
 __all__ = ["Dims", "ANY_DIMS", "Message", "TaskInfo", "Transitions", "Ack", "Weights", "Correction", "Frame", "Scale",
@@ -24,11 +24,13 @@ COMMANDS = ("pause", "resume", "stop", "checkpoint")
 
 @dataclass(frozen=True)
 class Dims:
-    """The sizes a receiver expects (from the run's task descriptor): the policy's observation and the command
-    O (= the policy's action). None: any size up to the protocol's bound, consistent within the message."""
+    """The sizes a receiver expects (from the run's task descriptor): the policy's observation, the command O
+    (= the policy's action) and the KMP grid's N. None: any size up to the protocol's bound, consistent within the
+    message."""
 
     obs: int | None = None
     out: int | None = None
+    horizon: int | None = None  # N, the KMP grid's points (a frame's scene arrays have N rows)
 
 
 ANY_DIMS = Dims()
@@ -234,18 +236,59 @@ class Frame(Message):
     next_mean: np.ndarray | None = None  # KMP mean at step t + 1; absent after the horizon's last step
     last: bool | None = None  # true on the episode's last frame (terminated or truncated)
     obs: np.ndarray | None = None  # the task environment's observation after the step (a scripted human may use it)
+    # The episode's scene (issue 22), on the frame of t = 0 of a varying-scene task whose KMP was adapted only:
+    scene_mean: np.ndarray | None = None  # (N, O) float64: the adapted KMP mean eta0 over the grid
+    scene_projector: np.ndarray | None = None  # (N, O, O) float64: its null-space projector (the band's)
+    scene_via: np.ndarray | None = None  # (V, 1 + O) float64: the via-points, [phase, position...] per row
+
+    @property
+    def has_scene(self) -> bool:
+        """Whether the frame carries its episode's scene (any of the ``scene_*`` fields)."""
+        return self.scene_mean is not None or self.scene_via is not None
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Frame":
         o = dims.out if dims.out is not None else len(_vec("robot", m.get("robot"), None))
         vecs = {f: vec(f, m.get(f), o) for f in ("robot", "desired", "mean", "scale")}
+        t = typ("t", m.get("t"), int, low=0)
         return cls(actor=ident("actor", m.get("actor")), episode=typ("episode", m.get("episode"), int, low=0),
-                   t=typ("t", m.get("t"), int, low=0),
-                   phase=float(typ("phase", m.get("phase"), (int, float), low=0.0, high=1.0)),
+                   t=t, phase=float(typ("phase", m.get("phase"), (int, float), low=0.0, high=1.0)),
                    intervening=typ("intervening", m.get("intervening"), bool),
                    task=typ("task", m.get("task"), str), ret=opt(m, "ret", typ, (int, float)),
                    next_mean=opt(m, "next_mean", vec, o), last=opt(m, "last", typ, bool),
-                   obs=opt(m, "obs", _any_vec, 4 * MAX_DIM), **vecs)
+                   obs=opt(m, "obs", _any_vec, 4 * MAX_DIM), **_scene_fields(m, o, t, dims.horizon), **vecs)
+
+
+MAX_FRAME_VIA = 16  # via-points a frame may carry (khgrl.common.tasks.scene.MAX_VIA_POINTS)
+
+
+def _scene_fields(m: dict, o: int, t: int, horizon: int | None) -> dict:
+    """A frame's ``scene_mean`` (N, O), ``scene_projector`` (N, O, O) and ``scene_via`` (V, 1 + O), checked: only on
+    the frame of t = 0, float64, finite, N in [2, MAX_HORIZON] (= ``horizon`` where the receiver knows it), the
+    projector only with the mean and on the same grid, 1..16 via-points with phases in [0, 1]."""
+    names = ("scene_mean", "scene_projector", "scene_via")
+    if all(m.get(k) is None for k in names):
+        return {}
+    if t != 0:
+        raise ProtocolError(f"scene fields on the frame of t = {t}: they come only with an episode's first frame")
+    mean = None
+    if m.get("scene_mean") is not None:
+        mean = unpack_array(m["scene_mean"], "scene_mean", dtype="<f8", shape=(horizon, o))
+    if mean is not None and not 2 <= mean.shape[0] <= MAX_HORIZON:
+        raise ProtocolError(f"scene_mean: {mean.shape[0]} grid points outside [2, {MAX_HORIZON}]")
+    proj = None
+    if m.get("scene_projector") is not None:
+        if mean is None:
+            raise ProtocolError("scene_projector without scene_mean")
+        proj = unpack_array(m["scene_projector"], "scene_projector", dtype="<f8", shape=(mean.shape[0], o, o))
+    via = None
+    if m.get("scene_via") is not None:
+        via = unpack_array(m["scene_via"], "scene_via", dtype="<f8", shape=(None, 1 + o))
+        if not 1 <= via.shape[0] <= MAX_FRAME_VIA:
+            raise ProtocolError(f"scene_via: {via.shape[0]} via-points outside [1, {MAX_FRAME_VIA}]")
+        if np.any(via[:, 0] < 0.0) or np.any(via[:, 0] > 1.0):
+            raise ProtocolError("scene_via: a phase outside [0, 1]")
+    return {"scene_mean": mean, "scene_projector": proj, "scene_via": via}
 
 
 @dataclass(frozen=True, eq=False)

@@ -14,6 +14,14 @@ sends the release. A live hold ends with its episode: on the episode's last fram
 the person presses again to correct the next episode. The hold is :class:`~khgrl.human_bridge.hold.CorrectionHold`,
 the one every human client shares. Keys: space pauses / resumes the actors, tab chooses the
 actor to drive, o toggles the overlays, q or Esc quits (releasing first).
+
+Scenes that change every episode (issue 22): the first frame of an episode (t = 0) of a varying-scene task whose KMP
+the actor adapted brings the episode's adapted mean, projector and via-points (``scene_*``, docs/protocol.md). The
+GUI keeps them per actor (:class:`EpisodeScene`) for that episode and draws that mean, the band about it (under the
+L in force) and the via-points; without them (a fixed scene, an actor that does not adapt, or a frame of another
+episode) it draws the descriptor's, the demonstrations' mean and band. A GUI that joins in the middle of an
+episode has missed its first frame: it shows the demonstrations' mean until the actor's next episode begins. A
+scene whose grid or size is not the task's refuses the frame (counted, as a frame of another size is).
 """
 
 from __future__ import annotations
@@ -37,7 +45,7 @@ from khgrl.common.wire.protocol import (
 )
 from khgrl.human_bridge.hold import CorrectionHold
 
-__all__ = ["GuiApp", "ActorState", "window_size", "CURVE_HEIGHT", "HELP"]
+__all__ = ["GuiApp", "ActorState", "EpisodeScene", "window_size", "CURVE_HEIGHT", "HELP"]
 
 CURVE_HEIGHT = 90  # the L(s) curve below the text strip (pixels)
 HELP = "drag: P_h  space: pause  tab: actor  o: overlays  q: quit"
@@ -48,6 +56,23 @@ PAUSE_RENEW_S = 20.0  # while paused, ask again this often (actors end a pause n
 def window_size(size: int, strip_height: int = 80, views: int = 1) -> tuple[int, int]:
     """(width, height) of the window: ``views`` scenes side by side, the text strip, the L(s) curve."""
     return int(size) * int(views), int(size) + int(strip_height) + CURVE_HEIGHT
+
+
+@dataclass(frozen=True, eq=False)
+class EpisodeScene:
+    """One actor's episode scene, from the episode's first frame.
+
+    :param episode: the episode it belongs to.
+    :param mean: (N, O) the adapted KMP mean, or None (the frame did not carry it: a grid too long for a frame).
+    :param projector: (N, O, O) its null-space projector, or None (the band is then the descriptor's projector
+        about the adapted mean).
+    :param via: (V, 1 + O) the via-points [phase, position...], or None.
+    """
+
+    episode: int
+    mean: np.ndarray | None
+    projector: np.ndarray | None
+    via: np.ndarray | None
 
 
 @dataclass
@@ -63,6 +88,8 @@ class ActorState:
     last_episode: dict | None = None  # stats of the last finished episode
     status: ActorInfo | None = None
     frames: int = 0
+    scene: EpisodeScene | None = None  # the current episode's adapted KMP, if its first frame brought it
+    scene_version: int = 0  # counts the scenes taken (cache key of the drawn band)
 
 
 class GuiApp:
@@ -121,6 +148,8 @@ class GuiApp:
         for v in self.actors.values():
             if v.frame is not None and len(v.frame.robot) != task.out_dim:
                 v.frame, v.trail = None, []
+            if v.scene is not None and self._scene_problem(v.scene.mean, v.scene.via) is not None:
+                v.scene = None
 
     # ------------------------------------------------------------------ messages in
     def state(self, actor: str) -> ActorState:
@@ -181,7 +210,7 @@ class GuiApp:
             if isinstance(msg.info, ActorInfo) and msg.info.id in self.actors:
                 self.actors[msg.info.id].status = msg.info
         elif isinstance(msg, Frame):
-            if self._fits(msg.actor, "frame", len(msg.robot)):
+            if self._fits(msg.actor, "frame", len(msg.robot)) and self._scene_fits(msg):
                 self.on_frame(self.state(msg.actor), msg)
         elif isinstance(msg, Scale):
             if msg.table is None or self._fits(msg.actor, "scale", msg.table.shape[1]):
@@ -197,11 +226,35 @@ class GuiApp:
                                                        f"{self.task.out_dim}"))
         return False
 
+    def _scene_problem(self, mean: np.ndarray | None, via: np.ndarray | None) -> str | None:
+        """Why a frame's scene does not fit the task (None: it fits, or the task is not known yet)."""
+        if self.task is None:
+            return None
+        n, o = self.task.horizon, self.task.out_dim
+        if mean is not None and mean.shape != (n, o):
+            return f"scene_mean of shape {mean.shape}, the task {self.task.name!r} has ({n}, {o})"
+        if via is not None and via.shape[1] != 1 + o:
+            return f"scene_via of {via.shape[1]} columns, the task {self.task.name!r} has O = {o}"
+        return None
+
+    def _scene_fits(self, f: Frame) -> bool:
+        """Whether a frame's scene fields (if any) fit the task's grid and outputs (counted as refused if not)."""
+        why = self._scene_problem(f.scene_mean, f.scene_via) if f.has_scene else None
+        if why is not None:
+            self.rejects.reject("frame", f.actor, ProtocolError(why))
+        return why is None
+
     def on_frame(self, v: ActorState, f: Frame) -> None:
-        """A frame: extend the trail; while dragging this actor, answer it (or release on its episode's last)."""
+        """A frame: extend the trail; keep the episode's scene (from its first frame; dropped with the episode);
+        while dragging this actor, answer it (or release on its episode's last)."""
         prev = v.frame
         if prev is None or prev.episode != f.episode or f.t < prev.t:
             v.trail = []
+        if f.has_scene:
+            v.scene = EpisodeScene(f.episode, f.scene_mean, f.scene_projector, f.scene_via)
+            v.scene_version += 1
+        elif v.scene is not None and v.scene.episode != f.episode:
+            v.scene = None
         v.trail.append(f.robot)
         if len(v.trail) > TRAIL_MAX:
             del v.trail[:TRAIL_MAX // 2]

@@ -26,6 +26,7 @@ import numpy as np
 from khgrl.common.config.process import ProcessConfig
 from khgrl.common.delivery.task_link import fetch_tasks
 from khgrl.common.process import StopFlag, install_stop_handlers
+from khgrl.common.tasks.scene_frame import frame_scene
 from khgrl.common.wire.protocol import Frame
 from khgrl.human_bridge.client import HumanClient, connected
 from khgrl.human_bridge.gui.app import GuiApp, window_size
@@ -149,7 +150,8 @@ def synthetic_frames(env, steps: int = 150, drag_from: int = 110, actor: str = "
     """Frames like an actor's, from a local :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv` that follows the KMP mean
     (zero
     action) and is dragged ``lift`` (a fraction of the workspace) off the mean along the main view's vertical axis
-    from step ``drag_from`` on: for ``--offline`` screenshots and tests without a run."""
+    from step ``drag_from`` on: for ``--offline`` screenshots and tests without a run. A varying-scene task's first
+    frame carries the episode's adapted KMP, as an actor's does."""
     o, up = env.world.out_dim, env.world.view.axes[1]
     offset = np.zeros(o)
     offset[up] = lift * float(env.world.high[up] - env.world.low[up])
@@ -164,7 +166,8 @@ def synthetic_frames(env, steps: int = 150, drag_from: int = 110, actor: str = "
         frames.append(Frame(actor=actor, episode=1, t=t, phase=float(info["phase"]), robot=env.position.copy(),
                             desired=np.asarray(info["desired"]), mean=env.mapping.mean(t),
                             scale=np.asarray(info["scale"]), intervening=bool(info["intervened"]), task=env.task.name,
-                            ret=float(ret), last=True if term or trunc else None))
+                            ret=float(ret), last=True if term or trunc else None,
+                            **frame_scene(env, t, Frame.MAX_BYTES)))
         if term or trunc:
             break
     return frames

@@ -45,12 +45,16 @@ def local_descriptor(spec: str, demos=None, world=None) -> TaskDescriptor:
         env.close()
 
 
-def band(d: TaskDescriptor, L: np.ndarray) -> np.ndarray:
+def band(d: TaskDescriptor, L: np.ndarray, mean: np.ndarray | None = None, projector: np.ndarray | None = None
+         ) -> np.ndarray:
     """(N, 2, O) [low, high] of the exploration band under L ((N, O) or (O,)).
 
     :param d: the run's task.
     :param L: the exploration scale on the grid, or one value per output.
+    :param mean: (N, O) the episode's adapted mean (default: the descriptor's, the demonstrations').
+    :param projector: (N, O, O) the episode's adapted projector (default: the descriptor's).
     """
-    mean = np.asarray(d.mean, dtype=np.float64)
-    half = np.einsum("nij,nj->ni", np.abs(d.projector), np.broadcast_to(np.asarray(L, np.float64), mean.shape))
+    mean = np.asarray(d.mean if mean is None else mean, dtype=np.float64)
+    proj = np.asarray(d.projector if projector is None else projector, dtype=np.float64)
+    half = np.einsum("nij,nj->ni", np.abs(proj), np.broadcast_to(np.asarray(L, np.float64), mean.shape))
     return np.stack([mean - half, mean + half], axis=1)

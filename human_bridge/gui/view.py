@@ -3,7 +3,9 @@
 The task's views are drawn by :class:`khgrl.common.tasks.render.TaskRenderer` from the run's task descriptor (the app's
 ``layout``): workspace, shapes, demonstrations, the red KMP mean; on top the exploration band the current L
 allows (the actor's L table from its ``scale`` messages, or its scale model tabulated here; without either, L is
-flat at the frame's ``scale``; the band from the descriptor's projector, :mod:`khgrl.human_bridge.gui.task`),
+flat at the frame's ``scale``; the band from the descriptor's projector, :mod:`khgrl.human_bridge.gui.task`; for an
+episode whose first frame brought its adapted KMP -- a varying scene, :class:`~khgrl.human_bridge.gui.app.EpisodeScene`
+-- the mean, the band and the via-points of that episode),
 the robot, its trail in the episode, the desired position and, while dragging, the person's P_h. The strip shows
 actor, episode, step, return, the intervention state and a help line; below it, one L(s) curve per output.
 """
@@ -84,14 +86,20 @@ class GuiView:
         return phases, np.broadcast_to(scale, (len(phases), len(scale)))
 
     def band(self, v: ActorState) -> np.ndarray | None:
-        """(N, 2, O): the lower and upper edge of the exploration band on the KMP grid (None: no projector)."""
+        """(N, 2, O): the lower and upper edge of the exploration band on the KMP grid (None: no projector): about
+        the episode's adapted mean with its projector when the actor's episode brought them, else the
+        descriptor's."""
         phases, L = self.scale_curve(v)
         key = (v.actor, v.scale_version) if self._table(v, phases) is not None else \
             ("flat", tuple(np.round(L[0], 4)))
+        scene = v.scene if v.scene is not None and v.scene.mean is not None else None
+        if scene is not None:
+            key = (*key, "scene", v.actor, v.scene_version)
         if key not in self._bands:
             if len(self._bands) > BAND_CACHE:
                 self._bands.clear()
-            self._bands[key] = task_band(self.app.task, L)
+            self._bands[key] = task_band(self.app.task, L, None if scene is None else scene.mean,
+                                         None if scene is None else scene.projector)
         return self._bands[key]
 
     # ------------------------------------------------------------------ text
@@ -132,7 +140,8 @@ class GuiView:
                          band=self.band(v) if app.overlays else None,
                          human_active=bool(f.intervening) or app.dragging,
                          correction=app.p_h.copy() if app.dragging and app.p_h is not None else None,
-                         text=self.text(v))
+                         text=self.text(v), mean=None if v.scene is None else v.scene.mean,
+                         via=None if v.scene is None else v.scene.via)
 
     def draw(self, surface) -> None:
         """The whole window: the views and strip of the driven actor, and its L(s) curves."""
