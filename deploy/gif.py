@@ -1,4 +1,4 @@
-"""The animation of an evaluation episode (``khgrl eval --gif``)."""
+"""The animation of evaluation episodes (``khgrl eval --gif``; with ``--scenes`` several scenes one after another)."""
 
 from __future__ import annotations
 
@@ -31,6 +31,10 @@ class GifRecorder:
         self.frames: list[np.ndarray] = []
         self.calls = 0
         self.camera = callable(getattr(env.inner, "camera_frame", None))  # the simulator's own view, if it has one
+
+    def next_episode(self) -> None:
+        """The next call is an episode's first frame (kept whatever ``every``): one GIF shows several episodes."""
+        self.calls = 0
 
     def __call__(self, env: Any, done: bool) -> None:
         if self.calls % self.every == 0 or done:  # the last frame always
