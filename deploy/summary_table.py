@@ -139,7 +139,8 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
     if any(h == "zero obstacle cost from" for h, _ in cols):
         criteria.append("zero_obstacle_cost_from")
     # (a fixed scene's evaluation is one rollout repeated: not compared as a success rate)
-    evaluated = all(r.eval_success is not None and r.eval_kind != "one scene" for r in results)
+    evaluated = (all(r.eval_success is not None for r in results)
+                 and any(r.eval_kind != "one scene" for r in results))
     heads = [c.replace("_", " ").replace("without", "w/o") for c in criteria] + ["success, last 10"] + (
         ["eval success"] if evaluated else [])
     comp = ["", "KhGRL vs KGRL (episode criteria: median KhGRL vs median KGRL over seeds, 'never' ranked last, and "
@@ -156,7 +157,9 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
             p = _compare(va, vb, episodes)
             cells.append(f"{median_text(va, episodes)} vs {median_text(vb, episodes)} (p = {p:.3f})")
         cells.append(_higher([r.success_last_10 for r in a], [r.success_last_10 for r in b]))
-        if evaluated:
+        if evaluated and any(r.eval_kind == "one scene" for r in a + b):
+            cells.append("one scene (not compared)")
+        elif evaluated:
             cells.append(_higher([r.eval_success for r in a], [r.eval_success for r in b]))
         comp.append(f"| {scenario} | {len(a)}/{len(b)} | " + " | ".join(cells) + " |")
     return "\n".join(lines + comp) + "\n"
