@@ -20,7 +20,7 @@ from khgrl.deploy.eval_inputs import EpisodeResult, EvalError
 from khgrl.deploy.intervals import rate_text
 
 __all__ = ["FIXED_SCENE_NOTE", "SCENES_CSV", "scene_placement", "write_scenes_csv", "read_scenes_csv",
-           "scene_lines", "fixed_scene_lines", "GIF_SCENES_MAX_FRAMES"]
+           "scene_lines", "scene_caption", "GIF_SCENES_MAX_FRAMES"]
 
 FIXED_SCENE_NOTE = ("one scene (the task does not vary): this is one deterministic rollout repeated, not a success "
                     "rate over scenes")
@@ -52,6 +52,16 @@ def scene_placement(task: Any, env: Any) -> dict[str, float]:
         raise EvalError(f"task {task.name!r}: Scene.describe must give at most {MAX_PLACEMENT} finite numbers named "
                         f"other than {', '.join(HEAD + RESULTS)}; got {sorted(out)}")
     return out
+
+
+def scene_caption(k: int, count: int, placement: dict[str, float]) -> str:
+    """The line on a scene's GIF frames: ``scene 2/8  object_x=1.31 object_y=0.72``.
+
+    :param k: the scene number.
+    :param count: scenes in the evaluation.
+    :param placement: the scene's placement.
+    """
+    return "  ".join([f"scene {k}/{count}", *(f"{n}={v:.3g}" for n, v in placement.items())])
 
 
 def write_scenes_csv(path: Path, episodes: list[EpisodeResult], placements: list[dict[str, float]],
@@ -122,11 +132,3 @@ def scene_lines(episodes: list[EpisodeResult], placements: list[dict[str, float]
         lines += [f"success {n_ok}/{len(episodes)} ({100 * n_ok / len(episodes):.0f} %); {_summary(episodes)}",
                   FIXED_SCENE_NOTE]
     return lines
-
-
-def fixed_scene_lines(task: Any) -> list[str]:
-    """The note ``khgrl eval --episodes`` adds on a task without a scene (none on a varying one).
-
-    :param task: the task.
-    """
-    return [] if task.scene is not None else [FIXED_SCENE_NOTE]

@@ -47,6 +47,7 @@ from khgrl.deploy.eval_scenes import (
     FIXED_SCENE_NOTE,
     GIF_SCENES_MAX_FRAMES,
     SCENES_CSV,
+    scene_caption,
     scene_lines,
     scene_placement,
     write_scenes_csv,
@@ -171,15 +172,14 @@ def _rollouts(result: Evaluation, env: Any, policy: Any, task: Any, count: int, 
     recorder = GifRecorder(env, every=-(-env.horizon * gif_count // frames)) if gif else None
     for i in range(count):
         seed = scene_seed(result.seed, i + 1, stream="eval") if result.scenes else result.seed + i
-        hook = None
-        if recorder is not None and i < gif_count:
-            recorder.next_episode()
-            hook = recorder
+        hook = recorder if recorder is not None and i < gif_count else None
         placed: list[dict] = []
 
-        def on_step(e: Any, done: bool, hook: Any = hook, placed: list = placed) -> None:
+        def on_step(e: Any, done: bool, hook: Any = hook, placed: list = placed, k: int = i + 1) -> None:
             if not placed:  # right after the reset: the scene's placement
                 placed.append(scene_placement(task, e) if result.scenes else {})
+                if hook is not None:
+                    hook.next_episode(scene_caption(k, count, placed[0]) if result.scenes else "")
             if hook is not None:
                 hook(e, done)
 
@@ -258,7 +258,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--scenes", type=int, default=None, metavar="K",
                    help="instead of --episodes: K seeded scenes, scene k reset with scene_seed(SEED, k, 'eval') "
                         "(the same scenes for every run evaluated with the same SEED); prints the success rate with "
-                        "its 95 %% Wilson interval and writes a per-scene CSV with each scene's placement")
+                        "its 95 %% Wilson interval and writes a per-scene CSV with each scene's placement "
+                        "(default: none, --episodes)")
     p.add_argument("--seed", type=int, default=None,
                    help="reset seed of the first episode, episode i gets SEED + i - 1; with --scenes the scenes' "
                         "seed (default: the run's seed)")

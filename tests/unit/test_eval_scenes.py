@@ -223,3 +223,10 @@ def test_report_shows_scenes_with_wilson_intervals_and_labels_one_scene(tmp_path
     runs = {r["path"].rsplit("/", 1)[-1]: r for r in csv.DictReader(open(tmp_path / "report" / "per_run.csv"))}
     assert (runs["box-khgrl-seed1"]["eval_kind"], runs["pts-kgrl-seed1"]["eval_kind"]) == ("one scene", "scenes")
     assert runs["pts-khgrl-seed0"]["eval_successes"] == "8" and runs["pts-khgrl-seed0"]["eval_episodes"] == "10"
+
+
+def test_scene_caption():
+    from khgrl.deploy.eval_scenes import scene_caption
+
+    assert scene_caption(2, 8, {"goal_x": 0.8661, "goal_y": 0.385}) == "scene 2/8  goal_x=0.866  goal_y=0.385"
+    assert scene_caption(1, 3, {}) == "scene 1/3"
