@@ -47,7 +47,6 @@ __all__ = [
 
 # <scenario>: a passage-world scenario (high_cov, low_cov) or a task's label (fetch_moved: ``khgrl experiment --tasks``)
 RUN_NAME = re.compile(r"^(?P<scenario>[A-Za-z0-9_]+)-(?P<method>khgrl|kgrl)-seed(?P<seed>\d+)$")
-EVAL_KINDS = ("", "episodes", "scenes", "one scene")  # none; eval.csv; scenes.csv of a varying task; a fixed scene
 STABLE_WINDOW = 5  # consecutive autonomous successes that count as "stable success"
 METHOD_LABEL = {"khgrl": "KhGRL", "kgrl": "KGRL"}
 
@@ -136,6 +135,9 @@ def load_eval(run_dir: Path) -> list[bool]:
         return []
     with open(f, newline="") as fh:
         return [r["success"] == "True" for r in csv.DictReader(fh)]
+
+
+EVAL_KINDS = ("", "episodes", "scenes", "one scene")  # none; eval.csv; scenes.csv of a varying task; a fixed scene
 
 
 def load_evaluation(run_dir: Path) -> tuple[str, int, int]:
