@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 from khgrl.common.tasks.scene import Scene, ViaPoint
 
-from khgrl.task import Point, Task, View
+from khgrl.task import KMPConfig, Point, Task, View
 
 START = np.array([0.1, 0.5])
 GOAL_LOW, GOAL_HIGH = np.array([0.7, 0.3]), np.array([0.9, 0.7])
@@ -45,19 +45,19 @@ class ScenePoint2D(gym.Env):
         return self._obs(), 100.0 if success else 0.0, success, False, {"success": success}
 
 
-def make_demos(m: int = 4, seed: int = 0) -> np.ndarray:
-    """(m, N, 2) minimum-jerk paths from the start to the middle of the goal region, fanning out a little."""
+def make_demos(m: int = 6, seed: int = 0) -> np.ndarray:
+    """(m, N, 2) minimum-jerk paths from the start to goals spread over the goal region (as a demonstrator would
+    show them): their spread at the end is what lets a via-point at the goal move the KMP's end."""
     rng = np.random.default_rng(seed)
     s = np.linspace(0.0, 1.0, N)[:, None]
     progress = 10 * s**3 - 15 * s**4 + 6 * s**5
-    end = (GOAL_LOW + GOAL_HIGH) / 2
-    return np.stack([START + (end - START) * progress + np.sin(np.pi * progress) * [0.0, rng.uniform(-0.1, 0.1)]
-                     for _ in range(m)])
+    return np.stack([START + (rng.uniform(GOAL_LOW, GOAL_HIGH) - START) * progress for _ in range(m)])
 
 
 def make_task() -> Task:
     """The task (``--task scene_point_task:make_task``)."""
     return Task(name="scene-point-2d", make_env=lambda seed: ScenePoint2D(), demos=make_demos(),
+                kmp=KMPConfig(length_scale=0.1),  # (4 of the 40 steps wide: a via-point moves its neighbours too)
                 workspace=((0.0, 0.0), (1.0, 1.0)), default_scale=0.1, learn_scale=False, reward_bound=100.0,
                 position=lambda obs: obs[:2],
                 scene=Scene(region="goal x in [0.7, 0.9], y in [0.3, 0.7] (uniform)",
