@@ -40,10 +40,8 @@ def scene_placement(task: Any, env: Any) -> dict[str, float]:
     """
     if task.scene is None:
         return {}
-    found = getattr(env, "placement", None)  # KGRLEnv records it at reset (issue 22); else read it here
-    try:
-        raw = found if found is not None else task.scene.describe(env._inner_obs)
-        out = {str(k): float(v) for k, v in dict(raw).items()}
+    try:  # (KGRLEnv reads it from the first observation at reset: env.placement)
+        out = {str(k): float(v) for k, v in dict(env.placement).items()}
     except Exception as exc:  # noqa: BLE001 - the task's own function
         raise EvalError(f"task {task.name!r}: Scene.describe failed: {type(exc).__name__}: {exc}") from None
     bad = [k for k, v in out.items() if not math.isfinite(v)]

@@ -80,6 +80,7 @@ class Evaluation:
     region: str = ""  # the task's Scene.region
     placements: list[dict] = field(default_factory=list)  # each episode's (scene's) placement
     gif_scenes: int = 1  # scenes the GIF shows
+    kmp: str = ""  # whether the KMP was adapted to each scene ("" on a task without via-points)
 
     @property
     def success_rate(self) -> float:
@@ -100,7 +101,7 @@ def _write_csv(path: Path, episodes: list[EpisodeResult]) -> None:
 
 def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes: int = 10, seed: int | None = None,
              gif: str | Path | None = None, csv_path: str | Path | None = None, actor: str | None = None,
-             scenes: int | None = None, gif_scenes: int = 3) -> Evaluation:
+             scenes: int | None = None, gif_scenes: int = 3, adapt: bool | None = None) -> Evaluation:
     """Evaluate a run's policy (see the module docstring).
 
     :param run_dir: the run directory (or an actor folder in it: :func:`find_run`).
@@ -114,6 +115,8 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     :param actor: the actor whose learned exploration scale is used (None: a0, or the actor folder's).
     :param scenes: evaluate on this many seeded scenes (:mod:`khgrl.deploy.eval_scenes`; None: ``episodes``).
     :param gif_scenes: scenes the GIF shows one after another.
+    :param adapt: refit the KMP through each scene's via-points at reset (a task with a varying scene and
+        via-points; None: as the run did, its ``--adapt/--no-adapt``).
     :raises EvalError: one line saying what is missing.
     """
     import torch
@@ -130,13 +133,12 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     model_zip = find_model(run_dir, checkpoint)
     task, spec = load_run_task(cfg, runtime.get("cwd"))
     seed = cfg.seed if seed is None else int(seed)
+    adapted = bool(cfg.adapt if adapt is None else adapt)
     torch.manual_seed(seed)
     try:
         world = build_task_world(task)
         scale_model, scale_text = load_scale(run_dir, actor, world.out_dim)
-        # issue 22: --no-adapt (KGRLEnv(adapt=False)) goes here once KGRLEnv takes it; today the env refits the
-        # KMP at reset as the task's Scene says (KGRLEnv's default)
-        env = KGRLEnv(world=world, seed=seed, scale_model=scale_model)
+        env = KGRLEnv(world=world, seed=seed, scale_model=scale_model, adapt=adapted)
     except TaskError as exc:
         raise EvalError(str(exc)) from None
     policy = load_policy(model_zip, env, cfg.tqc, checkpoint_algo(model_zip, cfg))
@@ -145,7 +147,8 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
                         warning=_scale_warning(cfg, task, scale_model, run_dir / f"actor-{actor}"),
                         varies=task.scene is not None, seed=seed, scenes=scenes is not None,
                         region=task.scene.region if task.scene is not None else "",
-                        gif_scenes=min(gif_scenes, scenes) if scenes else 1)
+                        gif_scenes=min(gif_scenes, scenes) if scenes else 1,
+                        kmp=_kmp_text(task, adapted))
     with torch.no_grad():
         recorder = _rollouts(result, env, policy, task, scenes or episodes, gif)
     env.close()
@@ -188,6 +191,13 @@ def _rollouts(result: Evaluation, env: Any, policy: Any, task: Any, count: int, 
     return recorder
 
 
+def _kmp_text(task: Any, adapted: bool) -> str:
+    """How the KMP met each scene, for the report's first line ("" on a task whose scene has no via-points)."""
+    if task.scene is None or task.scene.via_points is None:
+        return ""
+    return "KMP adapted to each scene's via-points" if adapted else "KMP not adapted (--no-adapt)"
+
+
 def _scale_warning(cfg: Any, task: Any, scale_model: Any, actor_dir: Path) -> str:
     """The line saying a KhGRL run is evaluated without its learned scale (its policy trained under it, III-C)."""
     if cfg.method != "khgrl" or not task.learn_scale or scale_model is not None:
@@ -206,7 +216,8 @@ def report(ev: Evaluation) -> str:
     done = ", ".join(f"{k} {v}" for k, v in ev.trained.items()) or "no state.json"
     source = f"; settings from {ev.settings}" if ev.settings and ev.settings.parent.name.startswith("actor-") else ""
     lines = [ev.warning] if ev.warning else []
-    lines.append(f"task {ev.task} ({ev.spec}){source}; checkpoint {ev.checkpoint} ({done}); scale {ev.scale}")
+    kmp = f"; {ev.kmp}" if ev.kmp else ""
+    lines.append(f"task {ev.task} ({ev.spec}){source}; checkpoint {ev.checkpoint} ({done}); scale {ev.scale}{kmp}")
     if ev.scenes:
         lines += scene_lines(ev.episodes, ev.placements, ev.varies, ev.seed, ev.region)
     else:
@@ -234,7 +245,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
             raise EvalError("give --episodes N (episodes reset with SEED + i) or --scenes K (seeded scenes), not both")
         ev = evaluate(args.run_dir, checkpoint=args.checkpoint, episodes=10 if args.episodes is None else args.episodes,
                       seed=args.seed, gif=args.gif, csv_path=args.csv, actor=args.actor, scenes=args.scenes,
-                      gif_scenes=args.gif_scenes)
+                      gif_scenes=args.gif_scenes, adapt=args.adapt)
     except EvalError as exc:
         print(f"khgrl eval: error: {exc}", file=sys.stderr)
         return 2
@@ -271,6 +282,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--csv", default=None, metavar="FILE",
                    help="per-episode results (default: RUN_DIR/eval/eval.csv, with --scenes RUN_DIR/eval/scenes.csv; "
                         "never overwritten: eval-2.csv, ...)")
+    p.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=None,
+                   help="refit the KMP through each scene's via-points at reset, a task whose scene varies "
+                        "(--no-adapt: the demonstrations' KMP in every scene; default: as the run did)")
     p.add_argument("--actor", default=None, metavar="ID",
                    help="use the exploration scale this actor learned (default: a0, or the actor folder's)")
     p.set_defaults(func=_cmd_eval)

@@ -230,3 +230,18 @@ def test_scene_caption():
 
     assert scene_caption(2, 8, {"goal_x": 0.8661, "goal_y": 0.385}) == "scene 2/8  goal_x=0.866  goal_y=0.385"
     assert scene_caption(1, 3, {}) == "scene 1/3"
+
+
+def test_eval_adapts_the_kmp_as_the_run_did_unless_told(varying, tmp_path):
+    """``--adapt/--no-adapt`` (default: the run's setting) reaches KGRLEnv: adapted, the KMP ends at each scene's goal
+    (the task's via-point), so the untrained policy reaches goals that the demonstrations' KMP misses."""
+    on = evaluate(varying, scenes=8, csv_path=tmp_path / "on.csv")
+    off = evaluate(varying, scenes=8, csv_path=tmp_path / "off.csv", adapt=False)
+    assert on.kmp == "KMP adapted to each scene's via-points" and off.kmp == "KMP not adapted (--no-adapt)"
+    assert on.placements == off.placements  # the same scenes
+    assert sum(e.success for e in on.episodes) > sum(e.success for e in off.episodes)
+    run = _fake_run(tmp_path / "noadapt", VARYING, seed=4)
+    cfg = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**cfg, "adapt": False}))
+    default = evaluate(run, scenes=2, csv_path=tmp_path / "default.csv")
+    assert default.kmp == off.kmp
