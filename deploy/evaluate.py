@@ -8,44 +8,55 @@ it ends); the policy from the learner's checkpoint; the exploration scale L from
 (KhGRL: the L the policy was trained with; missing, L0 and a warning line). Each episode is reset with ``seed + i``;
 the policy acts deterministically (the mean action). Output: a per-episode table and success rate / return mean ±
 std on stdout, a CSV (``RUN_DIR/eval/eval.csv`` by default; never overwritten: ``eval-2.csv``, ...), and with
-``--gif`` an animation of the first episode (:mod:`khgrl.common.tasks.render`). A missing or unusable run
-directory, checkpoint or task is one line and exit 2.
+``--gif`` an animation of the first episode (:mod:`khgrl.common.tasks.render`). On a task whose scene does not vary
+(no ``Scene``) the output adds that the episodes are one deterministic rollout repeated, not a success rate over
+scenes.
+
+``--scenes K`` (:mod:`khgrl.deploy.eval_scenes`): K seeded scenes instead (scene k reset with
+``scene_seed(SEED, k, stream="eval")``): the success rate with its 95 % Wilson interval, a per-scene CSV with each
+scene's placement (``RUN_DIR/eval/scenes.csv``) and with ``--gif`` the first ``--gif-scenes`` scenes one after
+another. A missing or unusable run directory, checkpoint or task is one line and exit 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import json
 import os
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
+from khgrl.deploy.eval_inputs import (
+    EpisodeResult,
+    EvalError,
+    checkpoint_algo,
+    find_model,
+    find_run,
+    free_path,
+    load_policy,
+    load_run_task,
+    load_scale,
+    read_config,
+    run_episode,
+    trained,
+)
+from khgrl.deploy.eval_scenes import (
+    FIXED_SCENE_NOTE,
+    GIF_SCENES_MAX_FRAMES,
+    SCENES_CSV,
+    scene_caption,
+    scene_lines,
+    scene_placement,
+    write_scenes_csv,
+)
 
-__all__ = ["EvalError", "EpisodeResult", "Evaluation", "evaluate", "add_parser", "free_path", "report", "find_run"]
+__all__ = ["EvalError", "EpisodeResult", "Evaluation", "evaluate", "add_parser", "free_path", "report", "find_run",
+           "read_config"]
 
 GIF_MAX_FRAMES = 100  # the first episode is subsampled to about this many frames (~16 kB each)
-
-
-class EvalError(RuntimeError):
-    """An evaluation that cannot run (no config, no checkpoint, a task that does not load); one line."""
-
-
-@dataclass(frozen=True)
-class EpisodeResult:
-    """One evaluated episode (a row of the CSV)."""
-
-    episode: int
-    seed: int
-    steps: int
-    ret: float  # the KGRLEnv reward: the task environment's plus the action cost r_a
-    env_return: float  # the task environment's reward alone
-    action_cost: float  # sum of r_a (<= 0)
-    success: bool
-    terminated: bool
 
 
 @dataclass
@@ -63,6 +74,13 @@ class Evaluation:
     gif_frames: int = 0
     settings: Path | None = None  # the config.json the run's settings came from
     warning: str = ""  # e.g. a KhGRL run evaluated without its learned scale
+    varies: bool = False  # the task's scene varies (it has a Scene)
+    seed: int = 0  # the first episode's reset seed; with scenes, S of scene_seed(S, k, "eval")
+    scenes: bool = False  # evaluated on seeded scenes (--scenes)
+    region: str = ""  # the task's Scene.region
+    placements: list[dict] = field(default_factory=list)  # each episode's (scene's) placement
+    gif_scenes: int = 1  # scenes the GIF shows
+    kmp: str = ""  # whether the KMP was adapted to each scene ("" on a task without via-points)
 
     @property
     def success_rate(self) -> float:
@@ -70,195 +88,6 @@ class Evaluation:
 
     def returns(self) -> np.ndarray:
         return np.array([e.ret for e in self.episodes], dtype=np.float64)
-
-
-# ------------------------------------------------------------------------------------ inputs
-def free_path(path: Path) -> Path:
-    """``path`` if nothing is there, else ``stem-2.ext``, ``stem-3.ext``, ... (never overwrite a result).
-
-    :param path: the wanted file.
-    """
-    path = Path(path)
-    k = 2
-    candidate = path
-    while candidate.exists():
-        candidate = path.with_name(f"{path.stem}-{k}{path.suffix}")
-        k += 1
-    return candidate
-
-
-def find_run(path: str | Path, actor: str | None = None) -> tuple[Path, str]:
-    """(run directory, actor id) of what ``khgrl eval`` was given: a run directory, or an actor folder in one
-    (``RUN_DIR/actor-ID``: its parent and that actor, unless ``actor`` names another).
-
-    :param path: ``RUN_DIR`` or ``RUN_DIR/actor-ID``.
-    :param actor: the actor asked for (None: ``a0``, or the folder's).
-    """
-    p = Path(path)
-    is_actor_dir = p.name.startswith("actor-") and any((p / f).is_file() for f in ("config.json", "episodes.csv"))
-    if is_actor_dir and not (p / "learner").is_dir():
-        return p.parent, actor or p.name[len("actor-"):]
-    return p, actor or "a0"
-
-
-def read_config(run_dir: Path, actor: str = "a0") -> tuple[Any, dict, Path]:
-    """The run's settings and runtime facts: from ``RUN_DIR/config.json`` (``khgrl up``), else from the actor's
-    ``RUN_DIR/actor-ID/config.json`` (processes started by hand; that actor's, else any actor's), and the file.
-
-    :param run_dir: the run directory.
-    :param actor: the actor whose file is preferred.
-    :raises EvalError: no such file, or it does not parse.
-    """
-    from khgrl.common.config.settings import read_run_file
-
-    run_dir = Path(run_dir)
-    candidates = [run_dir / "config.json", run_dir / f"actor-{actor}" / "config.json",
-                  *sorted(run_dir.glob("actor-*/config.json"))]
-    path = next((c for c in candidates if c.is_file()), None)
-    if path is None:
-        raise EvalError(f"{run_dir}: no config.json there nor in an actor folder (khgrl up writes RUN_DIR/config.json, "
-                        f"an actor RUN_DIR/actor-ID/config.json when it ends): nothing says which task the run had")
-    try:
-        cfg, runtime = read_run_file(path)
-    except (ValueError, OSError) as exc:
-        raise EvalError(f"{path}: {exc}") from None
-    return cfg, runtime, path
-
-
-def find_model(run_dir: Path, checkpoint: str | Path | None) -> Path:
-    """The ``model.zip`` to evaluate: ``--checkpoint`` (a checkpoint directory, a learner directory or a
-    model.zip) or the run's most trained complete learner checkpoint (full or model checkpoint).
-
-    :param run_dir: the run directory.
-    :param checkpoint: what ``--checkpoint`` gave (None: the run's).
-    :raises EvalError: nothing to load.
-    """
-    from khgrl.learner.checkpoint import MODEL_FILE, newest_model
-
-    if checkpoint is None:  # (the full checkpoint or the model checkpoint, whichever is trained more)
-        found = newest_model(Path(run_dir) / "learner")
-        if found is None or not (found / MODEL_FILE).is_file():
-            raise EvalError(f"{run_dir}: no learner checkpoint in {Path(run_dir) / 'learner'} "
-                            "(did the run train? give --checkpoint PATH)")
-        return found / MODEL_FILE
-    p = Path(checkpoint)
-    for cand in (p, p / MODEL_FILE, p / "checkpoint" / MODEL_FILE):
-        if cand.is_file():
-            return cand
-    raise EvalError(f"--checkpoint {checkpoint}: no {MODEL_FILE} there")
-
-
-def load_run_task(cfg: Any, cwd: str | None = None) -> tuple[Any, str]:
-    """The run's task (``--task`` / ``--scenario``, ``--demos``) and its spec.
-
-    :param cfg: the run's :class:`~khgrl.common.config.settings.RunConfig`.
-    :param cwd: the directory ``khgrl up`` ran in, if the run recorded it: the task's module and a relative
-        ``--demos`` path are also looked for there.
-    :raises EvalError: the task does not load.
-    """
-    from khgrl.common.tasks.api import TaskError, load_task
-
-    demos = cfg.demos or None
-    if cwd and Path(cwd).is_dir():
-        if cwd not in sys.path:
-            sys.path.append(cwd)
-        demos = demos if demos is None or Path(demos).exists() else str(Path(cwd) / demos)
-    spec = cfg.task_spec
-    try:
-        return load_task(spec, demos), spec
-    except TaskError as exc:
-        raise EvalError(str(exc)) from None
-
-
-def load_scale(run_dir: Path, actor: str, dim: int) -> tuple[Any, str]:
-    """The exploration scale model an actor of the run ended with (``actor-ID/scale_model.json``), or None
-    (the task's L0), and a few words saying which.
-
-    :param run_dir: the run directory.
-    :param actor: the actor id.
-    :param dim: the task's command size O.
-    """
-    from khgrl.common.kmp.scale import ScaleModel
-
-    path = Path(run_dir) / f"actor-{actor}" / "scale_model.json"
-    if not path.is_file():
-        return None, "L0 (no learned scale)"
-    try:
-        model = ScaleModel.from_dict(json.loads(path.read_text()))
-    except (ValueError, KeyError, TypeError) as exc:
-        raise EvalError(f"{path}: not a scale model ({exc})") from None
-    if model.dim != dim:
-        raise EvalError(f"{path}: a scale for {model.dim} outputs, the task has {dim}")
-    if model.n_points == 0:
-        return model, "L0 (never refitted)"
-    return model, f"learned by actor-{actor} ({model.n_points} points)"
-
-
-def load_policy(model_zip: Path, env: Any, settings: Any, algo: str = "tqc") -> Any:
-    """The policy of a learner checkpoint on ``env``'s spaces, in evaluation mode, loaded through the learner-algorithm
-    interface (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.checkpoint_policy`).
-
-    :param model_zip: the learner's ``model.zip``.
-    :param env: the evaluation environment (its spaces).
-    :param settings: the run's learner settings (``TQCSettings``: network sizes).
-    :param algo: the algorithm that wrote the checkpoint (``--algo``).
-    :raises EvalError: the file does not load or does not fit the task's spaces.
-    """
-    from khgrl.learner.algorithm import algorithm_class
-
-    try:
-        return algorithm_class(algo).checkpoint_policy(model_zip, env.observation_space, env.action_space, settings)
-    except ValueError as exc:
-        raise EvalError(f"{model_zip}: {exc}") from None
-
-
-def _checkpoint_algo(model_zip: Path, cfg: Any) -> str:
-    """The algorithm that wrote the checkpoint (its ``state.json``), else the run's ``--algo``."""
-    try:
-        saved = json.loads((model_zip.parent / "state.json").read_text()).get("algo")
-    except (OSError, ValueError, AttributeError):
-        saved = None
-    return saved or getattr(cfg, "algo", "tqc")
-
-
-def _trained(model_zip: Path) -> dict:
-    """Counters of the checkpoint's ``state.json`` (transitions, gradient steps, weights version)."""
-    path = model_zip.parent / "state.json"
-    try:
-        state = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-    return {k: state[k] for k in ("total_ingested", "gradient_steps", "version") if k in state}
-
-
-# ------------------------------------------------------------------------------------ rollouts
-def run_episode(env: Any, policy: Any, episode: int, seed: int,
-                on_step: Callable[[Any, bool], None] | None = None) -> EpisodeResult:
-    """One deterministic episode without a human.
-
-    :param env: a :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv`.
-    :param policy: the policy (:class:`~khgrl.learner.algorithm.ActorPolicy`).
-    :param episode: the episode number (from 1).
-    :param seed: the reset seed.
-    :param on_step: ``on_step(env, done)`` after the reset and after every step (the GIF's frames).
-    """
-    obs, _ = env.reset(seed=seed)
-    if on_step is not None:
-        on_step(env, False)
-    ret = cost = 0.0
-    steps, success, terminated, done = 0, False, False, False
-    while not done:
-        action, _ = policy.predict(obs, deterministic=True)
-        obs, r, terminated, truncated, info = env.step(action)
-        ret += float(r)
-        cost += float(info["r_a"])
-        steps += 1
-        success = success or bool(info.get("success", False))
-        done = terminated or truncated
-        if on_step is not None:
-            on_step(env, done)
-    return EpisodeResult(episode=episode, seed=seed, steps=steps, ret=ret, env_return=ret - cost, action_cost=cost,
-                         success=success, terminated=bool(terminated))
 
 
 def _write_csv(path: Path, episodes: list[EpisodeResult]) -> None:
@@ -271,17 +100,23 @@ def _write_csv(path: Path, episodes: list[EpisodeResult]) -> None:
 
 
 def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes: int = 10, seed: int | None = None,
-             gif: str | Path | None = None, csv_path: str | Path | None = None,
-             actor: str | None = None) -> Evaluation:
+             gif: str | Path | None = None, csv_path: str | Path | None = None, actor: str | None = None,
+             scenes: int | None = None, gif_scenes: int = 3, adapt: bool | None = None) -> Evaluation:
     """Evaluate a run's policy (see the module docstring).
 
     :param run_dir: the run directory (or an actor folder in it: :func:`find_run`).
     :param checkpoint: a checkpoint directory or model.zip (None: the run's learner checkpoint).
-    :param episodes: episodes to run.
-    :param seed: seed of the first episode's reset (episode i: seed + i - 1; None: the run's seed).
-    :param gif: write an animation of the first episode here (None: none).
-    :param csv_path: the CSV of the episodes (None: RUN_DIR/eval/eval.csv); an existing file is not overwritten.
+    :param episodes: episodes to run (without ``scenes``).
+    :param seed: seed of the first episode's reset (episode i: seed + i - 1; None: the run's seed); with ``scenes``
+        the seed S of the scenes (scene k: ``scene_seed(S, k, stream="eval")``).
+    :param gif: write an animation of the first episode (with ``scenes``: of the first ``gif_scenes``) here.
+    :param csv_path: the CSV (None: RUN_DIR/eval/eval.csv, with ``scenes`` RUN_DIR/eval/scenes.csv); an existing
+        file is not overwritten.
     :param actor: the actor whose learned exploration scale is used (None: a0, or the actor folder's).
+    :param scenes: evaluate on this many seeded scenes (:mod:`khgrl.deploy.eval_scenes`; None: ``episodes``).
+    :param gif_scenes: scenes the GIF shows one after another.
+    :param adapt: refit the KMP through each scene's via-points at reset (a task with a varying scene and
+        via-points; None: as the run did, its ``--adapt/--no-adapt``).
     :raises EvalError: one line saying what is missing.
     """
     import torch
@@ -289,37 +124,78 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     from khgrl.common.tasks.kgrl_env import KGRLEnv
     from khgrl.common.tasks.world import build_task_world
 
-    if episodes < 1:
+    if scenes is None and episodes < 1:
         raise EvalError("--episodes must be >= 1")
+    if scenes is not None and (scenes < 1 or gif_scenes < 1):
+        raise EvalError("--scenes and --gif-scenes must be >= 1")
     run_dir, actor = find_run(run_dir, actor)
     cfg, runtime, settings = read_config(run_dir, actor)
     model_zip = find_model(run_dir, checkpoint)
     task, spec = load_run_task(cfg, runtime.get("cwd"))
     seed = cfg.seed if seed is None else int(seed)
+    adapted = bool(cfg.adapt if adapt is None else adapt)
     torch.manual_seed(seed)
     try:
         world = build_task_world(task)
         scale_model, scale_text = load_scale(run_dir, actor, world.out_dim)
-        env = KGRLEnv(world=world, seed=seed, scale_model=scale_model)
+        env = KGRLEnv(world=world, seed=seed, scale_model=scale_model, adapt=adapted)
     except TaskError as exc:
         raise EvalError(str(exc)) from None
-    policy = load_policy(model_zip, env, cfg.tqc, _checkpoint_algo(model_zip, cfg))
-    result = Evaluation(task=task.name, spec=spec, checkpoint=model_zip.parent, trained=_trained(model_zip),
+    policy = load_policy(model_zip, env, cfg.tqc, checkpoint_algo(model_zip, cfg))
+    result = Evaluation(task=task.name, spec=spec, checkpoint=model_zip.parent, trained=trained(model_zip),
                         scale=scale_text, episodes=[], settings=settings,
-                        warning=_scale_warning(cfg, task, scale_model, run_dir / f"actor-{actor}"))
-    from khgrl.deploy.gif import GifRecorder
-
-    recorder = GifRecorder(env, every=-(-env.horizon // GIF_MAX_FRAMES)) if gif else None
+                        warning=_scale_warning(cfg, task, scale_model, run_dir / f"actor-{actor}"),
+                        varies=task.scene is not None, seed=seed, scenes=scenes is not None,
+                        region=task.scene.region if task.scene is not None else "",
+                        gif_scenes=min(gif_scenes, scenes) if scenes else 1,
+                        kmp=_kmp_text(task, adapted))
     with torch.no_grad():
-        for i in range(episodes):
-            result.episodes.append(run_episode(env, policy, i + 1, seed + i, recorder if i == 0 else None))
+        recorder = _rollouts(result, env, policy, task, scenes or episodes, gif)
     env.close()
-    result.csv = free_path(Path(csv_path) if csv_path else run_dir / "eval" / "eval.csv")
-    _write_csv(result.csv, result.episodes)
+    name = SCENES_CSV if scenes else "eval.csv"
+    result.csv = free_path(Path(csv_path) if csv_path else run_dir / "eval" / name)
+    if scenes:
+        write_scenes_csv(result.csv, result.episodes, result.placements, result.varies)
+    else:
+        _write_csv(result.csv, result.episodes)
     if recorder is not None:
         result.gif = free_path(Path(gif))
         result.gif_frames = recorder.save(result.gif)
     return result
+
+
+def _rollouts(result: Evaluation, env: Any, policy: Any, task: Any, count: int, gif: str | Path | None) -> Any:
+    """Run the episodes (or scenes) into ``result``; the GIF recorder of the first ``result.gif_scenes`` of them
+    (None: no GIF)."""
+    from khgrl.common.tasks.scene import scene_seed
+    from khgrl.deploy.gif import GifRecorder
+
+    gif_count = result.gif_scenes
+    frames = GIF_MAX_FRAMES if not result.scenes else GIF_SCENES_MAX_FRAMES
+    recorder = GifRecorder(env, every=-(-env.horizon * gif_count // frames)) if gif else None
+    for i in range(count):
+        seed = scene_seed(result.seed, i + 1, stream="eval") if result.scenes else result.seed + i
+        hook = recorder if recorder is not None and i < gif_count else None
+        placed: list[dict] = []
+
+        def on_step(e: Any, done: bool, hook: Any = hook, placed: list = placed, k: int = i + 1) -> None:
+            if not placed:  # right after the reset: the scene's placement
+                placed.append(scene_placement(task, e) if result.scenes else {})
+                if hook is not None:
+                    hook.next_episode(scene_caption(k, count, placed[0]) if result.scenes else "")
+            if hook is not None:
+                hook(e, done)
+
+        result.episodes.append(run_episode(env, policy, i + 1, seed, on_step))
+        result.placements.append(placed[0])
+    return recorder
+
+
+def _kmp_text(task: Any, adapted: bool) -> str:
+    """How the KMP met each scene, for the report's first line ("" on a task whose scene has no via-points)."""
+    if task.scene is None or task.scene.via_points is None:
+        return ""
+    return "KMP adapted to each scene's via-points" if adapted else "KMP not adapted (--no-adapt)"
 
 
 def _scale_warning(cfg: Any, task: Any, scale_model: Any, actor_dir: Path) -> str:
@@ -337,21 +213,27 @@ def report(ev: Evaluation) -> str:
 
     :param ev: the evaluation.
     """
-    trained = ", ".join(f"{k} {v}" for k, v in ev.trained.items()) or "no state.json"
+    done = ", ".join(f"{k} {v}" for k, v in ev.trained.items()) or "no state.json"
     source = f"; settings from {ev.settings}" if ev.settings and ev.settings.parent.name.startswith("actor-") else ""
     lines = [ev.warning] if ev.warning else []
-    lines += [f"task {ev.task} ({ev.spec}){source}; checkpoint {ev.checkpoint} ({trained}); scale {ev.scale}",
-             f"{'episode':>7} {'seed':>6} {'steps':>6} {'return':>10} {'env':>10} {'r_a':>9}  success"]
-    for e in ev.episodes:
-        lines.append(f"{e.episode:>7} {e.seed:>6} {e.steps:>6} {e.ret:>10.2f} {e.env_return:>10.2f} "
-                     f"{e.action_cost:>9.2f}  {'yes' if e.success else 'no'}")
-    r = ev.returns()
-    n_ok = sum(e.success for e in ev.episodes)
-    lines.append(f"success {n_ok}/{len(ev.episodes)} ({100 * ev.success_rate:.0f} %); return {r.mean():.2f} ± "
-                 f"{r.std():.2f}; steps {np.mean([e.steps for e in ev.episodes]):.1f}")
+    kmp = f"; {ev.kmp}" if ev.kmp else ""
+    lines.append(f"task {ev.task} ({ev.spec}){source}; checkpoint {ev.checkpoint} ({done}); scale {ev.scale}{kmp}")
+    if ev.scenes:
+        lines += scene_lines(ev.episodes, ev.placements, ev.varies, ev.seed, ev.region)
+    else:
+        lines.append(f"{'episode':>7} {'seed':>6} {'steps':>6} {'return':>10} {'env':>10} {'r_a':>9}  success")
+        for e in ev.episodes:
+            lines.append(f"{e.episode:>7} {e.seed:>6} {e.steps:>6} {e.ret:>10.2f} {e.env_return:>10.2f} "
+                         f"{e.action_cost:>9.2f}  {'yes' if e.success else 'no'}")
+        r = ev.returns()
+        n_ok = sum(e.success for e in ev.episodes)
+        lines.append(f"success {n_ok}/{len(ev.episodes)} ({100 * ev.success_rate:.0f} %); return {r.mean():.2f} ± "
+                     f"{r.std():.2f}; steps {np.mean([e.steps for e in ev.episodes]):.1f}")
+        lines += [] if ev.varies else [FIXED_SCENE_NOTE]
     lines.append(f"wrote {ev.csv}")
     if ev.gif is not None:
-        lines.append(f"wrote {ev.gif} ({ev.gif_frames} frames of episode 1)")
+        shown = (f"scenes 1-{ev.gif_scenes}" if ev.gif_scenes > 1 else "scene 1" if ev.scenes else "episode 1")
+        lines.append(f"wrote {ev.gif} ({ev.gif_frames} frames of {shown})")
     return "\n".join(lines)
 
 
@@ -359,8 +241,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if args.gif and "DISPLAY" not in os.environ:
         os.environ.setdefault("MUJOCO_GL", "egl")  # (before MuJoCo is imported) offscreen camera views
     try:
-        ev = evaluate(args.run_dir, checkpoint=args.checkpoint, episodes=args.episodes, seed=args.seed,
-                      gif=args.gif, csv_path=args.csv, actor=args.actor)
+        if args.scenes is not None and args.episodes is not None:
+            raise EvalError("give --episodes N (episodes reset with SEED + i) or --scenes K (seeded scenes), not both")
+        ev = evaluate(args.run_dir, checkpoint=args.checkpoint, episodes=10 if args.episodes is None else args.episodes,
+                      seed=args.seed, gif=args.gif, csv_path=args.csv, actor=args.actor, scenes=args.scenes,
+                      gif_scenes=args.gif_scenes, adapt=args.adapt)
     except EvalError as exc:
         print(f"khgrl eval: error: {exc}", file=sys.stderr)
         return 2
@@ -380,12 +265,26 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
                         "started by hand with one --run-dir), or its actor folder RUN_DIR/actor-ID")
     p.add_argument("--checkpoint", default=None, metavar="PATH",
                    help="a learner checkpoint directory or model.zip (default: RUN_DIR/learner/checkpoint)")
-    p.add_argument("--episodes", type=int, default=10, help="episodes (default: %(default)s)")
+    p.add_argument("--episodes", type=int, default=None, help="episodes (default: 10)")
+    p.add_argument("--scenes", type=int, default=None, metavar="K",
+                   help="instead of --episodes: K seeded scenes, scene k reset with scene_seed(SEED, k, 'eval') "
+                        "(the same scenes for every run evaluated with the same SEED); prints the success rate with "
+                        "its 95 %% Wilson interval and writes a per-scene CSV with each scene's placement "
+                        "(default: none, --episodes)")
     p.add_argument("--seed", type=int, default=None,
-                   help="reset seed of the first episode, episode i gets SEED + i - 1 (default: the run's seed)")
-    p.add_argument("--gif", default=None, metavar="FILE", help="animate episode 1 into this GIF (default: none)")
+                   help="reset seed of the first episode, episode i gets SEED + i - 1; with --scenes the scenes' "
+                        "seed (default: the run's seed)")
+    p.add_argument("--gif", default=None, metavar="FILE",
+                   help="animate episode 1 (with --scenes: the first --gif-scenes scenes) into this GIF "
+                        "(default: none)")
+    p.add_argument("--gif-scenes", type=int, default=3, metavar="N",
+                   help="with --scenes: scenes the GIF shows one after another (default: %(default)s)")
     p.add_argument("--csv", default=None, metavar="FILE",
-                   help="per-episode results (default: RUN_DIR/eval/eval.csv; never overwritten: eval-2.csv, ...)")
+                   help="per-episode results (default: RUN_DIR/eval/eval.csv, with --scenes RUN_DIR/eval/scenes.csv; "
+                        "never overwritten: eval-2.csv, ...)")
+    p.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=None,
+                   help="refit the KMP through each scene's via-points at reset, a task whose scene varies "
+                        "(--no-adapt: the demonstrations' KMP in every scene; default: as the run did)")
     p.add_argument("--actor", default=None, metavar="ID",
                    help="use the exploration scale this actor learned (default: a0, or the actor folder's)")
     p.set_defaults(func=_cmd_eval)

@@ -1,4 +1,4 @@
-"""The animation of an evaluation episode (``khgrl eval --gif``)."""
+"""The animation of evaluation episodes (``khgrl eval --gif``; with ``--scenes`` several scenes one after another)."""
 
 from __future__ import annotations
 
@@ -31,10 +31,21 @@ class GifRecorder:
         self.frames: list[np.ndarray] = []
         self.calls = 0
         self.camera = callable(getattr(env.inner, "camera_frame", None))  # the simulator's own view, if it has one
+        self.caption = ""
+
+    def next_episode(self, caption: str = "") -> None:
+        """The next call is an episode's first frame (kept whatever ``every``): one GIF shows several episodes.
+
+        :param caption: a line written on this episode's frames (e.g. the scene and its placement; "" none).
+        """
+        self.calls = 0
+        self.caption = caption
 
     def __call__(self, env: Any, done: bool) -> None:
         if self.calls % self.every == 0 or done:  # the last frame always
             img = self.renderer.render_rgb(self.frame_from_env(env))
+            if self.caption:
+                img = _captioned(img, self.caption)
             camera = self._camera(env, img.shape[0]) if self.camera else None
             self.frames.append(img if camera is None else np.concatenate([camera, img], axis=1))
         self.calls += 1
@@ -62,3 +73,14 @@ class GifRecorder:
         path.parent.mkdir(parents=True, exist_ok=True)
         first.save(path, save_all=True, append_images=rest, duration=int(1000 / fps), loop=0)
         return len(images)
+
+
+def _captioned(img: np.ndarray, text: str) -> np.ndarray:
+    """``img`` with ``text`` in its bottom right corner (PIL's default font)."""
+    from PIL import Image, ImageDraw
+
+    im = Image.fromarray(np.ascontiguousarray(img, dtype=np.uint8))
+    draw = ImageDraw.Draw(im)
+    left, top, right, bottom = draw.textbbox((0, 0), text)
+    draw.text((im.width - (right - left) - 8, im.height - (bottom - top) - 8), text, fill=(20, 20, 120))
+    return np.asarray(im)

@@ -11,7 +11,10 @@ each run's learning criteria (all in episodes, counted from 1; ``None`` = never 
 * **zero obstacle cost**: the episode from which no later episode touches the obstacle (obstacle cost 0
   in that episode and every one after it)
 * success rate over the last 10 episodes; episodes with a collision (obstacle cost < 0) during learning
-* the success rate of the final policy in ``khgrl eval RUN`` (``RUN/eval/eval.csv``), where it was run
+* the success rate of the final policy in ``khgrl eval RUN`` where it was run: over seeded scenes
+  (``khgrl eval --scenes``: ``RUN/eval/scenes.csv``, with its Wilson interval), else over episodes
+  (``RUN/eval/eval.csv``); on a task whose scene does not vary it is "one scene", one deterministic rollout repeated,
+  not a success rate (:func:`load_evaluation`)
 """
 
 from __future__ import annotations
@@ -37,6 +40,8 @@ __all__ = [
     "human_episodes",
     "load_scale",
     "load_eval",
+    "load_evaluation",
+    "EVAL_KINDS",
     "corrected_phases",
 ]
 
@@ -68,7 +73,9 @@ class RunResult:
     clipped_human_steps: int
     mean_return_last_10: float
     eval_success: float | None = None  # success rate of ``khgrl eval RUN`` (RUN/eval/eval.csv), if it was run
-    eval_episodes: int = 0
+    eval_episodes: int = 0  # episodes or scenes evaluated
+    eval_successes: int = 0
+    eval_kind: str = ""  # one of EVAL_KINDS
 
 
 def stable_success(success: list[bool], human: list[bool], window: int = STABLE_WINDOW) -> int | None:
@@ -132,9 +139,54 @@ def load_eval(run_dir: Path) -> list[bool]:
         return [r["success"] == "True" for r in csv.DictReader(fh)]
 
 
+EVAL_KINDS = ("", "episodes", "scenes", "one scene")  # none; eval.csv; scenes.csv of a varying task; a fixed scene
+
+
+def load_evaluation(run_dir: Path) -> tuple[str, int, int]:
+    """(kind, successes, episodes) of the run's evaluation (:data:`EVAL_KINDS`; ("", 0, 0) if it was not evaluated):
+    its first ``khgrl eval --scenes`` (RUN/eval/scenes.csv) if there is one, else its first ``khgrl eval``
+    (RUN/eval/eval.csv). "one scene": the task's scene does not vary (the scenes CSV says so; for eval.csv the
+    run's task is loaded from its config.json: a task without a Scene).
+
+    :param run_dir: the run directory.
+    """
+    from khgrl.deploy.eval_scenes import SCENES_CSV, read_scenes_csv
+
+    scenes = Path(run_dir) / "eval" / SCENES_CSV
+    if scenes.exists():
+        k, n, varies = read_scenes_csv(scenes)
+        return ("scenes" if varies else "one scene"), k, n
+    evaluated = load_eval(run_dir)
+    if not evaluated:
+        return "", 0, 0
+    kind = "one scene" if _task_varies(Path(run_dir)) is False else "episodes"
+    return kind, sum(evaluated), len(evaluated)
+
+
+_VARIES: dict[str, bool | None] = {}
+
+
+def _task_varies(run_dir: Path) -> bool | None:
+    """Whether the run's task (its config.json) has a varying scene; None where that cannot be told."""
+    from khgrl.common.config.settings import read_run_file
+    from khgrl.common.tasks.api import load_task
+
+    try:
+        cfg, _ = read_run_file(run_dir / "config.json")
+        spec = cfg.task_spec
+    except (OSError, ValueError):
+        return None
+    if spec not in _VARIES:
+        try:
+            _VARIES[spec] = load_task(spec).scene is not None
+        except Exception:  # noqa: BLE001 - a task module that is not importable here: not known
+            _VARIES[spec] = None
+    return _VARIES[spec]
+
+
 def summarize_run(scenario: str, method: str, seed: int, run_dir: Path, rows: list[dict]) -> RunResult:
     succ = [r["success"] for r in rows]
-    evaluated = load_eval(run_dir)
+    kind, eval_ok, eval_n = load_evaluation(run_dir)
     human = [r["intervention_steps"] > 0 for r in rows]
     last = rows[-10:]
     return RunResult(
@@ -149,7 +201,8 @@ def summarize_run(scenario: str, method: str, seed: int, run_dir: Path, rows: li
         human_episodes=sum(human), intervention_steps=sum(r["intervention_steps"] for r in rows),
         clipped_human_steps=sum(r["clipped_steps"] for r in rows),
         mean_return_last_10=float(np.mean([r["ret"] for r in last])) if last else float("nan"),
-        eval_success=sum(evaluated) / len(evaluated) if evaluated else None, eval_episodes=len(evaluated),
+        eval_success=eval_ok / eval_n if eval_n else None, eval_episodes=eval_n, eval_successes=eval_ok,
+        eval_kind=kind,
     )
 
 

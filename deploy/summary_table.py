@@ -1,5 +1,6 @@
 """The markdown summary of an experiment (``summary.md`` of ``khgrl report EXP``): per method and scenario, and
-KhGRL vs KGRL with a one-sided Mann-Whitney U test. Episode criteria are medians over seeds with 'never' (not
+KhGRL vs KGRL with a one-sided Mann-Whitney U test, and the evaluation of the final policies (over seeded scenes
+with Wilson intervals, or labelled "one scene"). Episode criteria are medians over seeds with 'never' (not
 within the run) ranked last."""
 
 from __future__ import annotations
@@ -7,9 +8,10 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
+from khgrl.deploy.intervals import wilson_interval
 from khgrl.deploy.run_results import METHOD_LABEL, STABLE_WINDOW, RunResult
 
-__all__ = ["summary_markdown", "median_text", "fmt_episode"]
+__all__ = ["summary_markdown", "median_text", "fmt_episode", "eval_cell"]
 
 
 def _censored(v: int | None, episodes: int) -> int:
@@ -54,11 +56,6 @@ def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callabl
     def episode(attr: str) -> Callable[[list[RunResult]], str]:
         return lambda rs: fmt_episode([getattr(r, attr) for r in rs], episodes)
 
-    def evaluated(rs: list[RunResult]) -> str:
-        vals = [r.eval_success for r in rs if r.eval_success is not None]
-        per_seed = ", ".join("-" if r.eval_success is None else f"{r.eval_success:.0%}" for r in rs)
-        return f"{np.mean(vals):.0%} ({per_seed}; {rs[0].eval_episodes} episodes)" if vals else "-"
-
     mean_sd = lambda v: f"{np.mean(v):.1f} ± {np.std(v):.1f}"  # noqa: E731
     cols = [("success, last 10 (mean ± std; per seed)", last10), ("first success", episode("first_success")),
             ("first success w/o human", episode("first_success_without_human")),
@@ -72,8 +69,48 @@ def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callabl
                                                   f"{sum(r.intervention_steps for r in rs)}"),
              ("return, last 10", lambda rs: mean_sd([r.mean_return_last_10 for r in rs]))]
     if any(r.eval_success is not None for r in results):
-        cols.append(("eval success of the final policy (mean; per seed)", evaluated))
+        header = ("eval success of the final policy (mean; per seed)" if all(r.eval_kind in ("", "episodes")
+                  for r in results) else "eval success of the final policy (scenes: pooled over seeds, 95 % Wilson "
+                                         "CI; per seed)")
+        cols.append((header, eval_cell))
     return cols
+
+
+def _run_eval(r: RunResult) -> str:
+    """One run's evaluation in a cell: k/n with its Wilson interval over scenes, yes/no on one scene, else a rate."""
+    if r.eval_success is None:
+        return "-"
+    if r.eval_kind == "scenes":
+        low, high = wilson_interval(r.eval_successes, r.eval_episodes)
+        return f"{r.eval_successes}/{r.eval_episodes} = {r.eval_success:.0%} ({low:.0%}–{high:.0%})"
+    if r.eval_kind == "one scene":
+        return {0: "no", r.eval_episodes: "yes"}.get(r.eval_successes, f"{r.eval_successes}/{r.eval_episodes}")
+    return f"{r.eval_success:.0%}"
+
+
+def eval_cell(rs: list[RunResult]) -> str:
+    """The evaluation of a group of runs (seeds): over scenes the pooled rate with its Wilson interval and each
+    seed's; on a fixed scene "one scene" and whether each seed's rollout succeeded (not a rate); else (``khgrl eval``
+    over episodes) the mean rate and each seed's.
+
+    :param rs: the runs, in seed order.
+    """
+    done = [r for r in rs if r.eval_success is not None]
+    if not done:
+        return "-"
+    per_seed = ", ".join(_run_eval(r) for r in rs)
+    kinds = {r.eval_kind for r in done}
+    if kinds == {"scenes"}:
+        k, n = sum(r.eval_successes for r in done), sum(r.eval_episodes for r in done)
+        low, high = wilson_interval(k, n)
+        return f"{k / n:.0%} ({low:.0%}–{high:.0%}; {k}/{n} scenes) (per seed: {per_seed})"
+    if kinds == {"one scene"}:
+        solved = sum(r.eval_successes == r.eval_episodes for r in done)
+        return f"one scene, not a rate: solved by {solved} of {len(done)} seeds ({per_seed})"
+    if kinds == {"episodes"}:
+        return f"{np.mean([r.eval_success for r in done]):.0%} ({per_seed}; {rs[0].eval_episodes} episodes)"
+    mixed = ", ".join(f"{r.eval_kind or '-'}: {_run_eval(r)}" for r in rs)
+    return f"mixed evaluations (per seed: {mixed})"
 
 
 def _higher(a: list[float], b: list[float]) -> str:
@@ -101,7 +138,9 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
     criteria = ["first_success_without_human", "stable_success"]
     if any(h == "zero obstacle cost from" for h, _ in cols):
         criteria.append("zero_obstacle_cost_from")
-    evaluated = all(r.eval_success is not None for r in results)
+    # (a fixed scene's evaluation is one rollout repeated: not compared as a success rate)
+    evaluated = (all(r.eval_success is not None for r in results)
+                 and any(r.eval_kind != "one scene" for r in results))
     heads = [c.replace("_", " ").replace("without", "w/o") for c in criteria] + ["success, last 10"] + (
         ["eval success"] if evaluated else [])
     comp: list[str] = []
@@ -130,7 +169,9 @@ def _comparison(groups: dict, a_method: str, b_method: str, criteria: list[str],
             p = _compare(va, vb, episodes)
             cells.append(f"{median_text(va, episodes)} vs {median_text(vb, episodes)} (p = {p:.3f})")
         cells.append(_higher([r.success_last_10 for r in a], [r.success_last_10 for r in b]))
-        if evaluated:
+        if evaluated and any(r.eval_kind == "one scene" for r in a + b):
+            cells.append("one scene (not compared)")
+        elif evaluated:
             cells.append(_higher([r.eval_success for r in a], [r.eval_success for r in b]))
         rows.append(f"| {scenario} | {len(a)}/{len(b)} | " + " | ".join(cells) + " |")
     if not rows:
