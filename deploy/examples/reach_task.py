@@ -2,8 +2,10 @@
 that is placed at random at every reset (``--task khgrl.deploy.examples.reach_task:make_task``).
 
 The demonstrations all end at ``DEMO_TARGET``; the target is drawn uniformly from ``REGION`` (seeded by the
-reset's seed), mostly outside the demonstrations' spread. The scene adapts the KMP with one via-point: the end of
-the movement at the observed target. Without adaptation the mean ends at ``DEMO_TARGET``.
+reset's seed), mostly outside the demonstrations' spread. The scene adapts the KMP with via-points: the last quarter of the
+movement re-targeted, on a straight line from the start to the observed target (one via-point alone would move only
+its own grid step: the demonstrations agree closely at their end). Without adaptation the mean ends at
+``DEMO_TARGET``.
 
 Action: the desired position P_t (2,) in the workspace [-1, 1]^2; the robot moves there. Observation: position (2)
 and target (2). Reward: -|position - target| per step. Success: within 5 cm of the target at the last step.
@@ -58,11 +60,17 @@ def demos(m: int = 5, n: int = HORIZON, seed: int = 0) -> np.ndarray:
     return np.stack([line + np.sin(np.pi * s) * [0.0, rng.uniform(-0.3, 0.3)] for _ in range(m)])
 
 
+def via_points(obs: np.ndarray) -> list[ViaPoint]:
+    """The last quarter of the movement, on the line from START to the observed target (obs[2:4])."""
+    target = np.asarray(obs[2:4], np.float64)
+    return [ViaPoint(s, START + s * (target - START), 1e6) for s in np.linspace(0.75, 1.0, 11)]
+
+
 def make_task() -> Task:
     return Task(name="reach", make_env=lambda seed: ReachEnv(), demos=demos(), workspace=((-1.0, -1.0), (1.0, 1.0)),
                 default_scale=5.0, action_cost=0.0, position=lambda obs: obs[:2],
                 scene=Scene(region=f"target x in [{REGION[0][0]}, {REGION[1][0]}], y in [{REGION[0][1]}, "
                                    f"{REGION[1][1]}] (uniform)",
                             describe=lambda obs: {"target_x": float(obs[2]), "target_y": float(obs[3])},
-                            via_points=lambda obs: [ViaPoint(1.0, obs[2:4], 1e6)]),
+                            via_points=via_points),
                 view=View(shapes=(Point("start", tuple(START)), Point("demo target", tuple(DEMO_TARGET)))))
