@@ -153,3 +153,13 @@ def test_scripted_human_acts_only_at_the_grasp(env: PandaPosition) -> None:
     on = np.array([cube[0] + 0.005, cube[1], 0.05])
     assert guide(on, phase=PHASES["grasp"], obs=obs) is None  # already at the cube: lets go
     assert guide(off, phase=PHASES["grasp"], obs=None) is None  # nothing seen yet
+
+
+def test_camera_frame_renders_the_scene_offscreen(env: PandaPosition) -> None:
+    obs, _ = env.reset(seed=2)
+    a = env.camera_frame(96)
+    env.step(obs[TCP] + [0.0, 0.0, 0.1])
+    b = env.camera_frame(96)
+    assert a.shape == b.shape == (96, 96, 3) and a.dtype == np.uint8
+    assert a.std() > 5 and np.abs(a.astype(int) - b).mean() > 0.1  # a picture, and the arm moved in it
+    assert env.camera_frame(200).shape == (200, 200, 3)  # larger than gym-hil's own 128 x 128 buffer

@@ -86,10 +86,10 @@ def _headless_gl() -> None:
 
 
 def _close_at_exit(ref: weakref.ref) -> None:
-    """Close gym-hil's environment if it is still alive (its renderer's EGL context)."""
-    base = ref()
-    if base is not None:
-        base.close()
+    """Close the environment if it is still alive (its renderers' EGL contexts)."""
+    env = ref()
+    if env is not None:
+        env.close()
 
 
 def _make_base():
@@ -124,7 +124,7 @@ class PandaPosition(gym.Env):
         self.base, self.env = _make_base()
         # free gym-hil's renderer at exit before MuJoCo's EGL display is terminated (MuJoCo registers that at its
         # first context, made just now: atexit runs the later registration first); else its __del__ prints errors
-        atexit.register(_close_at_exit, weakref.ref(self.base))
+        atexit.register(_close_at_exit, weakref.ref(self))
         self.horizon = int(horizon)
         self.gripper = gripper
         self.region = None if region is None else tuple(np.asarray(r, np.float64) for r in region)
@@ -136,6 +136,7 @@ class PandaPosition(gym.Env):
         self.observation_space = spaces.Box(self._low, self._high, dtype=np.float64)
         self.t = 0
         self._obs: dict | None = None
+        self._camera = None
 
     @property
     def target(self) -> np.ndarray:
@@ -186,17 +187,25 @@ class PandaPosition(gym.Env):
         return self._flat(), float(reward), bool(terminated), truncated, {"succeed": bool(info.get("succeed"))}
 
     def camera_frame(self, size: int = 360) -> np.ndarray:
-        """gym-hil's front camera now, (h, w, 3) uint8 at gym-hil's render size (128 x 128; ``size`` is ignored:
-        gym-hil sizes its offscreen buffer at construction).
+        """gym-hil's front camera now, (size, size, 3) uint8 (offscreen; ``khgrl eval --gif`` puts it beside the
+        task's views).
 
-        :param size: asked-for width and height (unused, see above).
+        :param size: width and height in pixels.
         """
         import mujoco
 
-        base = self.base
-        cam = mujoco.mj_name2id(base.model, mujoco.mjtObj.mjOBJ_CAMERA, "front")
-        base._viewer.update_scene(base.data, camera=cam)
-        return np.asarray(base._viewer.render(), dtype=np.uint8)
+        if self._camera is None or self._camera.width != size:
+            if self._camera is not None:
+                self._camera.close()
+            vis = self.base.model.vis.global_
+            vis.offwidth, vis.offheight = max(vis.offwidth, size), max(vis.offheight, size)
+            self._camera = mujoco.Renderer(self.base.model, height=size, width=size)
+        cam = mujoco.mj_name2id(self.base.model, mujoco.mjtObj.mjOBJ_CAMERA, "front")
+        self._camera.update_scene(self.base.data, camera=cam)
+        return np.asarray(self._camera.render(), dtype=np.uint8)
 
     def close(self) -> None:
+        if self._camera is not None:
+            self._camera.close()
+            self._camera = None
         self.env.close()
