@@ -197,7 +197,8 @@ def call_scripted_human(fn: Callable, mean: np.ndarray, *, step: int, phase: flo
 
 # ------------------------------------------------------------------------------------ loading
 BUILTIN_TASKS = {"passage": "khgrl.common.tasks.passage.task:make_task",
-                 "fetch": "khgrl.common.tasks.fetch.task:make_task"}
+                 "fetch": "khgrl.common.tasks.fetch.task:make_task",
+                 "panda": "khgrl.common.tasks.panda.task:make_task"}
 
 
 def _import_factory(spec: str) -> tuple[Callable, list[str]]:

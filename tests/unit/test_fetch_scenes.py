@@ -5,7 +5,8 @@ body on the carry path that a mean adapted only at the grasp runs into (the task
 human's lift over it succeeds.
 
 The adapted mean is computed here independently by the rule of the task API (a via-point replaces the reference
-point at its grid step, Sigma = I / precision; common/tasks/scene.py), refitting the LC-NS-KMP directly."""
+point at its grid step, Sigma = I / precision; common/kmp/adapt.py), refitting the LC-NS-KMP directly
+(benchmarks/fetch_scenes.py)."""
 
 from __future__ import annotations
 
@@ -14,10 +15,8 @@ import pytest
 
 pytest.importorskip("gymnasium_robotics", reason="gymnasium-robotics is a project dependency: pip install -e .")
 
-from khgrl.common.kmp.fit import box_constraints  # noqa: E402
-from khgrl.common.kmp.gmr import reference_distribution  # noqa: E402
-from khgrl.common.kmp.kernels import RBF  # noqa: E402
-from khgrl.common.kmp.lcnskmp import LCNSKMP  # noqa: E402
+from khgrl.benchmarks.fetch_scenes import adapted_mean  # noqa: E402
+from khgrl.benchmarks.fetch_scenes import rollout as _rollout  # noqa: E402
 from khgrl.common.tasks.api import load_task, scene_seed  # noqa: E402
 from khgrl.common.tasks.fetch.scene_env import (  # noqa: E402
     MIN_START_DISTANCE,
@@ -32,6 +31,11 @@ from khgrl.common.tasks.kgrl_env import KGRLEnv  # noqa: E402
 from khgrl.common.tasks.world import build_task_world  # noqa: E402
 
 SCENES = [scene_seed(3, k) for k in range(1, 9)]
+
+
+def rollout(env, obs, path, human=None) -> tuple[bool, int]:
+    """(success at the end, steps touching the obstacle) of commanding ``path`` (the human's P_h where given)."""
+    return _rollout(env, obs, path, human)[:2]
 
 
 @pytest.fixture(scope="module")
@@ -56,30 +60,6 @@ def obstacle_env(obstacle_task):
     env = obstacle_task.make_env(0)
     yield env
     env.close()
-
-
-def adapted_mean(task, vias) -> np.ndarray:
-    """The LC-NS-KMP mean with each via-point in place of the reference point at its grid step."""
-    cfg, n = task.kmp, task.demos.shape[1]
-    ref = reference_distribution(task.demos, n_components=cfg.n_components, seed=cfg.seed, jitter=cfg.jitter)
-    mu, sigma = ref.mu.copy(), ref.sigma.copy()
-    for v in vias:
-        t = int(round(v.phase * (n - 1)))
-        mu[t], sigma[t] = v.position, np.eye(3) / v.precision
-    G, c = box_constraints(np.asarray(task.workspace[0]), np.asarray(task.workspace[1]))
-    model = LCNSKMP(ref.s, mu, sigma, lam=cfg.lam, beta=cfg.beta, kernel=RBF(length_scale=cfg.length_scale),
-                    constraints=(G, c))
-    return np.asarray(model.grid_mean)
-
-
-def rollout(env, obs, path, human=None) -> tuple[bool, int]:
-    """Command ``path`` (the human's P_h where it gives one): (success at the end, steps touching the obstacle)."""
-    n, touching, info = len(path), 0, {}
-    for t in range(n):
-        p_h = None if human is None else human(path[t], phase=t / (n - 1), position=obs[:3], obs=obs)
-        obs, _, _, _, info = env.step(path[t] if p_h is None else p_h)
-        touching += info.get("obstacle_contacts", 0) > 0
-    return bool(info["success"]), touching
 
 
 def test_placements_follow_the_seed_inside_the_region(random_task, random_env) -> None:
