@@ -1,12 +1,14 @@
 """Scenes that change every episode through the real system (issue 22): ``khgrl up`` with a task whose scene varies
-(router, learner, actor; real Zenoh), watched by this test's own subscriber to the actor's frames.
+(router, learner, actor; real Zenoh) -- the 2-D example, ``fetch:random`` (gymnasium-robotics, with the scripted
+human in one episode) and ``panda:pick`` (gym-hil) -- watched by this test's own subscriber to the actor's frames.
 
 Every check is made from what the actor published, independently of its own bookkeeping:
 
 * consecutive episodes have different placements (scenes.csv, and the observations in the frames);
 * in every episode the KMP mean the actor drives with passes through the scene's via-points -- recomputed here from
   the task's ``Scene.via_points`` applied to the episode's first observation in the frames -- within a stated
-  tolerance, and it differs from the demonstrations' mean there (the adaptation did something);
+  tolerance (1 mm on the 2-D example, 2 mm on the arms), and it differs from the demonstrations' mean there (the
+  adaptation did something);
 * every commanded P_t of every frame satisfies every hard constraint (the workspace box), and the actor's
   ``scenes.csv`` agrees (largest violation <= 0).
 """
@@ -26,6 +28,9 @@ from launch import Launcher
 # (task spec, extra flags, episodes, tolerance on |adapted mean - via-point| in command units)
 CASES = {
     "reach": ("khgrl.deploy.examples.reach_task:make_task", ["--method", "kgrl", "--human", "none"], 4, 1e-3),
+    # the scripted human drags in episode 2 (the adapted mean leaves it little to do): corrections are P_t too
+    "fetch_random": ("fetch:random", ["--method", "khgrl", "--human-episodes", "2"], 3, 2e-3),
+    "panda_pick": ("panda:pick", ["--method", "kgrl", "--human", "none"], 3, 2e-3),
 }
 
 
@@ -68,11 +73,15 @@ def test_varying_scene_through_khgrl_up(tmp_path: Path, case: str) -> None:
         fs = {f.t: f for f in by_episode[e]}
         first_obs = fs[0].obs  # after step 0: the scene is as it was placed (nothing has touched it yet)
         placements.append(tuple(task.scene.describe(first_obs).values()))
+        moved = 0.0  # how far the via-points lie from the demonstrations' mean
         for v in task.scene.via_points(first_obs):
             t = int(round(v.phase * (world.model.n_points - 1)))
+            if t not in fs and t - 1 not in fs:
+                continue  # the episode ended (success) before this step
             mean = fs[t].mean if t in fs else fs[t - 1].next_mean
             assert np.abs(mean - np.asarray(v.position)).max() <= tol, (e, t, mean, v.position)
-            assert np.abs(world.model.grid_mean[t] - np.asarray(v.position)).max() > 10 * tol  # it moved
+            moved = max(moved, float(np.abs(world.model.grid_mean[t] - np.asarray(v.position)).max()))
+        assert moved > 5 * tol  # the adaptation moved the mean in this scene
     assert len(set(placements)) == len(placements), placements
 
     with open(tmp_path / "run" / "actor-a0" / "scenes.csv", newline="") as fh:
