@@ -2,10 +2,10 @@
 that is placed at random at every reset (``--task khgrl.deploy.examples.reach_task:make_task``).
 
 The demonstrations all end at ``DEMO_TARGET``; the target is drawn uniformly from ``REGION`` (seeded by the
-reset's seed), mostly outside the demonstrations' spread. The scene adapts the KMP with via-points: the last quarter of the
-movement re-targeted, on a straight line from the start to the observed target (one via-point alone would move only
-its own grid step: the demonstrations agree closely at their end). Without adaptation the mean ends at
-``DEMO_TARGET``.
+reset's seed), mostly outside the demonstrations' spread. The scene adapts the KMP with via-points: the last
+quarter of the movement re-targeted, on a straight line from the start to the observed target (one via-point alone
+would move only its own grid step: the demonstrations agree closely at their end). Without adaptation the mean ends
+at ``DEMO_TARGET``.
 
 Action: the desired position P_t (2,) in the workspace [-1, 1]^2; the robot moves there. Observation: position (2)
 and target (2). Reward: -|position - target| per step. Success: within 5 cm of the target at the last step.
