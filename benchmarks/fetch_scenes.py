@@ -3,6 +3,7 @@ over K seeded scenes (``scene_seed(seed, k)``, k = 1..K), no learning, no policy
 
 * **teacher**: the mean of the scripted teacher's demonstrations re-targeted to the observed object (the mean
   "adapted by hand");
+* **unadapted**: the LC-NS-KMP mean of the demonstrations (at ``DEMO_OBJECT``), as ``--no-adapt`` runs it;
 * **adapted**: the LC-NS-KMP mean adapted by the task's via-points (the rule of ``common/kmp/adapt.py``: each
   via-point replaces the reference point at its grid step; computed here directly);
 
@@ -28,7 +29,7 @@ from khgrl.common.tasks.fetch.teacher import teacher_demos
 
 __all__ = ["adapted_mean", "rollout", "measure", "main"]
 
-MODES = ("teacher", "teacher+human", "adapted", "adapted+human")
+MODES = ("unadapted", "unadapted+human", "teacher", "teacher+human", "adapted", "adapted+human")
 
 
 def adapted_mean(task: Task, vias) -> np.ndarray:
@@ -82,7 +83,9 @@ def measure(spec: str, scenes: int, seed: int) -> dict:
             t0 = time.perf_counter()
             obs, _ = env.reset(seed=scene_seed(seed, k))
             resets.append(time.perf_counter() - t0)
-            if mode.startswith("teacher"):
+            if mode.startswith("unadapted"):
+                path = adapted_mean(task, [])
+            elif mode.startswith("teacher"):
                 path = teacher_demos(n=task.demos.shape[1], obj=obs[3:6].copy()).mean(axis=0)
             else:
                 vias = list(task.scene.via_points(obs))
@@ -110,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{spec}: {args.scenes} scenes (seed {args.seed}); median reset {r['reset_s'] * 1e3:.1f} ms, step "
               f"{r['step_s'] * 1e3:.2f} ms; adapted mean within {r['via_err_m'] * 1e3:.2f} mm of every via-point")
         for mode, res in r["modes"].items():
-            print(f"  {mode:14s} success {sum(ok for ok, _ in res):2d}/{len(res)}; scenes touching the obstacle "
+            print(f"  {mode:15s} success {sum(ok for ok, _ in res):2d}/{len(res)}; scenes touching the obstacle "
                   f"{sum(t > 0 for _, t in res):2d}/{len(res)}")
     return 0
 

@@ -158,7 +158,7 @@ def _region_text(obstacle: bool) -> str:
     text += str(GOAL.tolist())
     if obstacle:
         text += ("; a 12 x 5 cm block (top z = 0.63) at a uniform place on the demonstrations' carry path (phases "
-                 "0.63-0.75, +-2 cm across), the object redrawn until clear of it")
+                 "0.63-0.75, +-2 cm across), the object redrawn until clear of it (then y <= 0.85, 98 % below 0.80)")
     return text
 
 
