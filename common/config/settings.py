@@ -157,8 +157,9 @@ class StreamSettings:
 class RunConfig:
     """One run of ``khgrl up``: every setting of every process. Field order is the order of ``--help``."""
 
-    task: str = _opt("", "the task: passage:SCENARIO or package.module:callable returning a khgrl.task.Task "
-                         "(README, 'Bring your own task')", roles=(ACTOR, HUMAN), shown="passage:<scenario>")
+    task: str = _opt("", "the task: passage:SCENARIO, fetch:control|moved|random|obstacle, panda:pick, or "
+                         "package.module:callable returning a khgrl.task.Task (README, 'Bring your own task')",
+                     roles=(ACTOR, HUMAN), shown="passage:<scenario>")
     scenario: str = _opt("high_cov", "passage-world scenario (shorthand for --task passage:SCENARIO)",
                          roles=(ACTOR, HUMAN, REFERENCE))
     demos: str = _opt("", "demonstration file (.npz/.csv, M x N x O) replacing the task's demonstrations",

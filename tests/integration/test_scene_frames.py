@@ -85,9 +85,9 @@ def test_actor_sends_each_episodes_scene_and_the_gui_draws_it(tmp_path):
         local.reset_episode(e)
         np.testing.assert_allclose(f.scene_mean, local.mapping.model.grid_mean, atol=1e-9)
         np.testing.assert_allclose(f.scene_projector, local.mapping.model.grid_projector, atol=1e-9)
-        (step, pos), = local.via_points
-        np.testing.assert_allclose(f.scene_via, [[step / (local.horizon - 1), *pos]])
-        assert np.linalg.norm(f.scene_mean[step] - pos) < 1e-3  # the adapted mean passes through the via-point
+        np.testing.assert_allclose(f.scene_via, [[step / (local.horizon - 1), *pos] for step, pos in local.via_points])
+        for step, pos in local.via_points:
+            assert np.linalg.norm(f.scene_mean[step] - pos) < 1e-3  # the adapted mean passes through the via-points
         per_step = [g.mean for g in frames if g.episode == e]
         np.testing.assert_allclose(per_step, f.scene_mean)  # every frame's mean is the episode's adapted one
         ends.append(f.scene_mean[-1])

@@ -62,8 +62,7 @@ def test_first_frame_of_an_adapted_episode_carries_its_scene(reach: KGRLEnv) -> 
     f0 = decode(Frame, encode(frames[0], "a0", 0), Dims(out=2, horizon=reach.horizon))
     np.testing.assert_array_equal(f0.scene_mean, model.grid_mean)
     np.testing.assert_array_equal(f0.scene_projector, model.grid_projector)
-    (step, pos), = reach.via_points
-    np.testing.assert_array_equal(f0.scene_via, [[step / (reach.horizon - 1), *pos]])
+    np.testing.assert_array_equal(f0.scene_via, [[step / (reach.horizon - 1), *pos] for step, pos in reach.via_points])
     assert not np.allclose(f0.scene_mean, reach.world.model.grid_mean)  # the adapted mean, not the demonstrations'
     assert not any(SCENE_KEYS & set(_wire(f)) for f in frames[1:])  # only the episode's first frame has them
     with pytest.raises(ProtocolError, match="scene_mean: expected shape"):
