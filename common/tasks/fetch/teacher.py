@@ -11,6 +11,7 @@ demonstration the same there: the object's place), and a wide carry to the goal.
 from __future__ import annotations
 
 import numpy as np
+from khgrl.common.tasks.keyframes import through
 
 __all__ = ["teacher_demos", "through", "HORIZON", "GRASP_PHASE", "DEMO_OBJECT", "GOAL", "START",
            "WORKSPACE", "DEFAULT_SCALE"]
@@ -24,20 +25,6 @@ WORKSPACE = ((1.05, 0.4, 0.42), (1.55, 1.1, 0.9))  # the table top (z >= 0.42) a
 # L0, chosen from the model before any run: the band it allows is several cm wide where the demonstrations spread
 # (approach, carry) and < 1 mm in y at the grasp, where "moved" needs 12 cm in y (tests/unit/test_fetch_task.py)
 DEFAULT_SCALE = 5.0
-
-
-def _min_jerk(u: np.ndarray) -> np.ndarray:
-    return 10 * u**3 - 15 * u**4 + 6 * u**5
-
-
-def through(keys: list[tuple[float, np.ndarray]], n: int) -> np.ndarray:
-    """(n, 3) positions through (phase, point) keyframes, minimum-jerk between consecutive ones."""
-    s = np.linspace(0.0, 1.0, n)
-    out = np.empty((n, 3))
-    for (s0, p0), (s1, p1) in zip(keys[:-1], keys[1:]):
-        sel = (s >= s0) & (s <= s1)
-        out[sel] = p0 + _min_jerk((s[sel] - s0) / (s1 - s0))[:, None] * (p1 - p0)
-    return out
 
 
 def teacher_demos(m: int = 6, n: int = HORIZON, seed: int = 0, obj: np.ndarray = DEMO_OBJECT,

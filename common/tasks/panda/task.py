@@ -29,6 +29,7 @@ import numpy as np
 from khgrl.common.kmp.fit import KMPConfig
 from khgrl.common.tasks.api import Cuboid, Point, Task, View
 from khgrl.common.tasks.fetch.arm import GripperSchedule
+from khgrl.common.tasks.keyframes import through
 from khgrl.common.tasks.panda.arm import BOUNDS, CUBE, REGION, TCP, PandaPosition
 from khgrl.common.tasks.scene import Scene, ViaPoint
 
@@ -60,20 +61,6 @@ def keyframes(cube: np.ndarray) -> list[tuple[float, np.ndarray]]:
             (PHASES["lift"], at + [0, 0, LIFT])]
 
 
-def _min_jerk(u: np.ndarray) -> np.ndarray:
-    return 10 * u**3 - 15 * u**4 + 6 * u**5
-
-
-def _through(keys: list[tuple[float, np.ndarray]], n: int) -> np.ndarray:
-    """(n, 3) positions through (phase, point) keyframes, minimum-jerk between consecutive ones."""
-    s = np.linspace(0.0, 1.0, n)
-    out = np.empty((n, 3))
-    for (s0, p0), (s1, p1) in zip(keys[:-1], keys[1:]):
-        sel = (s >= s0) & (s <= s1)
-        out[sel] = p0 + _min_jerk((s[sel] - s0) / (s1 - s0))[:, None] * (p1 - p0)
-    return out
-
-
 def demo_cubes(m: int = 6, seed: int = 0) -> np.ndarray:
     """(m, 3) the cube's centre in each of the teacher's demonstrations: uniform in the region, on the table.
 
@@ -96,7 +83,7 @@ def teacher_plan(cube: np.ndarray, n: int = HORIZON, rng: np.random.Generator | 
     wiggle = (np.array([0.0, 0.0, 0.03]) if rng is None else
               np.array([rng.uniform(-0.04, 0.04), rng.uniform(-0.06, 0.06), rng.uniform(0.0, 0.06)]))
     via = (START + grasp[0][1]) / 2 + wiggle
-    return _through([(0.0, START), (0.15, via), *grasp, (1.0, grasp[-1][1])], n)
+    return through([(0.0, START), (0.15, via), *grasp, (1.0, grasp[-1][1])], n)
 
 
 def teacher_demos(m: int = 6, n: int = HORIZON, seed: int = 0) -> np.ndarray:
