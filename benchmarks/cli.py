@@ -51,6 +51,15 @@ class Benchmark:
 
 
 BENCHMARKS: dict[str, Benchmark] = {
+    "fetch-scenes": Benchmark("khgrl.benchmarks.fetch_scenes", "run_fetch_scenes_benchmark",
+                              "scripted rollouts over seeded scenes of fetch:random / fetch:obstacle: the teacher "
+                              "re-targeted, the demonstrations' and the adapted KMP mean, without and with the "
+                              "scripted human (no learning)", (
+        _flag("--scenes", type=int, default=20, help="scenes per task (default: %(default)s)"),
+        _flag("--seed", type=int, default=3, help="run seed of the scenes (default: %(default)s)"),
+        _flag("--tasks", nargs="+", default=["fetch:random", "fetch:obstacle"],
+              help="task specs (default: %(default)s)"),
+        OUT)),
     "kmp": Benchmark("khgrl.benchmarks.kmp", "run_kmp_benchmark",
                      "per-step LC-NS-KMP cost: tables vs direct formula vs lc-ns-kmp (N=400, O=2, F=4)", (
         _flag("--repeats", type=int, default=2000, help="timed calls per case (median reported; default: %(default)s)"),

@@ -4,50 +4,41 @@ over K seeded scenes (``scene_seed(seed, k)``, k = 1..K), no learning, no policy
 * **teacher**: the mean of the scripted teacher's demonstrations re-targeted to the observed object (the mean
   "adapted by hand");
 * **unadapted**: the LC-NS-KMP mean of the demonstrations (at ``DEMO_OBJECT``), as ``--no-adapt`` runs it;
-* **adapted**: the LC-NS-KMP mean adapted by the task's via-points (the rule of ``common/kmp/adapt.py``: each
-  via-point replaces the reference point at its grid step; computed here directly);
+* **adapted**: the LC-NS-KMP mean adapted by the task's via-points (``common/kmp/adapt.py``, what the actor drives
+  with);
 
 each without and with the task's scripted human (its P_h in place of the mean where it gives one). Prints the
 success count, the scenes in which anything touched the obstacle, the largest |adapted mean - via-point| and the
 median time per environment step and reset.
 
-    python -m khgrl.benchmarks.fetch_scenes --scenes 20 --seed 3
+    khgrl bench fetch-scenes --scenes 20 --seed 3
 """
 
 from __future__ import annotations
 
-import argparse
+import json
 import time
+from pathlib import Path
 
 import numpy as np
-from khgrl.common.kmp.fit import box_constraints
-from khgrl.common.kmp.gmr import reference_distribution
-from khgrl.common.kmp.kernels import RBF
-from khgrl.common.kmp.lcnskmp import LCNSKMP
-from khgrl.common.tasks.api import Task, load_task, scene_seed
+from khgrl.common.kmp.adapt import adapt_model
+from khgrl.common.tasks.api import load_task, scene_seed
 from khgrl.common.tasks.fetch.teacher import teacher_demos
+from khgrl.common.tasks.world import build_task_world
 
-__all__ = ["adapted_mean", "rollout", "measure", "main"]
+__all__ = ["adapted_mean", "rollout", "measure", "run_fetch_scenes_benchmark"]
 
 MODES = ("unadapted", "unadapted+human", "teacher", "teacher+human", "adapted", "adapted+human")
 
 
-def adapted_mean(task: Task, vias) -> np.ndarray:
-    """(N, O) the task's LC-NS-KMP mean with each via-point in place of the reference point at its grid step.
+def adapted_mean(world, vias) -> np.ndarray:
+    """(N, O) the task's LC-NS-KMP mean adapted to ``vias`` (:func:`~khgrl.common.kmp.adapt.adapt_model`, what the
+    actor drives with; no via-points: the demonstrations' mean).
 
-    :param task: the task (its demonstrations, KMP settings and workspace).
+    :param world: the task's built world (its LC-NS-KMP under the workspace box).
     :param vias: the via-points.
     """
-    cfg, n = task.kmp, task.demos.shape[1]
-    ref = reference_distribution(task.demos, n_components=cfg.n_components, seed=cfg.seed, jitter=cfg.jitter)
-    mu, sigma = ref.mu.copy(), ref.sigma.copy()
-    for v in vias:
-        t = int(round(v.phase * (n - 1)))
-        mu[t], sigma[t] = v.position, np.eye(mu.shape[1]) / v.precision
-    G, c = box_constraints(np.asarray(task.workspace[0]), np.asarray(task.workspace[1]))
-    model = LCNSKMP(ref.s, mu, sigma, lam=cfg.lam, beta=cfg.beta, kernel=RBF(length_scale=cfg.length_scale),
-                    constraints=(G, c))
-    return np.asarray(model.grid_mean)
+    return np.asarray(adapt_model(world.model, vias).grid_mean)
 
 
 def rollout(env, obs: np.ndarray, path: np.ndarray, human=None) -> tuple[bool, int, float]:
@@ -75,6 +66,7 @@ def measure(spec: str, scenes: int, seed: int) -> dict:
     :param seed: the run seed of the scenes.
     """
     task = load_task(spec)
+    world = build_task_world(task)
     env = task.make_env(seed)
     out = {m: [] for m in MODES}
     resets, steps, via_err = [], [], []
@@ -84,12 +76,12 @@ def measure(spec: str, scenes: int, seed: int) -> dict:
             obs, _ = env.reset(seed=scene_seed(seed, k))
             resets.append(time.perf_counter() - t0)
             if mode.startswith("unadapted"):
-                path = adapted_mean(task, [])
+                path = adapted_mean(world, [])
             elif mode.startswith("teacher"):
                 path = teacher_demos(n=task.demos.shape[1], obj=obs[3:6].copy()).mean(axis=0)
             else:
                 vias = list(task.scene.via_points(obs))
-                path = adapted_mean(task, vias)
+                path = adapted_mean(world, vias)
                 n = len(path)
                 via_err.append(max(float(np.linalg.norm(path[int(round(v.phase * (n - 1)))] - v.position))
                                    for v in vias))
@@ -101,22 +93,26 @@ def measure(spec: str, scenes: int, seed: int) -> dict:
             "via_err_m": max(via_err)}
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Print the measurements (see the module docstring)."""
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=3)
-    ap.add_argument("--tasks", nargs="+", default=["fetch:random", "fetch:obstacle"])
-    args = ap.parse_args(argv)
-    for spec in args.tasks:
-        r = measure(spec, args.scenes, args.seed)
-        print(f"{spec}: {args.scenes} scenes (seed {args.seed}); median reset {r['reset_s'] * 1e3:.1f} ms, step "
+def run_fetch_scenes_benchmark(scenes: int = 20, seed: int = 3, tasks: tuple[str, ...] = ("fetch:random",
+                               "fetch:obstacle"), out: str | None = None) -> dict:
+    """Print the measurements (see the module docstring) and return them.
+
+    :param scenes: K scenes per task.
+    :param seed: the run seed of the scenes.
+    :param tasks: task specs.
+    :param out: also write them as JSON here.
+    """
+    record = {}
+    for spec in tasks:
+        r = measure(spec, scenes, seed)
+        record[spec] = {**r, "modes": {m: {"success": sum(ok for ok, _ in res), "touching": sum(t > 0 for _, t in res),
+                                           "scenes": len(res)} for m, res in r["modes"].items()}}
+        print(f"{spec}: {scenes} scenes (seed {seed}); median reset {r['reset_s'] * 1e3:.1f} ms, step "
               f"{r['step_s'] * 1e3:.2f} ms; adapted mean within {r['via_err_m'] * 1e3:.2f} mm of every via-point")
-        for mode, res in r["modes"].items():
-            print(f"  {mode:15s} success {sum(ok for ok, _ in res):2d}/{len(res)}; scenes touching the obstacle "
-                  f"{sum(t > 0 for _, t in res):2d}/{len(res)}")
-    return 0
-
-
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+        for mode, res in record[spec]["modes"].items():
+            print(f"  {mode:15s} success {res['success']:2d}/{res['scenes']}; scenes touching the obstacle "
+                  f"{res['touching']:2d}/{res['scenes']}")
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        Path(out).write_text(json.dumps(record, indent=2))
+    return record

@@ -96,7 +96,7 @@ def test_via_points_pin_the_grasp_at_the_observed_object(random_task, random_env
         held = [v for v in vias if v.phase >= 0.325]  # the teacher's keyframes 0.32-0.42: at the object
         assert len(held) >= 7 and all(np.allclose(v.position, obj, atol=1e-9) for v in held)
         np.testing.assert_allclose([v.position for v in vias], grasp_path(obj, n)[steps])
-        mean = adapted_mean(random_task, vias)
+        mean = adapted_mean(build_task_world(random_task), vias)
         err = max(float(np.linalg.norm(mean[t] - v.position)) for t, v in zip(steps, vias))
         assert err < 2e-3, err  # the adapted mean passes within 2 mm of every via-point
 
@@ -145,9 +145,10 @@ def test_the_obstacle_blocks_the_adapted_mean_and_the_human_lifts_over_it(obstac
     """In every scene the carried object's path under the mean adapted at the grasp crosses the block (geometry) and
     touches it in MuJoCo, and the task fails in most; lifted over it by the scripted human, it succeeds in most."""
     n, crossed, plain, helped = obstacle_task.demos.shape[1], 0, [], []
+    obstacle_world = build_task_world(obstacle_task)
     for s in SCENES[:6]:
         obs, _ = obstacle_env.reset(seed=s)
-        mean = adapted_mean(obstacle_task, obstacle_task.scene.via_points(obs))
+        mean = adapted_mean(obstacle_world, obstacle_task.scene.via_points(obs))
         carry = mean[int(0.45 * (n - 1)):int(0.88 * (n - 1))]
         centre = obs[28:31]
         # the held object (2.5 cm half, centred at the gripper) overlaps the block at some step of the carry
