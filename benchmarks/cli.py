@@ -91,12 +91,15 @@ BENCHMARKS: dict[str, Benchmark] = {
         _flag("--keep", action="store_true", help="keep the work directory (logs, run dirs; default: off)"),
         OUT)),
     "learner": Benchmark("khgrl.benchmarks.learner_step", "run_learner_benchmark",
-                         "gradient steps/s of the learner's TQC next to a raw-torch TQC step of the same networks, per "
-                         "device (cpu, cuda)", (
+                         "gradient steps/s of the learner's TQC next to a raw-torch TQC step of the same networks, "
+                         "the learner's SAC and a raw SAC step with 1 and 10 LayerNorm critics (batched), per device "
+                         "(cpu, cuda)", (
         _flag("--devices", nargs="+", default=["cpu"], choices=["cpu", "cuda"],
               help="devices to measure (default: cpu; cuda where torch sees a GPU)"),
         _flag("--seconds", type=float, default=20.0, help="time per side and device (default: %(default)s)"),
         _flag("--threads", type=int, default=1, help="torch threads (default: %(default)s, the learner's)"),
+        _flag("--ensembles", type=int, nargs="+", default=[1, 10],
+              help="critic ensemble sizes of the raw-torch SAC step (default: 1 10)"),
         SEED, OUT)),
     "scale": Benchmark("khgrl.benchmarks.scale", "run_scale_benchmark",
                        "N actors into one learner through khgrl up: ingest/s, learner memory, inbox depth, weights "

@@ -1,5 +1,7 @@
 """The learner's gradient step (``khgrl bench learner``): sb3-contrib TQC as the learner runs it, next to a minimal
-raw-torch TQC step of the same networks, on each device asked for (``cpu``, and ``cuda`` where torch sees a GPU).
+raw-torch TQC step of the same networks, on each device asked for (``cpu``, and ``cuda`` where torch sees a GPU);
+beside them the learner's SAC (``--algo sac``) and a raw-torch SAC step with an ensemble of LayerNorm critics,
+batched (:mod:`khgrl.benchmarks.ensemble_step`), for each ``--ensembles`` size: what an RLPD-style learner costs.
 
 Both sides do the same work per gradient step: a minibatch of ``batch_size`` sampled from a filled replay buffer,
 the truncated quantile critics' loss (2 critics x 25 quantiles, the top 2 per net dropped), the actor's loss, the
@@ -155,6 +157,54 @@ def _raw_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, 
     return steps
 
 
+def _sb3_sac(obs_dim: int, act_dim: int, device: str, size: int, seed: int):
+    """The learner's ``--algo sac`` (SB3's SAC, 2 critics) on a filled buffer, as :func:`_sb3_learner`."""
+    from types import SimpleNamespace
+
+    from khgrl.common.config.settings import TQCSettings
+    from khgrl.learner.trainer import build_algorithm
+    from stable_baselines3.common.logger import configure
+
+    task = SimpleNamespace(out_dim=act_dim, obs_low=[-10.0] * obs_dim, obs_high=[10.0] * obs_dim)
+    model = build_algorithm(TQCSettings(device=device, learning_starts=0), seed, task, "sac").model
+    model.set_logger(configure(None, []))
+    rng = np.random.default_rng(seed)
+    for i in range(size):
+        model.replay_buffer.add(rng.normal(size=(1, obs_dim)), rng.normal(size=(1, obs_dim)),
+                                rng.uniform(-1, 1, (1, act_dim)), rng.normal(size=1), np.array([float(i % 100 == 99)]),
+                                [{}], intervened=False, clipped=False, actor=0, step=i)
+    return lambda n: model.train(gradient_steps=n, batch_size=model.batch_size)
+
+
+def _raw_ensemble(obs_dim: int, act_dim: int, device: str, size: int, seed: int, members: int, batch: int = 256):
+    """:class:`~khgrl.benchmarks.ensemble_step.RawEnsembleSAC` with ``members`` LayerNorm critics."""
+    import torch
+    from khgrl.benchmarks.ensemble_step import RawEnsembleSAC
+
+    torch.manual_seed(seed)
+    raw = RawEnsembleSAC(obs_dim, act_dim, members=members, device=device)
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    data = [torch.randn(size, obs_dim), torch.rand(size, act_dim) * 2 - 1, torch.randn(size),
+            torch.randn(size, obs_dim), (torch.arange(size) % 100 == 99).float()]
+
+    def steps(n: int) -> None:
+        for _ in range(n):
+            idx = torch.randint(0, size, (batch,), generator=g)
+            raw.step(*(x[idx].to(device, non_blocking=True) for x in data))
+    return steps
+
+
+def _sides(obs_dim: int, act_dim: int, device: str, seed: int, ensembles: tuple[int, ...]) -> dict:
+    """The learners timed against each other: the learner's TQC and SAC, raw-torch TQC, and raw-torch SAC with
+    each ensemble size."""
+    sides = {"sb3_tqc": _sb3_learner(obs_dim, act_dim, device, 20_000, seed),
+             "raw_torch": _raw_learner(obs_dim, act_dim, device, 20_000, seed),
+             "sb3_sac": _sb3_sac(obs_dim, act_dim, device, 20_000, seed)}
+    for e in ensembles:
+        sides[f"raw_sac_ln_e{e}"] = _raw_ensemble(obs_dim, act_dim, device, 20_000, seed, e)
+    return sides
+
+
 def _timed(fn, seconds: float, chunk: int, device: str) -> tuple[int, float]:
     import torch
 
@@ -169,7 +219,7 @@ def _timed(fn, seconds: float, chunk: int, device: str) -> tuple[int, float]:
 
 def run_learner_benchmark(devices: tuple[str, ...] = ("cpu",), seconds: float = 20.0, rounds: int = 3,
                           obs_dim: int = 32, act_dim: int = 3, threads: int = 1, seed: int = 0,
-                          out: str | None = None) -> dict:
+                          ensembles: tuple[int, ...] = (1, 10), out: str | None = None) -> dict:
     """Gradient steps per second of the learner's TQC and of :class:`RawTQC`, per device; prints a table.
 
     :param devices: torch devices to measure ('cuda' is skipped with a note where torch sees no GPU)
@@ -179,6 +229,7 @@ def run_learner_benchmark(devices: tuple[str, ...] = ("cpu",), seconds: float = 
     :param act_dim: action size (default 3)
     :param threads: torch threads (the learner's default: 1)
     :param seed: seed
+    :param ensembles: critic ensemble sizes of the raw-torch SAC step (issue 23: 10 critics vs 1)
     :param out: also write the results as JSON here
     """
     import torch
@@ -191,8 +242,7 @@ def run_learner_benchmark(devices: tuple[str, ...] = ("cpu",), seconds: float = 
         if device == "cuda" and not torch.cuda.is_available():
             print("cuda: torch sees no GPU here; skipped")
             continue
-        sides = {"sb3_tqc": _sb3_learner(obs_dim, act_dim, device, 20_000, seed),
-                 "raw_torch": _raw_learner(obs_dim, act_dim, device, 20_000, seed)}
+        sides = _sides(obs_dim, act_dim, device, seed, ensembles)
         for fn in sides.values():
             fn(8)  # warm-up (allocations, cuda kernels)
         counts = {k: [0, 0.0] for k in sides}
@@ -205,7 +255,12 @@ def run_learner_benchmark(devices: tuple[str, ...] = ("cpu",), seconds: float = 
         results["devices"][device] = {**{f"{k}_steps_per_s": round(v, 1) for k, v in rate.items()},
                                       "sb3_over_raw": round(rate["sb3_tqc"] / rate["raw_torch"], 3)}
         print(f"{device}: learner TQC {rate['sb3_tqc']:.1f} gradient steps/s, raw torch {rate['raw_torch']:.1f} "
-              f"steps/s: ratio {rate['sb3_tqc'] / rate['raw_torch']:.2f}")
+              f"steps/s: ratio {rate['sb3_tqc'] / rate['raw_torch']:.2f}; learner SAC {rate['sb3_sac']:.1f} steps/s")
+        for e in ensembles:
+            r = rate[f"raw_sac_ln_e{e}"]
+            print(f"{device}: raw SAC, {e} LayerNorm critics (batched): {r:.1f} steps/s"
+                  + (f" = {rate[f'raw_sac_ln_e{ensembles[0]}'] / r:.2f}x the time of {ensembles[0]}"
+                     if e != ensembles[0] else ""))
     if "cpu" in results["devices"] and "cuda" in results["devices"]:
         c, g = results["devices"]["cpu"], results["devices"]["cuda"]
         print(f"cuda / cpu (learner TQC): {g['sb3_tqc_steps_per_s'] / c['sb3_tqc_steps_per_s']:.2f}x")
