@@ -14,7 +14,30 @@ import copy
 
 import numpy as np
 
-__all__ = ["EnsembleCritic", "RawEnsembleSAC"]
+__all__ = ["EnsembleCritic", "RawEnsembleSAC", "mlp", "squashed_sample"]
+
+
+def mlp(sizes: list[int]):
+    """A ReLU MLP with ``sizes`` (input, hidden..., output) as a ``torch.nn.Sequential``."""
+    import torch.nn as nn
+
+    layers: list = []
+    for a, b in zip(sizes[:-2], sizes[1:-1]):
+        layers += [nn.Linear(a, b), nn.ReLU()]
+    return nn.Sequential(*layers, nn.Linear(sizes[-2], sizes[-1]))
+
+
+def squashed_sample(actor, obs):
+    """SAC's squashed-Gaussian action and its log-probability from an actor that outputs (mean, log std)."""
+    import torch
+
+    mu, log_std = actor(obs).chunk(2, dim=-1)
+    log_std = log_std.clamp(-20, 2)
+    std = log_std.exp()
+    u = mu + std * torch.randn_like(mu)
+    a = torch.tanh(u)
+    logp = (-0.5 * ((u - mu) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
+    return a, logp - torch.log(1 - a.pow(2) + 1e-6).sum(-1)
 
 
 class EnsembleCritic:
@@ -79,11 +102,7 @@ class RawEnsembleSAC:
 
         self.torch, self.gamma, self.tau = torch, gamma, tau
         self.subset = min(subset, members)
-        sizes = [obs_dim, *hidden]
-        layers: list = []
-        for a, b in zip(sizes[:-1], sizes[1:]):
-            layers += [torch.nn.Linear(a, b), torch.nn.ReLU()]
-        self.actor = torch.nn.Sequential(*layers, torch.nn.Linear(sizes[-1], 2 * act_dim)).to(device)
+        self.actor = mlp([obs_dim, *hidden, 2 * act_dim]).to(device)
         self.critic = EnsembleCritic(obs_dim + act_dim, hidden, members, device)
         self.target = copy.copy(self.critic)
         for name in ("weights", "biases", "scales", "shifts"):
@@ -94,21 +113,12 @@ class RawEnsembleSAC:
         self.opt_critic = torch.optim.Adam(self.critic.parameters(), lr=lr)
         self.opt_alpha = torch.optim.Adam([self.log_alpha], lr=lr)
 
-    def _act(self, obs):
-        mu, log_std = self.actor(obs).chunk(2, dim=-1)
-        log_std = log_std.clamp(-20, 2)
-        std = log_std.exp()
-        u = mu + std * self.torch.randn_like(mu)
-        a = self.torch.tanh(u)
-        logp = (-0.5 * ((u - mu) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
-        return a, logp - self.torch.log(1 - a.pow(2) + 1e-6).sum(-1)
-
     def step(self, obs, act, rew, next_obs, done) -> None:
         """One gradient step on a minibatch (tensors on the device)."""
         torch = self.torch
         alpha = self.log_alpha.detach().exp()
         with torch.no_grad():
-            next_a, next_logp = self._act(next_obs)
+            next_a, next_logp = squashed_sample(self.actor, next_obs)
             q_next = self.target(torch.cat([next_obs, next_a], dim=-1))  # (E, B)
             pick = torch.randperm(self.critic.members)[:self.subset]
             q_next = q_next[pick].min(dim=0).values - alpha * next_logp
@@ -118,7 +128,7 @@ class RawEnsembleSAC:
         self.opt_critic.zero_grad()
         critic_loss.backward()
         self.opt_critic.step()
-        a, logp = self._act(obs)
+        a, logp = squashed_sample(self.actor, obs)
         alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
         self.opt_alpha.zero_grad()
         alpha_loss.backward()

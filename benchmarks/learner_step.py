@@ -23,19 +23,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from khgrl.benchmarks.ensemble_step import mlp as _mlp
+from khgrl.benchmarks.ensemble_step import squashed_sample
 
 __all__ = ["run_learner_benchmark", "RawTQC"]
 
 N_QUANTILES, N_CRITICS, DROP_PER_NET = 25, 2, 2  # sb3-contrib TQC's defaults
-
-
-def _mlp(sizes: list[int]):
-    import torch.nn as nn
-
-    layers: list = []
-    for a, b in zip(sizes[:-2], sizes[1:-1]):
-        layers += [nn.Linear(a, b), nn.ReLU()]
-    return nn.Sequential(*layers, nn.Linear(sizes[-2], sizes[-1]))
 
 
 class RawTQC:
@@ -72,14 +65,7 @@ class RawTQC:
         self.keep = N_QUANTILES * N_CRITICS - DROP_PER_NET * N_CRITICS
 
     def _act(self, obs):
-        mu, log_std = self.actor(obs).chunk(2, dim=-1)
-        log_std = log_std.clamp(-20, 2)
-        std = log_std.exp()
-        u = mu + std * self.torch.randn_like(mu)
-        a = self.torch.tanh(u)
-        logp = (-0.5 * ((u - mu) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
-        logp = logp - self.torch.log(1 - a.pow(2) + 1e-6).sum(-1)
-        return a, logp
+        return squashed_sample(self.actor, obs)
 
     def _quantiles(self, nets, obs, act):
         x = self.torch.cat([obs, act], dim=-1)
@@ -115,18 +101,18 @@ class RawTQC:
                 tp.mul_(1 - self.tau).add_(p, alpha=self.tau)
 
 
-def _sb3_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int):
-    """The learner's own model (``build_model``) on a task of these sizes, its buffer filled with ``size`` random
-    transitions; returns a callable doing ``n`` gradient steps as the learner's training iteration does."""
+def _sb3_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, algo: str = "tqc"):
+    """The learner's own model (``--algo``: ``tqc``, ``sac``) on a task of these sizes, its buffer filled with
+    ``size`` random transitions; returns a callable doing ``n`` gradient steps as the learner's training iteration
+    does."""
     from types import SimpleNamespace
 
     from khgrl.common.config.settings import TQCSettings
-    from khgrl.learner.trainer import build_model
-
-    task = SimpleNamespace(out_dim=act_dim, obs_low=[-10.0] * obs_dim, obs_high=[10.0] * obs_dim)  # spaces only
-    model = build_model(TQCSettings(device=device, learning_starts=0), seed, task)
+    from khgrl.learner.trainer import build_algorithm
     from stable_baselines3.common.logger import configure
 
+    task = SimpleNamespace(out_dim=act_dim, obs_low=[-10.0] * obs_dim, obs_high=[10.0] * obs_dim)  # spaces only
+    model = build_algorithm(TQCSettings(device=device, learning_starts=0), seed, task, algo).model
     model.set_logger(configure(None, []))
     rng = np.random.default_rng(seed)
     rb = model.replay_buffer
@@ -140,49 +126,16 @@ def _sb3_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int):
     return steps
 
 
-def _raw_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, batch: int = 256):
-    import torch
-
-    torch.manual_seed(seed)
-    raw = RawTQC(obs_dim, act_dim, device=device)
-    g = torch.Generator(device="cpu").manual_seed(seed)
-    data = [torch.randn(size, obs_dim), torch.rand(size, act_dim) * 2 - 1, torch.randn(size),
-            torch.randn(size, obs_dim), (torch.arange(size) % 100 == 99).float()]
-
-    def steps(n: int) -> None:
-        for _ in range(n):
-            idx = torch.randint(0, size, (batch,), generator=g)
-            obs, act, rew, nxt, done = (x[idx].to(device, non_blocking=True) for x in data)
-            raw.step(obs, act, rew, nxt, done)
-    return steps
-
-
-def _sb3_sac(obs_dim: int, act_dim: int, device: str, size: int, seed: int):
-    """The learner's ``--algo sac`` (SB3's SAC, 2 critics) on a filled buffer, as :func:`_sb3_learner`."""
-    from types import SimpleNamespace
-
-    from khgrl.common.config.settings import TQCSettings
-    from khgrl.learner.trainer import build_algorithm
-    from stable_baselines3.common.logger import configure
-
-    task = SimpleNamespace(out_dim=act_dim, obs_low=[-10.0] * obs_dim, obs_high=[10.0] * obs_dim)
-    model = build_algorithm(TQCSettings(device=device, learning_starts=0), seed, task, "sac").model
-    model.set_logger(configure(None, []))
-    rng = np.random.default_rng(seed)
-    for i in range(size):
-        model.replay_buffer.add(rng.normal(size=(1, obs_dim)), rng.normal(size=(1, obs_dim)),
-                                rng.uniform(-1, 1, (1, act_dim)), rng.normal(size=1), np.array([float(i % 100 == 99)]),
-                                [{}], intervened=False, clipped=False, actor=0, step=i)
-    return lambda n: model.train(gradient_steps=n, batch_size=model.batch_size)
-
-
-def _raw_ensemble(obs_dim: int, act_dim: int, device: str, size: int, seed: int, members: int, batch: int = 256):
-    """:class:`~khgrl.benchmarks.ensemble_step.RawEnsembleSAC` with ``members`` LayerNorm critics."""
+def _raw_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, members: int | None = None,
+                 batch: int = 256):
+    """A raw-torch learner (:class:`RawTQC`, or with ``members`` :class:`~khgrl.benchmarks.ensemble_step.RawEnsembleSAC`
+    with that many LayerNorm critics) on ``size`` random transitions; returns a callable doing ``n`` gradient steps."""
     import torch
     from khgrl.benchmarks.ensemble_step import RawEnsembleSAC
 
     torch.manual_seed(seed)
-    raw = RawEnsembleSAC(obs_dim, act_dim, members=members, device=device)
+    raw = RawTQC(obs_dim, act_dim, device=device) if members is None else RawEnsembleSAC(
+        obs_dim, act_dim, members=members, device=device)
     g = torch.Generator(device="cpu").manual_seed(seed)
     data = [torch.randn(size, obs_dim), torch.rand(size, act_dim) * 2 - 1, torch.randn(size),
             torch.randn(size, obs_dim), (torch.arange(size) % 100 == 99).float()]
@@ -199,9 +152,9 @@ def _sides(obs_dim: int, act_dim: int, device: str, seed: int, ensembles: tuple[
     each ensemble size."""
     sides = {"sb3_tqc": _sb3_learner(obs_dim, act_dim, device, 20_000, seed),
              "raw_torch": _raw_learner(obs_dim, act_dim, device, 20_000, seed),
-             "sb3_sac": _sb3_sac(obs_dim, act_dim, device, 20_000, seed)}
+             "sb3_sac": _sb3_learner(obs_dim, act_dim, device, 20_000, seed, "sac")}
     for e in ensembles:
-        sides[f"raw_sac_ln_e{e}"] = _raw_ensemble(obs_dim, act_dim, device, 20_000, seed, e)
+        sides[f"raw_sac_ln_e{e}"] = _raw_learner(obs_dim, act_dim, device, 20_000, seed, e)
     return sides
 
 
