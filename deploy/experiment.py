@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from khgrl.common.config.settings import METHODS, PAPER_EPISODES, TQCSettings, read_table
+from khgrl.common.config.settings import REFERENCE_METHODS, PAPER_EPISODES, TQCSettings, read_table
 from khgrl.common.tasks.passage.scenarios import SCENARIOS
 from khgrl.deploy.run_results import METHOD_LABEL
 
@@ -53,7 +53,7 @@ class ExperimentConfig:
     out: str = "runs/experiment"
     scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
     tasks: list[str] = field(default_factory=list)  # task specs (khgrl up --task); if given, instead of scenarios
-    methods: list[str] = field(default_factory=lambda: list(METHODS))
+    methods: list[str] = field(default_factory=lambda: list(REFERENCE_METHODS))
     seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3, 4])
     episodes: int = 60
     human_episodes: list[int] = field(default_factory=lambda: list(PAPER_EPISODES))
@@ -67,8 +67,8 @@ class ExperimentConfig:
         if bad:
             raise ValueError(f"unknown scenario/method {bad}; choose from {tuple(SCENARIOS)} and "
                              f"{tuple(METHOD_LABEL)}")
-        if self.system == "reference" and any(m not in METHODS for m in self.methods):
-            raise ValueError(f"the single-process reference runs the methods {METHODS} only")
+        if self.system == "reference" and any(m not in REFERENCE_METHODS for m in self.methods):
+            raise ValueError(f"the single-process reference runs the methods {REFERENCE_METHODS} only")
         bad_tasks = [t for t in self.tasks if not isinstance(t, str) or ":" not in t]
         if bad_tasks:
             raise ValueError(f"tasks {bad_tasks}: expected 'passage:SCENARIO', 'fetch:SCENARIO' or "
@@ -351,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="tasks (khgrl up --task), instead of the passage world's scenarios, e.g. fetch:control "
                         "fetch:moved (default: none)")
     p.add_argument("--methods", nargs="+", default=None, choices=tuple(METHOD_LABEL),
-                   help=f"methods (default: {' '.join(METHODS)}; a _noadapt method runs with --no-adapt: the "
+                   help=f"methods (default: {' '.join(REFERENCE_METHODS)}; a _noadapt method runs with --no-adapt: the "
                         "demonstrations' KMP in every scene)")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="seeds (default 0 1 2 3 4)")
     p.add_argument("--episodes", type=int, default=None, help="episodes per run (default 60)")

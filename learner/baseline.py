@@ -23,7 +23,7 @@ from typing import Any, Callable
 import gymnasium as gym
 import numpy as np
 import torch
-from khgrl.common.config.settings import METHODS, RunConfig, TQCSettings
+from khgrl.common.config.settings import REFERENCE_METHODS, RunConfig, TQCSettings
 from khgrl.common.kmp.scale import ScaleModel
 from khgrl.common.metrics import EpisodeAccumulator, EpisodeStats, write_episodes
 from khgrl.common.tasks.passage.env import PassageEnv
@@ -83,8 +83,8 @@ class ReferenceConfig:
                                                       "human_noise", "tqc")})
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.method not in REFERENCE_METHODS:
+            raise ValueError(f"method must be one of {', '.join(REFERENCE_METHODS)}, got {self.method!r}")
         if self.episodes < 1:
             raise ValueError("episodes must be >= 1")
         self.tqc.validate()

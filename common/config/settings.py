@@ -31,11 +31,16 @@ from typing import Any, get_type_hints
 from khgrl.common.config.assignments import parse_assignments
 from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
 
-__all__ = ["METHODS", "HUMANS", "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "RunConfig",
+__all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSERL_DEFAULTS", "HUMANS", "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "RunConfig",
            "add_config_flags", "role_fields", "parse_assignments", "resolve", "read_table", "load_file",
            "write_run_config", "read_run_file", "to_toml"]
 
-METHODS = ("khgrl", "kgrl")
+METHODS = ("khgrl", "kgrl", "hil-serl")
+HUMAN_METHODS = ("khgrl", "hil-serl")  # the methods a human-input client serves (corrections; takeover)
+REFERENCE_METHODS = ("khgrl", "kgrl")  # what the single-process reference (khgrl reference) runs
+SAMPLINGS = ("uniform", "rlpd")
+# --method hil-serl means the HIL-SERL recipe unless a flag or file says otherwise (README, "HIL-SERL baseline")
+HILSERL_DEFAULTS = {"algo": "sac_ln", "tqc": {"sampling": "rlpd"}}
 DEVICES = ("auto", "cpu", "cuda")
 MODES = ("simulation", "robot")
 HUMANS = ("scripted", "gui", "keyboard", "gamepad", "replay", "none")  # khgrl human's clients (test_config checks)
@@ -78,6 +83,10 @@ class TQCSettings:
                                 roles=_LAR)
     batch_size: int = _opt(256, "minibatch size of a gradient step", roles=_LR)
     buffer_size: int = _opt(200_000, "replay buffer capacity (transitions)", roles=_LR)
+    sampling: str = _opt("uniform", "how a minibatch is drawn: uniform (SB3's, the paper's) or rlpd (RLPD's symmetric "
+                                    "sampling: half of each batch from the prior data -- demonstrations replayed as "
+                                    "transitions and the human's interventions -- half from all data)", SAMPLINGS,
+                         roles=(LEARNER,))
     device: str = _opt("auto", "where the learner trains: auto (cuda if torch sees a GPU, else cpu), cpu or cuda; "
                                "weights always go to actors as CPU float32 arrays", DEVICES, roles=_LR)
 
@@ -164,7 +173,9 @@ class RunConfig:
                          roles=(ACTOR, HUMAN, REFERENCE))
     demos: str = _opt("", "demonstration file (.npz/.csv, M x N x O) replacing the task's demonstrations",
                       roles=(ACTOR, HUMAN))
-    method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither", METHODS,
+    method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither; hil-serl: "
+                                "the HIL-SERL baseline (delta actions in the task's own space, no KMP band; the "
+                                "human takes over; implies --algo sac_ln --sampling rlpd unless given)", METHODS,
                        roles=(ACTOR, REFERENCE))
     adapt: bool = _opt(True, "refit the KMP through the via-points of a task whose scene changes every episode, at "
                              "every reset (a task with a Scene; --no-adapt: the demonstrations' KMP in every scene)",
@@ -375,6 +386,8 @@ def resolve(config_file: str | Path | None = None, args: argparse.Namespace | No
         data = _merge(data, _overrides(args))
     if overrides:
         data = _merge(data, overrides)
+    if data.get("method") == "hil-serl":  # the recipe's algorithm and sampling, unless set
+        data = _merge(HILSERL_DEFAULTS, data)
     return _build(RunConfig, data, "config").validate()
 
 
