@@ -12,8 +12,8 @@ Per control step:
 3. record the transition (the stored action is ``info["action"]``: the human's a_h when intervened), publish a
    frame (``last`` on the episode's final one), and every ``batch`` transitions of the actor's running index
    (and at episode end) cut a batch (:class:`~khgrl.common.delivery.stream.TransitionStream`).
-
-At the end the actor waits until the learner holds every batch in a checkpoint (``flush_timeout``).
+Before the first episode of a run with ``--sampling rlpd`` the demonstrations go out as prior transitions
+(:mod:`khgrl.actor.demos`). At the end the actor waits until the learner holds every batch in a checkpoint.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
+from khgrl.actor.demos import replay_demos
 from khgrl.actor.inbound import Inbound
 from khgrl.actor.pacing import Pacer
 from khgrl.actor.parts import ActorParts
@@ -35,7 +36,6 @@ from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import Dims, EpisodeReport, Status
 
 __all__ = ["ActorParts", "ActorLoop"]  # (ActorParts: khgrl.actor.parts)
-
 log = logging.getLogger("khgrl.actor")
 
 
@@ -62,7 +62,7 @@ class ActorLoop:
         self.id = actor
         self.p = parts
         self.flag = flag
-        self.realtime = False
+        self.realtime, self.demo_transitions = False, 0
         self.episode = parts.episodes.last_episode
         self.first_episode = self.episode + 1
         self.earlier_transitions = parts.episodes.earlier_transitions
@@ -80,9 +80,8 @@ class ActorLoop:
     def join(self) -> None:
         """Before the first step: who is alive (waiting ``learner_wait`` s for one starting up), the current weights."""
         self.delivery.join()
-        w = self.p.weights
         log.info("actor %s: learner %s, initial weights version %s", self.id,
-                 "alive" if self.delivery.learner_alive else "not seen", w.initial_version)
+                 "alive" if self.delivery.learner_alive else "not seen", self.p.weights.initial_version)
 
     # ------------------------------------------------------------------ episodes
     def run(self) -> int:
@@ -92,6 +91,7 @@ class ActorLoop:
         todo = self.cfg.episodes - self.episode
         self.pacer = Pacer(self.cfg.rate)
         self.p.scale.publish()
+        self.demo_transitions = replay_demos(self)  # (--sampling rlpd: the demonstrations as prior data first)
         if todo <= 0:
             log.info("all %d episodes of the run are done already: nothing to run", self.cfg.episodes)
         while len(self.p.episodes.new) < todo and not self.flag:

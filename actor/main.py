@@ -44,6 +44,7 @@ from khgrl.actor.results import EpisodeLog
 from khgrl.actor.telemetry import TensorBoard
 from khgrl.actor.weights import PolicyWeights, WeightsReceiver
 from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
+from khgrl.common.config.settings import HUMAN_METHODS
 from khgrl.common.delivery import run_key
 from khgrl.common.delivery.actor_link import ActorLink, actor_alive
 from khgrl.common.delivery.restart import AlreadyRunning, StreamRecord, StreamStart, lock_actor_dir, open_stream
@@ -94,13 +95,14 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                               journal=lambda pos: StreamRecord(stream=rec.stream, **pos).save(out_dir),
                               window=cfg.stream.window, key=key)
     stream.bounds = task  # a transition outside the task's value bounds is not sent (the learner would refuse it)
-    khgrl = cfg.method == "khgrl"
+    khgrl = cfg.method == "khgrl"  # (learns L; hil-serl's human takes over instead, KGRL's has no say)
     scale = ExplorationScale(env, actor, khgrl, link.publish)
     episodes = EpisodeLog(out_dir, resume)
     if resume:
         scale.restore(out_dir)
     return ActorParts(env=env, policy=policy, link=link, inbox=inbox, stream=stream,
-                      arbiter=CorrectionArbiter(actor, cfg.stream.correction_timeout, enabled=khgrl,
+                      arbiter=CorrectionArbiter(actor, cfg.stream.correction_timeout,
+                                                enabled=cfg.method in HUMAN_METHODS,
                                                 workspace=(env.world.low, env.world.high),
                                                 allowance=HoldAllowance(cfg.stream.human_hold_s,
                                                                         cfg.stream.human_hold_refill),
@@ -159,7 +161,8 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
 
     t0 = time.perf_counter()
     try:
-        env = KGRLEnv(load_task(cfg.task_spec, cfg.demos or None), seed=seed, adapt=cfg.adapt)
+        env = KGRLEnv(load_task(cfg.task_spec, cfg.demos or None), seed=seed, adapt=cfg.adapt,
+                      control="delta" if cfg.method == "hil-serl" else "kmp")
         task = env.descriptor(cfg.task_spec)
     except TaskError as exc:
         return _error(actor, exc)
@@ -196,7 +199,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         try:
             rc = loop.run()
         finally:
-            summary = loop.summary(rc, time.perf_counter() - t_run)
+            summary = {**loop.summary(rc, time.perf_counter() - t_run), "demo_transitions": loop.demo_transitions}
             _close(parts)
             StreamRecord(stream=parts.stream.stream, **parts.stream.position(), running=False).save(out_dir)
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -30,6 +31,9 @@ class EpisodeStats:
     mean_abs_xi_h: float = 0.0
     scale_max: list = field(default_factory=list)  # max over the episode of L per dimension
     wall_time: float = 0.0
+    violation_steps: int = 0  # steps whose commanded P_t violated a hard constraint G P >= c
+    workspace_exits: int = 0  # steps whose policy asked for a position outside the workspace box
+    human_seconds: float = 0.0  # wall seconds of the intervened steps (from the previous step's end)
 
     def to_row(self) -> dict:
         row = asdict(self)
@@ -45,12 +49,14 @@ class EpisodeAccumulator:
         self._open: EpisodeStats | None = None
         self._in_iv = False
         self._xi_sum = 0.0
+        self._last = time.perf_counter()
 
     def start(self) -> None:
         self.episode += 1
         self._open = EpisodeStats(episode=self.episode)
         self._in_iv = False
         self._xi_sum = 0.0
+        self._last = time.perf_counter()
 
     def add(self, reward: float, info: dict) -> None:
         if self._open is None:
@@ -62,8 +68,12 @@ class EpisodeAccumulator:
         st.obstacle_cost += float(info.get("r_o", 0.0))
         st.passage_cost += float(info.get("r_p", 0.0))
         st.obstacle_steps += int(bool(info.get("in_obstacle", False)))
+        st.violation_steps += int(bool(info.get("violation", False)))
+        st.workspace_exits += int(bool(info.get("workspace_exit", False)))
+        now = time.perf_counter()
         iv = bool(info.get("intervened", False))
         if iv:
+            st.human_seconds += now - self._last
             st.intervention_steps += 1
             st.clipped_steps += int(bool(info.get("clipped", False)))
             st.projected_steps += int(bool(info.get("projected", False)))
@@ -71,6 +81,7 @@ class EpisodeAccumulator:
             if not self._in_iv:
                 st.interventions += 1
         self._in_iv = iv
+        self._last = now
         if "scale" in info:
             sc = np.asarray(info["scale"], dtype=np.float64)
             st.scale_max = sc.tolist() if not st.scale_max else np.maximum(st.scale_max, sc).tolist()

@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from khgrl.common.config.settings import REFERENCE_METHODS, PAPER_EPISODES, TQCSettings, read_table
+from khgrl.common.config.settings import HUMAN_METHODS, PAPER_EPISODES, REFERENCE_METHODS, TQCSettings, read_table
 from khgrl.common.tasks.passage.scenarios import SCENARIOS
 from khgrl.deploy.run_results import METHOD_LABEL
 
@@ -150,11 +150,12 @@ def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
         return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
                 "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]
     world = ["--task", spec.task] if spec.task else ["--scenario", spec.scenario]
-    method, _, variant = spec.method.partition("_")  # kgrl_noadapt: khgrl up --method kgrl --no-adapt
+    method, _, variant = spec.method.partition("_")  # kgrl_noadapt: --method kgrl --no-adapt; _rlpd: --sampling rlpd
     argv = [*khgrl, "up", *world, "--method", method, "--seed", str(spec.seed),
             "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead),
-            "--no-progress", *(["--no-adapt"] if variant == "noadapt" else [])]
-    if method == "khgrl":
+            "--no-progress", *(["--no-adapt"] if variant == "noadapt" else []),
+            *(["--sampling", "rlpd"] if variant == "rlpd" else [])]
+    if method in HUMAN_METHODS:
         argv += ["--human", "scripted", "--human-episodes", *map(str, cfg.human_episodes)]
     else:
         argv += ["--human", "none"]

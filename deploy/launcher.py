@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from khgrl.common.config.settings import RunConfig, add_config_flags, resolve, write_run_config
+from khgrl.common.config.settings import HUMAN_METHODS, RunConfig, add_config_flags, resolve, write_run_config
 from khgrl.common.delivery import run_key
 from khgrl.common.delivery.declare import put, subscribe
 from khgrl.common.delivery.task_link import TASK_FILE, save_task
@@ -180,7 +180,7 @@ def check_task(cfg: RunConfig):
     task = load_task(cfg.task_spec, cfg.demos or None)
     env = KGRLEnv(task, seed=cfg.seed)
     env.close()
-    if cfg.method == "khgrl" and cfg.human == "scripted" and task.scripted_human is None:
+    if cfg.method in HUMAN_METHODS and cfg.human == "scripted" and task.scripted_human is None:
         raise TaskError(f"task {task.name!r} has no scripted_human: choose --human gui or --human none")
     return env.descriptor(cfg.task_spec)
 
@@ -280,7 +280,7 @@ class Run:
         for aid in self.cfg.actor_ids():
             self.actors.append(self.group.start(aid, khgrl_argv("actor", "--config", config, "--id", aid, *resume,
                                                                 *zargs("actor", aid))))
-        if self.cfg.method == "khgrl" and self.cfg.human != "none":
+        if self.cfg.method in HUMAN_METHODS and self.cfg.human != "none":
             h = self.cfg.human
             self.group.start(f"human-{h}", khgrl_argv("human", h, "--config", config, "--id", h, *zargs("human", h)))
         rundir.write_pids(self.plan.run_dir, os.getpid(), {p.name: p.pid for p in self.group.procs})

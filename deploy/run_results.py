@@ -20,6 +20,7 @@ each run's learning criteria (all in episodes, counted from 1; ``None`` = never 
 from __future__ import annotations
 
 import csv
+import json
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,10 +48,12 @@ __all__ = [
 
 # <scenario>: a passage-world scenario (high_cov, low_cov) or a task's label (fetch_moved: ``khgrl experiment --tasks``)
 # <method>: khgrl, kgrl, or either with "_noadapt" (khgrl up --no-adapt: the demonstrations' KMP in every scene)
-RUN_NAME = re.compile(r"^(?P<scenario>[A-Za-z0-9_]+)-(?P<method>(?:khgrl|kgrl)(?:_noadapt)?)-seed(?P<seed>\d+)$")
+RUN_NAME = re.compile(r"^(?P<scenario>[A-Za-z0-9_]+)-(?P<method>(?:khgrl|kgrl)(?:_noadapt|_rlpd)?|hil-serl)"
+                      r"-seed(?P<seed>\d+)$")
 STABLE_WINDOW = 5  # consecutive autonomous successes that count as "stable success"
 METHOD_LABEL = {"khgrl": "KhGRL", "kgrl": "KGRL", "khgrl_noadapt": "KhGRL, no adaptation",
-                "kgrl_noadapt": "KGRL, no adaptation"}
+                "kgrl_noadapt": "KGRL, no adaptation", "khgrl_rlpd": "KhGRL + RLPD replay",
+                "kgrl_rlpd": "KGRL + RLPD replay", "hil-serl": "HIL-SERL"}
 
 
 @dataclass
@@ -76,6 +79,11 @@ class RunResult:
     eval_episodes: int = 0  # episodes or scenes evaluated
     eval_successes: int = 0
     eval_kind: str = ""  # one of EVAL_KINDS
+    violation_steps: int = 0  # commanded positions that violated a hard constraint, whole run
+    workspace_exits: int = 0  # policy commands outside the workspace box, whole run
+    human_steps_to_first_autonomous: int | None = None  # human steps in the episodes up to it (None: never)
+    gradient_steps: int | None = None  # the learner's, at its last checkpoint (None: not recorded)
+    wall_s: float | None = None  # the run's wall time (khgrl up's summary.json)
 
 
 def stable_success(success: list[bool], human: list[bool], window: int = STABLE_WINDOW) -> int | None:
@@ -127,7 +135,22 @@ def load_run(run_dir: Path) -> list[dict]:
     return [{"episode": int(r["episode"]), "ret": float(r["ret"]), "success": r["success"] == "True",
              "obstacle_cost": float(r["obstacle_cost"]), "passage_cost": float(r["passage_cost"]),
              "obstacle_steps": int(r["obstacle_steps"]), "intervention_steps": int(r["intervention_steps"]),
-             "clipped_steps": int(r["clipped_steps"])} for r in rows]
+             "clipped_steps": int(r["clipped_steps"]), "violation_steps": int(r.get("violation_steps") or 0),
+             "workspace_exits": int(r.get("workspace_exits") or 0)} for r in rows]
+
+
+def run_compute(run_dir: Path) -> tuple[int | None, float | None]:
+    """(the learner's gradient steps at its last checkpoint, the run's wall seconds); None where not recorded."""
+    def read(path: Path) -> dict:
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return {}
+        return data if isinstance(data, dict) else {}
+
+    steps = read(Path(run_dir) / "learner" / "checkpoint" / "state.json").get("gradient_steps")
+    wall = read(Path(run_dir) / "summary.json").get("wall_time_s")
+    return (int(steps) if isinstance(steps, int) else None), (float(wall) if isinstance(wall, (int, float)) else None)
 
 
 def load_eval(run_dir: Path) -> list[bool]:
@@ -189,11 +212,13 @@ def summarize_run(scenario: str, method: str, seed: int, run_dir: Path, rows: li
     kind, eval_ok, eval_n = load_evaluation(run_dir)
     human = [r["intervention_steps"] > 0 for r in rows]
     last = rows[-10:]
+    first_auto = next((r["episode"] for r, h in zip(rows, human) if r["success"] and not h), None)
+    steps, wall = run_compute(run_dir)
     return RunResult(
         scenario=scenario, method=method, seed=seed, path=str(run_dir), episodes=len(rows), successes=sum(succ),
         success_last_10=sum(r["success"] for r in last) / max(1, len(last)),
         first_success=next((r["episode"] for r in rows if r["success"]), None),
-        first_success_without_human=next((r["episode"] for r, h in zip(rows, human) if r["success"] and not h), None),
+        first_success_without_human=first_auto,
         stable_success=stable_success(succ, human),
         zero_obstacle_cost_from=zero_cost_from([r["obstacle_cost"] for r in rows]),
         collision_episodes=sum(r["obstacle_cost"] < 0 for r in rows),
@@ -202,7 +227,11 @@ def summarize_run(scenario: str, method: str, seed: int, run_dir: Path, rows: li
         clipped_human_steps=sum(r["clipped_steps"] for r in rows),
         mean_return_last_10=float(np.mean([r["ret"] for r in last])) if last else float("nan"),
         eval_success=eval_ok / eval_n if eval_n else None, eval_episodes=eval_n, eval_successes=eval_ok,
-        eval_kind=kind,
+        eval_kind=kind, violation_steps=sum(r["violation_steps"] for r in rows),
+        workspace_exits=sum(r["workspace_exits"] for r in rows),
+        human_steps_to_first_autonomous=None if first_auto is None else sum(
+            r["intervention_steps"] for r in rows if r["episode"] < first_auto),
+        gradient_steps=steps, wall_s=wall,
     )
 
 

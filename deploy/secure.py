@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from khgrl.common.config.settings import HUMAN_METHODS
 from khgrl.common.delivery.acl import Identity, access_control
 from khgrl.deploy import certs
 
@@ -101,7 +102,7 @@ def run_identities(cfg) -> list[tuple[str, str]]:
     :param cfg: the run's :class:`~khgrl.common.config.settings.RunConfig`
     """
     ids = [("learner", "learner")] + [("actor", a) for a in cfg.actor_ids()]
-    if cfg.method == "khgrl" and cfg.human != "none":
+    if cfg.method in HUMAN_METHODS and cfg.human != "none":
         ids.append(("human", cfg.human))
     return ids
 

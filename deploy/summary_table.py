@@ -68,12 +68,38 @@ def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callabl
              ("clipped / human steps", lambda rs: f"{sum(r.clipped_human_steps for r in rs)} / "
                                                   f"{sum(r.intervention_steps for r in rs)}"),
              ("return, last 10", lambda rs: mean_sd([r.mean_return_last_10 for r in rs]))]
+    if any(r.method == "hil-serl" or r.method.endswith("_rlpd") for r in results):  # vs HIL-SERL: budget, safety
+        cols += _budget_columns(episodes)
     if any(r.eval_success is not None for r in results):
         header = ("eval success of the final policy (mean; per seed)" if all(r.eval_kind in ("", "episodes")
                   for r in results) else "eval success of the final policy (scenes: pooled over seeds, 95 % Wilson "
                                          "CI; per seed)")
         cols.append((header, eval_cell))
     return cols
+
+
+def _budget_columns(episodes: int) -> list[tuple[str, Callable[[list[RunResult]], str]]]:
+    """The comparison with HIL-SERL's columns: human steps spent before the first autonomous success, safety
+    (hard-constraint violations, workspace exits of the policy) and compute (gradient steps, wall time)."""
+    def human_to_first(rs: list[RunResult]) -> str:
+        v = [r.human_steps_to_first_autonomous for r in rs]
+        done = [x for x in v if x is not None]
+        med = f"{np.median(done):.0f}" if len(done) == len(v) else ("never" if not done else "–")
+        return f"{med} ({', '.join('never' if x is None else str(x) for x in v)})"
+
+    def total(attr: str) -> Callable[[list[RunResult]], str]:
+        return lambda rs: (f"{np.mean([getattr(r, attr) for r in rs]):.0f} "
+                           f"({', '.join(str(getattr(r, attr)) for r in rs)})")
+
+    def compute(rs: list[RunResult]) -> str:
+        steps = [r.gradient_steps for r in rs if r.gradient_steps is not None]
+        wall = [r.wall_s for r in rs if r.wall_s is not None]
+        return (f"{np.mean(steps):.0f}" if steps else "-") + " / " + (f"{np.mean(wall):.0f} s" if wall else "-")
+
+    return [("human steps before first autonomous success (median; per seed)", human_to_first),
+            ("hard-constraint violation steps (mean; per seed)", total("violation_steps")),
+            ("workspace exits (mean; per seed)", total("workspace_exits")),
+            ("gradient steps / wall time (mean)", compute)]
 
 
 def _run_eval(r: RunResult) -> str:
@@ -151,7 +177,8 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
 
 # (a, b): "a vs b" tables, where both ran: what the human adds (KhGRL vs KGRL, with and without adaptation) and
 # what adapting the KMP to the scene adds (KGRL vs KGRL without adaptation)
-COMPARISONS = (("khgrl", "kgrl"), ("kgrl", "kgrl_noadapt"), ("khgrl_noadapt", "kgrl_noadapt"))
+COMPARISONS = (("khgrl", "kgrl"), ("kgrl", "kgrl_noadapt"), ("khgrl_noadapt", "kgrl_noadapt"), ("khgrl", "hil-serl"),
+               ("khgrl_rlpd", "hil-serl"), ("khgrl_rlpd", "khgrl"))
 
 
 def _comparison(groups: dict, a_method: str, b_method: str, criteria: list[str], heads: list[str], evaluated: bool,

@@ -119,9 +119,13 @@ def announced_task(announced: TaskDescriptor, cfg, say: Callable[[str], None] = 
 
 
 def _human(task: Task, cfg) -> ScriptedHuman:
-    """The scripted human of ``task`` with the run's episodes, noise and seed."""
-    return ScriptedHuman(task.scripted_human, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes),
-                                                                  noise=cfg.human_noise, seed=cfg.seed))
+    """The scripted human of ``task`` with the run's episodes, noise and seed; under ``--method hil-serl`` its
+    ``takeover`` where it has one (the same human steering the robot from where it is)."""
+    guide = task.scripted_human
+    if cfg.method == "hil-serl":
+        guide = getattr(guide, "takeover", guide)
+    return ScriptedHuman(guide, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes), noise=cfg.human_noise,
+                                                    seed=cfg.seed))
 
 
 def _horizon(task: Task, human: ScriptedHuman) -> int | None:

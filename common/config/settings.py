@@ -31,16 +31,14 @@ from typing import Any, get_type_hints
 from khgrl.common.config.assignments import parse_assignments
 from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
 
-__all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSERL_DEFAULTS", "HUMANS", "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "RunConfig",
-           "add_config_flags", "role_fields", "parse_assignments", "resolve", "read_table", "load_file",
-           "write_run_config", "read_run_file", "to_toml"]
+__all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSERL_DEFAULTS", "HUMANS",
+           "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "RunConfig", "add_config_flags", "role_fields",
+           "parse_assignments", "resolve", "read_table", "load_file", "write_run_config", "read_run_file", "to_toml"]
 
 METHODS = ("khgrl", "kgrl", "hil-serl")
-HUMAN_METHODS = ("khgrl", "hil-serl")  # the methods a human-input client serves (corrections; takeover)
-REFERENCE_METHODS = ("khgrl", "kgrl")  # what the single-process reference (khgrl reference) runs
+HUMAN_METHODS, REFERENCE_METHODS = ("khgrl", "hil-serl"), ("khgrl", "kgrl")  # with a human; khgrl reference's
 SAMPLINGS = ("uniform", "rlpd")
-# --method hil-serl means the HIL-SERL recipe unless a flag or file says otherwise (README, "HIL-SERL baseline")
-HILSERL_DEFAULTS = {"algo": "sac_ln", "tqc": {"sampling": "rlpd"}}
+HILSERL_DEFAULTS = {"algo": "sac_ln", "tqc": {"sampling": "rlpd"}}  # what --method hil-serl implies unless set
 DEVICES = ("auto", "cpu", "cuda")
 MODES = ("simulation", "robot")
 HUMANS = ("scripted", "gui", "keyboard", "gamepad", "replay", "none")  # khgrl human's clients (test_config checks)
@@ -86,7 +84,7 @@ class TQCSettings:
     sampling: str = _opt("uniform", "how a minibatch is drawn: uniform (SB3's, the paper's) or rlpd (RLPD's symmetric "
                                     "sampling: half of each batch from the prior data -- demonstrations replayed as "
                                     "transitions and the human's interventions -- half from all data)", SAMPLINGS,
-                         roles=(LEARNER,))
+                         roles=_LA)
     device: str = _opt("auto", "where the learner trains: auto (cuda if torch sees a GPU, else cpu), cpu or cuda; "
                                "weights always go to actors as CPU float32 arrays", DEVICES, roles=_LR)
 
@@ -176,7 +174,7 @@ class RunConfig:
     method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither; hil-serl: "
                                 "the HIL-SERL baseline (delta actions in the task's own space, no KMP band; the "
                                 "human takes over; implies --algo sac_ln --sampling rlpd unless given)", METHODS,
-                       roles=(ACTOR, REFERENCE))
+                       roles=(ACTOR, HUMAN, REFERENCE))
     adapt: bool = _opt(True, "refit the KMP through the via-points of a task whose scene changes every episode, at "
                              "every reset (a task with a Scene; --no-adapt: the demonstrations' KMP in every scene)",
                        roles=(ACTOR,))

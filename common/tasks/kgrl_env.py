@@ -16,7 +16,12 @@ Episode end: the task environment's termination; truncation by the environment o
 Observation (float32): the environment's observation, the phase s, and the robot's deviation from the KMP
 mean at this phase clipped to [-1, 1]^O (the robot: ``task.position(obs)``, or the command last sent).
 
-Action: a in [-1, 1]^O (float32), the null-space action of eq. 5.
+Action: a in [-1, 1]^O (float32), the null-space action of eq. 5; with ``control="delta"`` (the HIL-SERL
+baseline, :mod:`khgrl.common.tasks.delta`) a displacement instead: P_t = clip(position + step a) in the workspace
+box, no band, reward r = the environment's (no r_a), and a correction is a takeover: a_h = the action towards P_h.
+
+Safety counts in ``info`` for every control: ``violation`` (the commanded P_t violates a hard constraint
+G P >= c) and ``workspace_exit`` (the policy asked for a position outside the workspace box).
 
 Scenes that change every episode (a task with a :class:`~khgrl.common.tasks.scene.Scene`): at every reset the
 placement is read from the first observation (``env.placement``, ``info["scene"]``) and, with ``adapt`` and the
@@ -36,10 +41,14 @@ from khgrl.common.kmp.mapping import KGRLMapping
 from khgrl.common.kmp.scale import ScaleModel
 from khgrl.common.tasks.adapted import episode_scene
 from khgrl.common.tasks.api import Task, TaskError, value_bounds
+from khgrl.common.tasks.delta import DeltaControl
 from khgrl.common.tasks.scene import scene_seed
 from khgrl.common.tasks.world import TaskWorld, build_task_world
 
-__all__ = ["KGRLEnv", "make_inner_env"]
+__all__ = ["KGRLEnv", "make_inner_env", "CONTROLS"]
+
+CONTROLS = ("kmp", "delta")  # eq. 5 about the KMP mean; delta actions in the workspace (HIL-SERL)
+VIOLATION_TOL = 1e-6  # a hard constraint counts as violated by more than this
 
 
 def make_inner_env(task: Task, seed: int) -> gym.Env:
@@ -68,13 +77,16 @@ class KGRLEnv(gym.Env):
     :param world: a built world (skips fitting; e.g. cached).
     :param inner: the task's environment (default: ``task.make_env(seed)``).
     :param adapt: refit the KMP through the scene's via-points at every reset (tasks with a varying scene).
+    :param control: "kmp" (eqs. 5-6, KGRL and KhGRL) or "delta" (the HIL-SERL baseline's delta actions).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
 
     def __init__(self, task: Task | None = None, *, seed: int = 0, scale_model: ScaleModel | None = None,
                  render_mode: str | None = None, world: TaskWorld | None = None, inner: gym.Env | None = None,
-                 adapt: bool = True) -> None:
+                 adapt: bool = True, control: str = "kmp") -> None:
+        if control not in CONTROLS:
+            raise ValueError(f"control must be one of {CONTROLS}, got {control!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
         self.world = world if world is not None else build_task_world(task)
@@ -97,6 +109,8 @@ class KGRLEnv(gym.Env):
         self.scene_seed: int | None = None
         self.via_error, self.max_violation = 0.0, -np.inf
         self.adapt = bool(adapt)
+        self.delta = DeltaControl.from_demos(self.world.demos, self.world.low, self.world.high) \
+            if control == "delta" else None
         self.placement: dict[str, float] = {}
         self.via_points: list = []  # (grid step, position) of this episode's via-points
         self._correction: np.ndarray | None = None
@@ -211,6 +225,8 @@ class KGRLEnv(gym.Env):
 
     def _command(self, t: int, a: np.ndarray, L: np.ndarray, info: dict):
         """Eq. 5 (policy) or eq. 6 (correction): (P_t, xi, the action the transition stores)."""
+        if self.delta is not None:
+            return self._delta_command(a, info)
         if self._correction is not None:
             p_h = np.clip(self._correction, self.world.low, self.world.high)
             info["projected"] = bool(np.any(p_h != self._correction))
@@ -218,7 +234,22 @@ class KGRLEnv(gym.Env):
             info.update(intervened=True, clipped=iv.clipped, xi_h=iv.xi, raw_action=iv.raw_action)
             return p_h, iv.xi, iv.action
         desired, xi = self.mapping.act(t, a, L)
+        info["workspace_exit"] = bool(np.any(desired < self.world.low) or np.any(desired > self.world.high))
         return desired, xi, a
+
+    def _delta_command(self, a: np.ndarray, info: dict):
+        """Delta control (:class:`~khgrl.common.tasks.delta.DeltaControl`): the policy's displacement, or the
+        takeover action towards the (workspace-projected) P_h; xi is zero (there is no null space)."""
+        zero = np.zeros(self.world.out_dim)
+        if self._correction is not None:
+            p_h = np.clip(self._correction, self.world.low, self.world.high)
+            info["projected"] = bool(np.any(p_h != self._correction))
+            a_h, clipped = self.delta.invert(self.position, p_h)
+            info.update(intervened=True, clipped=clipped, xi_h=zero, raw_action=a_h)
+            return self.delta.act(self.position, a_h)[0], zero, a_h
+        desired, exited = self.delta.act(self.position, a)
+        info["workspace_exit"] = exited
+        return desired, zero, a
 
     def step(self, action):
         if self._done:
@@ -230,10 +261,11 @@ class KGRLEnv(gym.Env):
         a = np.clip(a, -1.0, 1.0)
         L = self.mapping.scale_at(t, self.position)
         mean = self.mapping.mean(t)
-        info: dict = {"intervened": False, "clipped": False, "projected": False}
+        info: dict = {"intervened": False, "clipped": False, "projected": False, "workspace_exit": False}
         desired, xi, stored = self._command(t, a, L, info)
         dp = desired - mean
-        r_a = -self.task.action_cost * float(dp @ dp)
+        r_a = -self.task.action_cost * float(dp @ dp) if self.delta is None else 0.0
+        info["violation"] = bool(np.max(self.world.c - self.world.G @ desired, initial=-np.inf) > VIOLATION_TOL)
         env_action = desired if self.task.command is None else self.task.command(self.inner, desired)
         inner_obs, r_env, term, trunc, inner_info = self.inner.step(env_action)
         self._inner_obs = inner_obs
@@ -250,7 +282,8 @@ class KGRLEnv(gym.Env):
         info.update(r_a=r_a, success=bool(inner_info.get(self.task.success_key, False)),
                     action=np.asarray(stored, dtype=np.float32), xi=xi, scale=L, desired=desired,
                     phase=float(self.mapping.phases[t]), t=t,
-                    constraints_active=self.mapping.model.step_info.active_rows if not info["intervened"] else 0)
+                    constraints_active=0 if info["intervened"] or self.delta
+                    else self.mapping.model.step_info.active_rows)
         return self._obs(), r_a + float(r_env), terminated, truncated, info
 
     # --------------------------------------------------------------- descriptor and drawing

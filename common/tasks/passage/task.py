@@ -124,6 +124,34 @@ class PassageGuide:
             return None
         return np.array([x, self.path_y(x)])
 
+    @property
+    def takeover(self) -> PassageTakeover:
+        """The same human taking over the robot (``--method hil-serl``) instead of correcting the KMP's P_t."""
+        return PassageTakeover(self)
+
+
+class PassageTakeover:
+    """The passage world's scripted human when it takes over (HIL-SERL): it helps in the same steps as
+    :class:`PassageGuide` (while the KMP mean is in the window), but steers the robot from where it is -- the
+    policy may have taken it anywhere -- first onto the safe path at the robot's x, then along it
+    (``LOOKAHEAD`` ahead). Aiming at the path point of the mean's x instead would cut across the walls."""
+
+    LOOKAHEAD = 0.05  # workspace units ahead along the path, once on it
+    ON_PATH = 0.02  # |y - path| within this: on the path
+
+    def __init__(self, guide: PassageGuide) -> None:
+        self.guide = guide
+
+    def __call__(self, mean: np.ndarray, position: np.ndarray) -> np.ndarray | None:
+        if self.guide(mean) is None:
+            return None
+        x, y = float(position[0]), float(position[1])
+        on_path = self.guide.path_y(x)
+        if abs(y - on_path) > self.ON_PATH:
+            return np.array([x, on_path])
+        ahead = x + self.LOOKAHEAD
+        return np.array([ahead, self.guide.path_y(ahead)])
+
 
 def view(sc: Scenario) -> View:
     """Walls as thin boxes (one above and one below each gap), the obstacle, start and goal."""
