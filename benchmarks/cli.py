@@ -92,7 +92,8 @@ BENCHMARKS: dict[str, Benchmark] = {
         OUT)),
     "learner": Benchmark("khgrl.benchmarks.learner_step", "run_learner_benchmark",
                          "gradient steps/s of the learner's TQC next to a raw-torch TQC step of the same networks, "
-                         "the learner's SAC and a raw SAC step with 1 and 10 LayerNorm critics (batched), per device "
+                         "the learner's SAC, HIL-SERL's SAC (sac_ln) with uniform and RLPD sampling, and a raw SAC "
+                         "step with 1 and 10 LayerNorm critics (batched), per device "
                          "(cpu, cuda)", (
         _flag("--devices", nargs="+", default=["cpu"], choices=["cpu", "cuda"],
               help="devices to measure (default: cpu; cuda where torch sees a GPU)"),

@@ -1,7 +1,10 @@
 """The learner's gradient step (``khgrl bench learner``): sb3-contrib TQC as the learner runs it, next to a minimal
 raw-torch TQC step of the same networks, on each device asked for (``cpu``, and ``cuda`` where torch sees a GPU);
-beside them the learner's SAC (``--algo sac``) and a raw-torch SAC step with an ensemble of LayerNorm critics,
-batched (:mod:`khgrl.benchmarks.ensemble_step`), for each ``--ensembles`` size: what an RLPD-style learner costs.
+beside them the learner's SAC (``--algo sac``), HIL-SERL's SAC (``--algo sac_ln``: LayerNorm, tanh) with SB3's
+uniform sampling and with RLPD's symmetric sampling (``--sampling rlpd``, a tenth of the stored transitions
+intervened: what the prior half of each minibatch costs), and a raw-torch SAC step with an ensemble of LayerNorm
+critics, batched (:mod:`khgrl.benchmarks.ensemble_step`), for each ``--ensembles`` size: what an RLPD-style learner
+costs.
 
 Both sides do the same work per gradient step: a minibatch of ``batch_size`` sampled from a filled replay buffer,
 the truncated quantile critics' loss (2 critics x 25 quantiles, the top 2 per net dropped), the actor's loss, the
@@ -101,10 +104,11 @@ class RawTQC:
                 tp.mul_(1 - self.tau).add_(p, alpha=self.tau)
 
 
-def _sb3_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, algo: str = "tqc"):
-    """The learner's own model (``--algo``: ``tqc``, ``sac``) on a task of these sizes, its buffer filled with
-    ``size`` random transitions; returns a callable doing ``n`` gradient steps as the learner's training iteration
-    does."""
+def _sb3_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, algo: str = "tqc",
+                 sampling: str = "uniform"):
+    """The learner's own model (``--algo``: ``tqc``, ``sac``, ``sac_ln``; ``--sampling``) on a task of these sizes,
+    its buffer filled with ``size`` random transitions, every tenth intervened; returns a callable doing ``n``
+    gradient steps as the learner's training iteration does."""
     from types import SimpleNamespace
 
     from khgrl.common.config.settings import TQCSettings
@@ -112,14 +116,14 @@ def _sb3_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, 
     from stable_baselines3.common.logger import configure
 
     task = SimpleNamespace(out_dim=act_dim, obs_low=[-10.0] * obs_dim, obs_high=[10.0] * obs_dim)  # spaces only
-    model = build_algorithm(TQCSettings(device=device, learning_starts=0), seed, task, algo).model
+    model = build_algorithm(TQCSettings(device=device, learning_starts=0, sampling=sampling), seed, task, algo).model
     model.set_logger(configure(None, []))
     rng = np.random.default_rng(seed)
     rb = model.replay_buffer
     for i in range(size):
         rb.add(rng.normal(size=(1, obs_dim)), rng.normal(size=(1, obs_dim)), rng.uniform(-1, 1, (1, act_dim)),
-               rng.normal(size=1), np.array([float(i % 100 == 99)]), [{}], intervened=False, clipped=False, actor=0,
-               step=i)
+               rng.normal(size=1), np.array([float(i % 100 == 99)]), [{}], intervened=i % 10 == 0, clipped=False,
+               actor=0, step=i)
 
     def steps(n: int) -> None:
         model.train(gradient_steps=n, batch_size=model.batch_size)
@@ -148,11 +152,13 @@ def _raw_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, 
 
 
 def _sides(obs_dim: int, act_dim: int, device: str, seed: int, ensembles: tuple[int, ...]) -> dict:
-    """The learners timed against each other: the learner's TQC and SAC, raw-torch TQC, and raw-torch SAC with
-    each ensemble size."""
+    """The learners timed against each other: the learner's TQC, SAC and SAC-LN (uniform and RLPD sampling),
+    raw-torch TQC, and raw-torch SAC with each ensemble size."""
     sides = {"sb3_tqc": _sb3_learner(obs_dim, act_dim, device, 20_000, seed),
              "raw_torch": _raw_learner(obs_dim, act_dim, device, 20_000, seed),
-             "sb3_sac": _sb3_learner(obs_dim, act_dim, device, 20_000, seed, "sac")}
+             "sb3_sac": _sb3_learner(obs_dim, act_dim, device, 20_000, seed, "sac"),
+             "sb3_sac_ln": _sb3_learner(obs_dim, act_dim, device, 20_000, seed, "sac_ln"),
+             "sb3_sac_ln_rlpd": _sb3_learner(obs_dim, act_dim, device, 20_000, seed, "sac_ln", "rlpd")}
     for e in ensembles:
         sides[f"raw_sac_ln_e{e}"] = _raw_learner(obs_dim, act_dim, device, 20_000, seed, e)
     return sides
@@ -209,6 +215,9 @@ def run_learner_benchmark(devices: tuple[str, ...] = ("cpu",), seconds: float = 
                                       "sb3_over_raw": round(rate["sb3_tqc"] / rate["raw_torch"], 3)}
         print(f"{device}: learner TQC {rate['sb3_tqc']:.1f} gradient steps/s, raw torch {rate['raw_torch']:.1f} "
               f"steps/s: ratio {rate['sb3_tqc'] / rate['raw_torch']:.2f}; learner SAC {rate['sb3_sac']:.1f} steps/s")
+        print(f"{device}: learner SAC-LN (HIL-SERL's) {rate['sb3_sac_ln']:.1f} steps/s uniform, "
+              f"{rate['sb3_sac_ln_rlpd']:.1f} steps/s with RLPD sampling "
+              f"({rate['sb3_sac_ln'] / rate['sb3_sac_ln_rlpd']:.2f}x the time)")
         for e in ensembles:
             r = rate[f"raw_sac_ln_e{e}"]
             print(f"{device}: raw SAC, {e} LayerNorm critics (batched): {r:.1f} steps/s"

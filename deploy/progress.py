@@ -179,6 +179,10 @@ class ProgressView:
             return "learner: waiting"
         rate = "" if final else f" ({li.grad_steps_per_s:.0f}/s)"
         text = f"learner: {li.ingested} transitions, {li.gradient_steps} gradient steps{rate}, weights v{li.version}"
+        if li.prior_fraction > 0:  # RLPD sampling (--sampling rlpd): the prior data and its achieved share
+            sampled = li.sampled_prior + li.sampled_online
+            share = f"{li.sampled_prior / sampled:.0%}" if sampled else "-"
+            text += f", UTD {li.utd:.2f}, prior: {li.prior_slots} slots, {share} of samples"
         failing = checkpoint_line(li, markup=markup)
         return f"{text}\n{failing}" if failing else text
 

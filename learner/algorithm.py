@@ -12,7 +12,8 @@ or infinite (:meth:`LearnerAlgorithm.snapshot`, :meth:`~LearnerAlgorithm.restore
 :meth:`~LearnerAlgorithm.fault`). The actor side (:class:`ActorPolicy`) is only the policy network, on the CPU, in
 float32, taking the learner's weights by name.
 
-Implementations: ``tqc`` (:mod:`khgrl.learner.tqc`, sb3-contrib TQC, the paper's, the default); SB3-based ones
+Implementations: ``tqc`` (:mod:`khgrl.learner.tqc`, sb3-contrib TQC, the paper's, the default), ``sac``
+(:mod:`khgrl.learner.sac`), ``sac_ln`` (:mod:`khgrl.learner.sac_ln`, HIL-SERL's SAC); SB3-based ones
 share :class:`khgrl.learner.sb3_offpolicy.SB3OffPolicy`. Adding one: a module with the class and one line in
 :data:`REGISTRY`.
 """
@@ -40,6 +41,7 @@ BUFFER_FILE = "replay_buffer.pkl"  # and the replay buffer (our own file on loca
 REGISTRY: dict[str, str] = {
     "tqc": "khgrl.learner.tqc:TQCAlgorithm",
     "sac": "khgrl.learner.sac:SACAlgorithm",
+    "sac_ln": "khgrl.learner.sac_ln:SACLNAlgorithm",
 }
 
 

@@ -184,6 +184,9 @@ class LearnerLoop:
 
     def info(self) -> LearnerInfo:
         """This learner's status (the rate: gradient steps per second since the previous call)."""
+        rb = self.trainer.buffer  # (its own lock, not taken inside the ingest lock)
+        sampling = dict(prior_fraction=rb.prior_fraction, prior_slots=rb.prior_slots(), sampled_prior=rb.sampled_prior,
+                        sampled_online=rb.sampled_online)
         with self.lock:
             tr, now = self.trainer, self.clock()
             rate = (tr.gradient_steps - self._status_steps) / max(now - self._status_t, 1e-9)
@@ -193,7 +196,7 @@ class LearnerLoop:
                                pending_iterations=len(tr.due), paused=self.paused, checkpoints=self.checkpoints,
                                checkpoint_error=self.saves.error, checkpoint_failures=self.saves.failures,
                                mode=self.mode, utd=round(tr.utd, 4), rss_mb=rss_mb(), rollbacks=tr.rollbacks,
-                               **self.ingest.info())
+                               **sampling, **self.ingest.info())
 
     def publish_status(self) -> None:
         """Publish :meth:`info` as this learner's status."""

@@ -3,9 +3,12 @@ algorithms: a subclass names the SB3 class, its policy class and its keyword arg
 the :class:`~khgrl.learner.replay.StreamReplayBuffer`, a due iteration's ``train()``, weights for the actors,
 checkpoint files, the snapshot and rollback of a training iteration that went non-finite -- is here once.
 
-The model is ``ALGO("MlpPolicy", SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer)``; the
-buffer draws no random numbers, so a seeded model is SB3's own. The actors get the policy's ``actor`` network
-(its ``state_dict``); an actor builds the same policy class on the CPU and loads them into its ``actor``.
+The model is ``ALGO(POLICY, SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer)`` (``POLICY``: the
+subclass's :meth:`SB3OffPolicy.policy_class`, for TQC and SAC their ``"MlpPolicy"``). With ``[tqc] sampling
+uniform`` the buffer draws the random numbers SB3's own does, so a seeded model is SB3's own; ``sampling rlpd``
+passes ``replay_buffer_kwargs={"prior_fraction": 0.5}`` (RLPD's symmetric sampling,
+:mod:`khgrl.learner.replay`). The actors get the policy's ``actor`` network (its ``state_dict``); an actor builds
+the same policy class on the CPU and loads them into its ``actor``.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import numpy as np
 from khgrl.common.config.settings import TQCSettings
 from khgrl.common.tasks.spaces import SpacesEnv
 from khgrl.learner.algorithm import BUFFER_FILE, MODEL_FILE
-from khgrl.learner.replay import StreamReplayBuffer
+from khgrl.learner.replay import StreamReplayBuffer, prior_fraction
 
 __all__ = ["SB3OffPolicy", "SB3ActorPolicy", "LOSSES"]
 
@@ -91,18 +94,32 @@ class SB3OffPolicy:
         """
         return settings.sb3_kwargs(seed)
 
+    @classmethod
+    def space_kwargs(cls, action_space: Any) -> dict[str, Any]:
+        """Keyword arguments of the SB3 class that depend on the task's action space (default: none).
+
+        :param action_space: the task's action space
+        """
+        return {}
+
     # ------------------------------------------------------------------------------------ building and loading
     @classmethod
     def build(cls, task: Any, settings: TQCSettings, seed: int, device: str) -> SB3OffPolicy:
-        """A fresh model on the task's spaces (see :meth:`LearnerAlgorithm.build`)."""
-        kwargs = {**cls.sb3_kwargs(settings, seed), "device": device}
-        return cls(cls.sb3_class()("MlpPolicy", SpacesEnv(task), **kwargs, replay_buffer_class=StreamReplayBuffer))
+        """A fresh model on the task's spaces (see :meth:`LearnerAlgorithm.build`); ``sampling rlpd``: its buffer
+        samples RLPD's way (``replay_buffer_kwargs``, the module docstring)."""
+        env = SpacesEnv(task)
+        kwargs = {**cls.sb3_kwargs(settings, seed), **cls.space_kwargs(env.action_space), "device": device}
+        fraction = prior_fraction(settings.sampling)
+        if fraction > 0:  # (uniform: no buffer kwargs at all, the model SB3 builds without them)
+            kwargs["replay_buffer_kwargs"] = {"prior_fraction": fraction}
+        return cls(cls.sb3_class()(cls.policy_class(), env, **kwargs, replay_buffer_class=StreamReplayBuffer))
 
     @classmethod
     def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str, *,
              buffer: StreamReplayBuffer | None = None) -> SB3OffPolicy:
         """The model and replay buffer :meth:`save` wrote in ``directory`` (on ``device``, whatever it was saved
-        from); with ``buffer``, the model alone (a model checkpoint) with that replay buffer."""
+        from); with ``buffer``, the model alone (a model checkpoint) with that replay buffer. The buffer samples as
+        the current ``settings.sampling`` says (its counters carry on)."""
         model = cls.sb3_class().load(Path(directory) / MODEL_FILE, env=SpacesEnv(task), device=device)
         if buffer is None:
             model.load_replay_buffer(Path(directory) / BUFFER_FILE)
@@ -111,6 +128,7 @@ class SB3OffPolicy:
         if not isinstance(model.replay_buffer, StreamReplayBuffer):
             raise ValueError(f"{directory}: the replay buffer is a {type(model.replay_buffer).__name__}, not a "
                              "StreamReplayBuffer")
+        model.replay_buffer.prior_fraction = model.replay_buffer.check_fraction(prior_fraction(settings.sampling))
         return cls(model)
 
     @classmethod

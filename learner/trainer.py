@@ -247,6 +247,8 @@ class Trainer:
         lg.record("learner/iteration_s", seconds)
         lg.record("learner/queue_depth", queue_depth)
         lg.record("learner/pending_iterations", len(self.due))
+        lg.record("learner/prior_share", self.buffer.prior_share)  # of the transitions sampled so far (RLPD: 0.5)
+        lg.record("learner/prior_slots", self.buffer.prior_slots())  # stored transitions with intervened = 1
         lg.dump(step=self.total)
 
     # ------------------------------------------------------------------------------------ messages
@@ -283,10 +285,12 @@ class Trainer:
                 "learning_starts": self.learning_starts,
                 "iterations": self.iterations, "gradient_steps": self.gradient_steps, "version": self.version,
                 "weights_trained": dict(self.weights_trained), "due": [[at, snap] for at, snap in self.due],
-                "replay": {"pos": int(rb.pos), "full": bool(rb.full), "size": int(rb.buffer_size)}}
+                "replay": {"pos": int(rb.pos), "full": bool(rb.full), "size": int(rb.buffer_size)},
+                "sampled": {"prior": int(rb.sampled_prior), "online": int(rb.sampled_online)}}
 
     def restore(self, state: dict[str, Any]) -> None:
-        """Continue from a checkpoint's counters and schedule (the model and its buffer are loaded already).
+        """Continue from a checkpoint's counters and schedule (the model and its buffer are loaded already; the
+        buffer's sample counters as the state says, where it says: a model checkpoint's are newer than its buffer's).
 
         :param state: the checkpoint's state map
         """
@@ -296,6 +300,9 @@ class Trainer:
         self.version = int(state["version"])
         self.weights_trained = {k: int(v) for k, v in state["weights_trained"].items()}
         self.due = deque((int(at), {k: int(v) for k, v in snap.items()}) for at, snap in state["due"])
+        sampled = state.get("sampled")  # (not in the state of an older learner: the buffer's own counters stand)
+        if isinstance(sampled, dict):
+            self.buffer.sampled_prior, self.buffer.sampled_online = int(sampled["prior"]), int(sampled["online"])
         saved = int(state.get("learning_starts", self.learning_starts))
         if saved != self.learning_starts:
             log.warning("resuming with learning_starts %d (checkpoint: %d)", self.learning_starts, saved)

@@ -98,6 +98,10 @@ class LearnerInfo:
     rss_mb: float = 0.0  # the learner process's resident memory
     not_admitted_dropped: int = 0  # batches of actor ids not admitted yet, dropped over the inbox's caps (re-sent)
     rollbacks: int = 0  # training iterations rolled back: a loss or parameter went non-finite
+    prior_fraction: float = 0.0  # share of a minibatch from the prior (intervened) slots: 0 uniform, 0.5 RLPD's
+    prior_slots: int = 0  # stored transitions with intervened = 1 (the prior data: interventions, demonstrations)
+    sampled_prior: int = 0  # transitions sampled from the prior slots (RLPD's half), all minibatches so far
+    sampled_online: int = 0  # and uniformly from all slots
 
 
 @dataclass(frozen=True)

@@ -175,7 +175,7 @@ def _state(algo) -> dict[str, torch.Tensor]:
     return flat
 
 
-@pytest.mark.parametrize("algo", ["tqc", "sac"])
+@pytest.mark.parametrize("algo", ["tqc", "sac", "sac_ln"])
 def test_an_iteration_with_a_non_finite_loss_is_rolled_back(tmp_path, task, algo, caplog):
     loop = _loop(tmp_path, task, algo=algo)
     _train_ready(loop, task)
@@ -196,8 +196,9 @@ def test_an_iteration_with_a_non_finite_loss_is_rolled_back(tmp_path, task, algo
     assert loop.info().rollbacks == loop.trainer.rollbacks
 
 
-def test_an_iteration_that_leaves_a_nan_parameter_is_rolled_back_exactly(tmp_path, task, monkeypatch):
-    loop = _loop(tmp_path, task)
+@pytest.mark.parametrize("algo", ["tqc", "sac_ln"])
+def test_an_iteration_that_leaves_a_nan_parameter_is_rolled_back_exactly(tmp_path, task, monkeypatch, algo):
+    loop = _loop(tmp_path, task, algo=algo)
     _train_ready(loop, task)
     assert loop.work()
     model = loop.trainer.algo.model
