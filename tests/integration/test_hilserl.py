@@ -84,13 +84,15 @@ def _check_takeover(run_dir: Path, spec: str, demo_transitions: int) -> int:
 def test_hilserl_passage_takeover_prior_data_and_learner_kill(tmp_path):
     run, run_dir = unique_run("hil"), tmp_path / "run"
     state_file = run_dir / "learner" / "checkpoint" / "state.json"
-    learner_flags = ["--algo", "sac_ln", "--sampling", "rlpd", "--learning-starts", "16", "--checkpoint-every", "256"]
+    # random actions until transition 2200: the demonstrations (~1700) and episode 1, where the human takes over
+    learner_flags = ["--algo", "sac_ln", "--sampling", "rlpd", "--learning-starts", "2200", "--checkpoint-every",
+                     "256"]
     world = ["--scenario", "low_cov", "--method", "hil-serl"]
     with ProcGroup(tmp_path) as g:
         ep = g.router()
         learner = g.learner(run, ep, *learner_flags)
-        human = g.human(run, ep, "scripted", *world, "--human-episodes", "2")
-        actor = g.actor(run, ep, *world, "--learning-starts", "16", "--episodes", "3", "--max-lead", "100000",
+        human = g.human(run, ep, "scripted", *world, "--human-episodes", "1")
+        actor = g.actor(run, ep, *world, "--learning-starts", "2200", "--episodes", "3", "--max-lead", "100000",
                         "--rate", "150")
         wait_for(lambda: read_json(state_file)["total_ingested"] >= 1800, 150, "the demonstrations in a checkpoint",
                  procs=[learner, actor])
@@ -110,7 +112,7 @@ def test_hilserl_passage_takeover_prior_data_and_learner_kill(tmp_path):
     episodes = _rows(run_dir / "actor-a0" / "episodes.csv")
     human_steps = sum(int(r["intervention_steps"]) for r in episodes)
     assert demos + sum(int(r["steps"]) for r in episodes) == n
-    assert int(episodes[1]["intervention_steps"]) > 0 and human_steps == int(episodes[1]["intervention_steps"])
+    assert int(episodes[0]["intervention_steps"]) > 0 and human_steps == int(episodes[0]["intervention_steps"])
     # the prior data are exactly the demonstrations and the takeover steps, all in the buffer after the resume
     assert int(arrays["intervened"][:n].sum()) == demos + human_steps
     assert _check_takeover(run_dir, "passage:low_cov", demos) == human_steps
