@@ -84,7 +84,8 @@ class ReferenceConfig:
 
     def __post_init__(self) -> None:
         if self.method not in REFERENCE_METHODS:
-            raise ValueError(f"method must be one of {', '.join(REFERENCE_METHODS)}, got {self.method!r}")
+            raise ValueError(f"the single-process reference runs {', '.join(REFERENCE_METHODS)}, not {self.method!r} "
+                             "(run it through khgrl up)")
         if self.episodes < 1:
             raise ValueError("episodes must be >= 1")
         self.tqc.validate()
