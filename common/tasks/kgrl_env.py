@@ -234,7 +234,8 @@ class KGRLEnv(gym.Env):
             info.update(intervened=True, clipped=iv.clipped, xi_h=iv.xi, raw_action=iv.raw_action)
             return p_h, iv.xi, iv.action
         desired, xi = self.mapping.act(t, a, L)
-        info["workspace_exit"] = bool(np.any(desired < self.world.low) or np.any(desired > self.world.high))
+        info["workspace_exit"] = bool(np.any(desired < self.world.low - VIOLATION_TOL)
+                                      or np.any(desired > self.world.high + VIOLATION_TOL))  # (the QP's rounding)
         return desired, xi, a
 
     def _delta_command(self, a: np.ndarray, info: dict):

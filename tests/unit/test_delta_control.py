@@ -55,17 +55,20 @@ def test_delta_env_moves_from_the_position_and_stores_the_takeover_action():
     assert np.allclose(info["desired"], np.clip(pos + env.delta.step * a_h, env.world.low, env.world.high))
 
 
-def test_kmp_env_counts_no_violation_and_no_exit_for_the_policy():
-    env = KGRLEnv(load_task(OWN), seed=1)
+@pytest.mark.parametrize("spec", [OWN, "fetch:moved"])
+def test_kmp_env_counts_no_violation_and_no_exit_for_the_policy(spec):
+    env = KGRLEnv(load_task(spec), seed=1)
     env.reset(seed=1)
     acc = EpisodeAccumulator()
     acc.start()
     rng = np.random.default_rng(0)
-    for _ in range(20):
-        _, r, _, _, info = env.step(rng.uniform(-1, 1, 3).astype(np.float32))
+    on_box = 0
+    for _ in range(60):  # full-scale actions: the QP holds P_t on the box's faces (to its rounding)
+        _, r, _, _, info = env.step(rng.choice([-1.0, 1.0], 3).astype(np.float32))
         acc.add(r, info)
+        on_box += bool(np.any(np.isclose(info["desired"], env.world.low) | np.isclose(info["desired"], env.world.high)))
     st = acc.finish()
-    assert st.violation_steps == 0 and st.workspace_exits == 0 and st.human_seconds == 0.0
+    assert st.violation_steps == 0 and st.workspace_exits == 0 and st.human_seconds == 0.0, on_box
 
 
 def test_delta_env_counts_workspace_exits():
