@@ -150,11 +150,13 @@ def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
         return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
                 "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]
     world = ["--task", spec.task] if spec.task else ["--scenario", spec.scenario]
-    method, _, variant = spec.method.partition("_")  # kgrl_noadapt: --method kgrl --no-adapt; _rlpd: --sampling rlpd
+    # kgrl_noadapt: --method kgrl --no-adapt; khgrl_rlpd: --sampling rlpd; hil-serl_episode: --takeover episode
+    method, _, variant = spec.method.partition("_")
     argv = [*khgrl, "up", *world, "--method", method, "--seed", str(spec.seed),
             "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead),
             "--no-progress", *(["--no-adapt"] if variant == "noadapt" else []),
-            *(["--sampling", "rlpd"] if variant == "rlpd" else [])]
+            *(["--sampling", "rlpd"] if variant == "rlpd" else []),
+            *(["--takeover", "episode"] if variant == "episode" else [])]
     if method in HUMAN_METHODS:
         argv += ["--human", "scripted", "--human-episodes", *map(str, cfg.human_episodes)]
     else:

@@ -68,7 +68,7 @@ def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callabl
              ("clipped / human steps", lambda rs: f"{sum(r.clipped_human_steps for r in rs)} / "
                                                   f"{sum(r.intervention_steps for r in rs)}"),
              ("return, last 10", lambda rs: mean_sd([r.mean_return_last_10 for r in rs]))]
-    if any(r.method == "hil-serl" or r.method.endswith("_rlpd") for r in results):  # vs HIL-SERL: budget, safety
+    if any(r.method.startswith("hil-serl") or r.method.endswith("_rlpd") for r in results):  # vs HIL-SERL: budget, safety
         cols += _budget_columns(episodes)
     if any(r.eval_success is not None for r in results):
         header = ("eval success of the final policy (mean; per seed)" if all(r.eval_kind in ("", "episodes")
@@ -178,7 +178,7 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
 # (a, b): "a vs b" tables, where both ran: what the human adds (KhGRL vs KGRL, with and without adaptation) and
 # what adapting the KMP to the scene adds (KGRL vs KGRL without adaptation)
 COMPARISONS = (("khgrl", "kgrl"), ("kgrl", "kgrl_noadapt"), ("khgrl_noadapt", "kgrl_noadapt"), ("khgrl", "hil-serl"),
-               ("khgrl_rlpd", "hil-serl"), ("khgrl_rlpd", "khgrl"))
+               ("khgrl_rlpd", "hil-serl"), ("khgrl_rlpd", "khgrl"), ("khgrl", "hil-serl_episode"))
 
 
 def _comparison(groups: dict, a_method: str, b_method: str, criteria: list[str], heads: list[str], evaluated: bool,

@@ -30,7 +30,7 @@ from khgrl.common.config.settings import PAPER_EPISODES
 from khgrl.common.delivery.task_link import fetch_tasks
 from khgrl.common.process import StopFlag, install_stop_handlers
 from khgrl.common.tasks.api import Task, TaskError, load_task
-from khgrl.common.tasks.scripted_human import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
+from khgrl.common.tasks.scripted_human import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig, WholeEpisode
 from khgrl.common.wire.descriptor import TaskDescriptor
 from khgrl.common.wire.protocol import Frame
 from khgrl.human_bridge.client import CorrectionPublisher, connected
@@ -120,10 +120,13 @@ def announced_task(announced: TaskDescriptor, cfg, say: Callable[[str], None] = 
 
 def _human(task: Task, cfg) -> ScriptedHuman:
     """The scripted human of ``task`` with the run's episodes, noise and seed; under ``--method hil-serl`` its
-    ``takeover`` where it has one (the same human steering the robot from where it is)."""
+    ``takeover`` where it has one (the same human steering the robot from where it is), and with ``--takeover
+    episode`` holding every step of its episodes (:class:`~khgrl.common.tasks.scripted_human.WholeEpisode`)."""
     guide = task.scripted_human
     if cfg.method == "hil-serl":
         guide = getattr(guide, "takeover", guide)
+        if cfg.takeover == "episode":
+            guide = WholeEpisode(guide)
     return ScriptedHuman(guide, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes), noise=cfg.human_noise,
                                                     seed=cfg.seed))
 

@@ -37,7 +37,7 @@ __all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSER
 
 METHODS = ("khgrl", "kgrl", "hil-serl")
 HUMAN_METHODS, REFERENCE_METHODS = ("khgrl", "hil-serl"), ("khgrl", "kgrl")  # with a human; khgrl reference's
-SAMPLINGS = ("uniform", "rlpd")
+SAMPLINGS, TAKEOVERS = ("uniform", "rlpd"), ("steps", "episode")
 HILSERL_DEFAULTS = {"algo": "sac_ln", "tqc": {"sampling": "rlpd"}}  # what --method hil-serl implies unless set
 DEVICES = ("auto", "cpu", "cuda")
 MODES = ("simulation", "robot")
@@ -169,8 +169,7 @@ class RunConfig:
                      roles=(ACTOR, HUMAN), shown="passage:<scenario>")
     scenario: str = _opt("high_cov", "passage-world scenario (shorthand for --task passage:SCENARIO)",
                          roles=(ACTOR, HUMAN, REFERENCE))
-    demos: str = _opt("", "demonstration file (.npz/.csv, M x N x O) replacing the task's demonstrations",
-                      roles=(ACTOR, HUMAN))
+    demos: str = _opt("", "demonstration file (.npz/.csv, M x N x O) instead of the task's", roles=(ACTOR, HUMAN))
     method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither; hil-serl: "
                                 "the HIL-SERL baseline (delta actions in the task's own space, no KMP band; the "
                                 "human takes over; implies --algo sac_ln --sampling rlpd unless given)", METHODS,
@@ -181,8 +180,7 @@ class RunConfig:
     algo: str = _opt("tqc", "the learner's algorithm, by its name in khgrl.learner.algorithm.REGISTRY (tqc: "
                             "sb3-contrib TQC, the paper's; it takes the [tqc] settings that apply to it)",
                      roles=(LEARNER, ACTOR))
-    episodes: int = _opt(60, "episodes per actor (in the whole run: a resumed run continues up to this)",
-                         roles=(ACTOR, REFERENCE))
+    episodes: int = _opt(60, "episodes per actor (a resumed run continues up to this)", roles=(ACTOR, REFERENCE))
     seed: int = _opt(0, "seed of the learner and of actor 0 (actor i: seed + i) and the human client",
                      roles=(*_LAH, REFERENCE))
     run_dir: str = _opt("runs/demo", "run directory (refused if it holds results, unless --resume/--overwrite)",
@@ -197,6 +195,9 @@ class RunConfig:
                                   "not listed: none)", roles=(ACTOR,), shown="every client, every actor")
     human_episodes: tuple[int, ...] = _opt(PAPER_EPISODES, "episodes with scripted corrections (the paper's)",
                                            roles=(HUMAN, REFERENCE))
+    takeover: str = _opt("steps", "--method hil-serl: the scripted human takes over in the steps it corrects KhGRL "
+                                  "in (steps), or in every step of its episodes, on the KMP mean elsewhere (episode)",
+                         TAKEOVERS, roles=(HUMAN,))
     human_noise: float = _opt(0.0, "std of the scripted human's hand noise (workspace units)",
                               roles=(HUMAN, REFERENCE))
     replay: str = _opt("", "with --human replay: the recorded RUN_DIR/actor-ID/corrections.csv to feed in",

@@ -18,7 +18,7 @@ import numpy as np
 from khgrl.common.config.settings import PAPER_EPISODES
 from khgrl.common.tasks.api import call_scripted_human, scripted_human_inputs
 
-__all__ = ["ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper"]
+__all__ = ["ScriptedHuman", "ScriptedHumanConfig", "HumanCorrectionWrapper", "WholeEpisode"]
 
 
 @dataclass(frozen=True)
@@ -81,6 +81,23 @@ class ScriptedHuman:
         if self.config.noise > 0:
             p_h = p_h + self._rng.normal(0.0, self.config.noise, size=p_h.size)
         return p_h
+
+
+class WholeEpisode:
+    """A scripted human that holds every step of its episodes (``--takeover episode`` under ``--method hil-serl``):
+    the task's guide's P_h where the guide helps, the KMP mean of the step -- the demonstrated path -- everywhere
+    else. Under HIL-SERL's takeover that makes each of its episodes a demonstration driven end to end by the human.
+
+    :param guide: the task's scripted human (or its ``takeover``)
+    """
+
+    def __init__(self, guide: Callable[..., np.ndarray | None]) -> None:
+        self.guide = guide
+        self.names = scripted_human_inputs(guide)
+
+    def __call__(self, mean: np.ndarray, **inputs: Any) -> np.ndarray:
+        p_h = call_scripted_human(self.guide, mean, names=self.names, **inputs)
+        return np.array(mean, dtype=np.float64) if p_h is None else p_h
 
 
 class HumanCorrectionWrapper(gym.Wrapper):
