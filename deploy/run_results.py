@@ -47,9 +47,10 @@ __all__ = [
 ]
 
 # <scenario>: a passage-world scenario (high_cov, low_cov) or a task's label (fetch_moved: ``khgrl experiment --tasks``)
-# <method>: khgrl, kgrl, or either with "_noadapt" (khgrl up --no-adapt: the demonstrations' KMP in every scene)
-RUN_NAME = re.compile(r"^(?P<scenario>[A-Za-z0-9_]+)-(?P<method>(?:khgrl|kgrl)(?:_noadapt|_rlpd)?|hil-serl(?:_episode)?)"
-                      r"-seed(?P<seed>\d+)$")
+# <method>: khgrl, kgrl, or either with "_noadapt" (khgrl up --no-adapt: the demonstrations' KMP in every scene) or
+# "_rlpd" (--sampling rlpd); hil-serl, or hil-serl_episode (--takeover episode)
+RUN_NAME = re.compile(r"^(?P<scenario>[A-Za-z0-9_]+)-"
+                      r"(?P<method>(?:khgrl|kgrl)(?:_noadapt|_rlpd)?|hil-serl(?:_episode)?)-seed(?P<seed>\d+)$")
 STABLE_WINDOW = 5  # consecutive autonomous successes that count as "stable success"
 METHOD_LABEL = {"khgrl": "KhGRL", "kgrl": "KGRL", "khgrl_noadapt": "KhGRL, no adaptation",
                 "kgrl_noadapt": "KGRL, no adaptation", "khgrl_rlpd": "KhGRL + RLPD replay",

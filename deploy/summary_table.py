@@ -68,7 +68,7 @@ def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callabl
              ("clipped / human steps", lambda rs: f"{sum(r.clipped_human_steps for r in rs)} / "
                                                   f"{sum(r.intervention_steps for r in rs)}"),
              ("return, last 10", lambda rs: mean_sd([r.mean_return_last_10 for r in rs]))]
-    if any(r.method.startswith("hil-serl") or r.method.endswith("_rlpd") for r in results):  # vs HIL-SERL: budget, safety
+    if any(r.method.startswith("hil-serl") or r.method.endswith("_rlpd") for r in results):  # budget, safety, compute
         cols += _budget_columns(episodes)
     if any(r.eval_success is not None for r in results):
         header = ("eval success of the final policy (mean; per seed)" if all(r.eval_kind in ("", "episodes")
