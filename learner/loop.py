@@ -9,7 +9,6 @@ actor, checkpoints when due or asked to, and publishes a status about once a sec
 
 Durability -- the journal (synced by its own *journal thread*), the model checkpoint and the rare full checkpoint --
 is :attr:`LearnerLoop.durable` (:class:`~khgrl.learner.durability.Durability`).
-
 Unit tests drive the same steps in one thread: :meth:`LearnerLoop.offer` / :meth:`LearnerLoop.control` with decoded
 messages (or :meth:`LearnerLoop.receive` with payload bytes), then :meth:`LearnerLoop.step`, with a publisher that
 collects the typed messages.
@@ -184,9 +183,7 @@ class LearnerLoop:
 
     def info(self) -> LearnerInfo:
         """This learner's status (the rate: gradient steps per second since the previous call)."""
-        rb = self.trainer.buffer  # (its own lock, not taken inside the ingest lock)
-        sampling = dict(prior_fraction=rb.prior_fraction, prior_slots=rb.prior_slots(), sampled_prior=rb.sampled_prior,
-                        sampled_online=rb.sampled_online)
+        sampling = self.trainer.buffer.sampling_info()  # (its own lock, not taken inside the ingest lock)
         with self.lock:
             tr, now = self.trainer, self.clock()
             rate = (tr.gradient_steps - self._status_steps) / max(now - self._status_t, 1e-9)

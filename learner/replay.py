@@ -172,6 +172,12 @@ class StreamReplayBuffer(ReplayBuffer):
         with self.lock:
             return int(np.count_nonzero(self.intervened[:self.buffer_size if self.full else self.pos]))
 
+    def sampling_info(self) -> dict[str, Any]:
+        """What the learner's status reports of the sampling: ``prior_fraction``, ``prior_slots``, ``sampled_prior``,
+        ``sampled_online``."""
+        return dict(prior_fraction=self.prior_fraction, prior_slots=self.prior_slots(),
+                    sampled_prior=self.sampled_prior, sampled_online=self.sampled_online)
+
     @property
     def prior_share(self) -> float:
         """The share of all transitions sampled so far that came from the prior part (0 before the first sample)."""
