@@ -16,27 +16,15 @@ from __future__ import annotations
 
 import csv
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from test_learner_actor import assert_exactly_once, checkpoint
+from test_sac import CLI, OWN, _env
 
 from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
-
-OWN = "khgrl.deploy.examples.own_task:make_task"
-CLI = [sys.executable, "-m", "khgrl.deploy.cli"]
-
-
-def _env() -> dict:
-    import os
-
-    env = dict(os.environ)
-    env["PYTHONUNBUFFERED"] = "1"
-    env.setdefault("RUST_LOG", "error")
-    return env
 
 
 def _rows(path: Path) -> list[dict]:
