@@ -68,7 +68,7 @@ def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callabl
              ("clipped / human steps", lambda rs: f"{sum(r.clipped_human_steps for r in rs)} / "
                                                   f"{sum(r.intervention_steps for r in rs)}"),
              ("return, last 10", lambda rs: mean_sd([r.mean_return_last_10 for r in rs]))]
-    if any(r.method.startswith("hil-serl") or r.method.endswith("_rlpd") for r in results):  # budget, safety, compute
+    if _budgeted(results):  # human budget, safety, compute
         cols += _budget_columns(episodes)
     if any(r.eval_success is not None for r in results):
         header = ("eval success of the final policy (mean; per seed)" if all(r.eval_kind in ("", "episodes")
@@ -76,6 +76,16 @@ def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callabl
                                          "CI; per seed)")
         cols.append((header, eval_cell))
     return cols
+
+
+def _budgeted(results: list[RunResult]) -> bool:
+    """Whether the comparison with HIL-SERL is in these results (its methods or RLPD replay): its columns and
+    criteria."""
+    return any(r.method.startswith("hil-serl") or r.method.endswith("_rlpd") for r in results)
+
+
+STEP_CRITERIA = ("human_steps_to_first_autonomous",)  # compared as the episode criteria, in human steps
+STEPS_BOUND = 10**9  # no run spends more human steps: 'never' ranks above it
 
 
 def _budget_columns(episodes: int) -> list[tuple[str, Callable[[list[RunResult]], str]]]:
@@ -164,6 +174,8 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
     criteria = ["first_success_without_human", "stable_success"]
     if any(h == "zero obstacle cost from" for h, _ in cols):
         criteria.append("zero_obstacle_cost_from")
+    if _budgeted(results):
+        criteria += list(STEP_CRITERIA)
     # (a fixed scene's evaluation is one rollout repeated: not compared as a success rate)
     evaluated = (all(r.eval_success is not None for r in results)
                  and any(r.eval_kind != "one scene" for r in results))
@@ -193,8 +205,9 @@ def _comparison(groups: dict, a_method: str, b_method: str, criteria: list[str],
         cells = []
         for attr in criteria:
             va, vb = [getattr(r, attr) for r in a], [getattr(r, attr) for r in b]
-            p = _compare(va, vb, episodes)
-            cells.append(f"{median_text(va, episodes)} vs {median_text(vb, episodes)} (p = {p:.3f})")
+            bound = STEPS_BOUND if attr in STEP_CRITERIA else episodes  # (criteria in human steps, not episodes)
+            p = _compare(va, vb, bound)
+            cells.append(f"{median_text(va, bound)} vs {median_text(vb, bound)} (p = {p:.3f})")
         cells.append(_higher([r.success_last_10 for r in a], [r.success_last_10 for r in b]))
         if evaluated and any(r.eval_kind == "one scene" for r in a + b):
             cells.append("one scene (not compared)")
