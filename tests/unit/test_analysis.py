@@ -144,3 +144,20 @@ def test_median_over_seeds_with_never():
     assert median_text([None, None], 60) == "never"
     assert median_text([2, 5], 60) == "3.5"
     assert fmt_episode([None, 7], 60) == "7–never (never, 7)"
+
+
+def test_report_compares_with_hil_serl_in_human_steps_and_counts_safety(tmp_path):
+    """Runs of the issue-23 methods: the budget, safety and compute columns, and the comparison of the human steps
+    spent before the first autonomous success (old episodes.csv files without the new columns read as 0)."""
+    exp = tmp_path / "exp"
+    n = 12
+    for seed in (0, 1, 2):
+        _write_run(exp / f"low_cov-khgrl-seed{seed}", [False, True, False] + [True] * 9, [0.0] * n, human={2})
+        _write_run(exp / f"low_cov-hil-serl-seed{seed}", [False] * n, [0.0] * n, human={2})
+        _write_run(exp / f"low_cov-khgrl_rlpd-seed{seed}", [False, True] + [True] * 10, [0.0] * n, human={2})
+    assert {m for _, m, _, _ in find_runs(exp)} == {"khgrl", "hil-serl", "khgrl_rlpd"}
+    text = analyse([exp], tmp_path / "out")
+    assert "human steps before first autonomous success" in text and "hard-constraint violation steps" in text
+    khgrl_vs_hil = next(line for line in text.splitlines() if line.startswith("| low_cov | 3/3 |"))
+    # KhGRL: 10 human steps (episode 2) before its first autonomous success (3 or 4); HIL-SERL never succeeds
+    assert "| 10 vs never (p = 0.023) |" in khgrl_vs_hil, khgrl_vs_hil  # (scipy: asymptotic, ties within groups)
