@@ -30,8 +30,16 @@ from khgrl.deploy.supervisor import Proc, ProcessGroup
 REPO = Path(__file__).resolve().parents[1]
 
 __all__ = ["REPO", "Proc", "ProcGroup", "free_endpoint", "unique_run", "wait_for", "wait_for_file", "read_json",
-           "python_main",
+           "python_main", "TIMING_COLUMNS", "untimed",
            "RecordingPublisher"]
+
+
+TIMING_COLUMNS = ("wall_time", "human_seconds")  # the episodes.csv columns two runs of one seed differ in
+
+
+def untimed(rows: list[dict]) -> list[dict]:
+    """episodes.csv rows without the columns that measure time (:data:`TIMING_COLUMNS`)."""
+    return [{k: v for k, v in r.items() if k not in TIMING_COLUMNS} for r in rows]
 
 
 def unique_run(prefix: str = "t") -> str:

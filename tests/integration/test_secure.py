@@ -19,7 +19,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers import read_json
+from helpers import read_json, untimed
 from launch import FAST, Launcher, _rows, _run
 
 pytestmark = pytest.mark.integration
@@ -123,8 +123,7 @@ def test_secure_run_rejects_every_attack_and_repeats_the_plain_run(tmp_path):
 
     acct = provenance_check(up.run_dir)
     assert acct["lost"] == 0 and acct["duplicated"] == 0 and acct["produced"] > 0, acct
-    strip = lambda rows: [{k: v for k, v in r.items() if k != "wall_time"} for r in rows]  # noqa: E731
-    assert strip(_rows(up.run_dir)) == strip(_rows(tmp_path / "plain")), "the secure run gave other episodes"
+    assert untimed(_rows(up.run_dir)) == untimed(_rows(tmp_path / "plain")), "the secure run gave other episodes"
     for name, cn in (("learner", "learner"), ("a0", "actor-a0"), ("human-scripted", "human-scripted")):
         log = (up.run_dir / "logs" / f"{name}.log").read_text()
         assert f"identity: {cn} (mutual TLS)" in log, f"{name}'s log does not say who it runs as"
