@@ -69,7 +69,7 @@ def _columns(results: list[RunResult], episodes: int) -> list[tuple[str, Callabl
                                                   f"{sum(r.intervention_steps for r in rs)}"),
              ("return, last 10", lambda rs: mean_sd([r.mean_return_last_10 for r in rs]))]
     if _budgeted(results):  # human budget, safety, compute
-        cols += _budget_columns(episodes)
+        cols += _budget_columns()
     if any(r.eval_success is not None for r in results):
         header = ("eval success of the final policy (mean; per seed)" if all(r.eval_kind in ("", "episodes")
                   for r in results) else "eval success of the final policy (scenes: pooled over seeds, 95 % Wilson "
@@ -88,14 +88,11 @@ STEP_CRITERIA = ("human_steps_to_first_autonomous",)  # compared as the episode 
 STEPS_BOUND = 10**9  # no run spends more human steps: 'never' ranks above it
 
 
-def _budget_columns(episodes: int) -> list[tuple[str, Callable[[list[RunResult]], str]]]:
+def _budget_columns() -> list[tuple[str, Callable[[list[RunResult]], str]]]:
     """The comparison with HIL-SERL's columns: human steps spent before the first autonomous success, safety
     (hard-constraint violations, workspace exits of the policy) and compute (gradient steps, wall time)."""
-    def human_to_first(rs: list[RunResult]) -> str:
-        v = [r.human_steps_to_first_autonomous for r in rs]
-        done = [x for x in v if x is not None]
-        med = f"{np.median(done):.0f}" if len(done) == len(v) else ("never" if not done else "–")
-        return f"{med} ({', '.join('never' if x is None else str(x) for x in v)})"
+    def human_to_first(rs: list[RunResult]) -> str:  # (as an episode criterion, 'never' ranked last)
+        return fmt_episode([r.human_steps_to_first_autonomous for r in rs], STEPS_BOUND)
 
     def total(attr: str) -> Callable[[list[RunResult]], str]:
         return lambda rs: (f"{np.mean([getattr(r, attr) for r in rs]):.0f} "

@@ -225,11 +225,13 @@ class KGRLEnv(gym.Env):
 
     def _command(self, t: int, a: np.ndarray, L: np.ndarray, info: dict):
         """Eq. 5 (policy) or eq. 6 (correction): (P_t, xi, the action the transition stores)."""
-        if self.delta is not None:
-            return self._delta_command(a, info)
-        if self._correction is not None:
+        p_h = None
+        if self._correction is not None:  # projected onto the workspace box (counted), whatever the control
             p_h = np.clip(self._correction, self.world.low, self.world.high)
             info["projected"] = bool(np.any(p_h != self._correction))
+        if self.delta is not None:
+            return self._delta_command(a, p_h, info)
+        if p_h is not None:
             iv = self.mapping.intervene(t, p_h, L)
             info.update(intervened=True, clipped=iv.clipped, xi_h=iv.xi, raw_action=iv.raw_action)
             return p_h, iv.xi, iv.action
@@ -238,13 +240,11 @@ class KGRLEnv(gym.Env):
                                       or np.any(desired > self.world.high + VIOLATION_TOL))  # (the QP's rounding)
         return desired, xi, a
 
-    def _delta_command(self, a: np.ndarray, info: dict):
+    def _delta_command(self, a: np.ndarray, p_h: np.ndarray | None, info: dict):
         """Delta control (:class:`~khgrl.common.tasks.delta.DeltaControl`): the policy's displacement, or the
         takeover action towards the (workspace-projected) P_h; xi is zero (there is no null space)."""
         zero = np.zeros(self.world.out_dim)
-        if self._correction is not None:
-            p_h = np.clip(self._correction, self.world.low, self.world.high)
-            info["projected"] = bool(np.any(p_h != self._correction))
+        if p_h is not None:
             a_h, clipped = self.delta.invert(self.position, p_h)
             info.update(intervened=True, clipped=clipped, xi_h=zero, raw_action=a_h)
             return self.delta.act(self.position, a_h)[0], zero, a_h
@@ -266,14 +266,15 @@ class KGRLEnv(gym.Env):
         desired, xi, stored = self._command(t, a, L, info)
         dp = desired - mean
         r_a = -self.task.action_cost * float(dp @ dp) if self.delta is None else 0.0
-        info["violation"] = bool(np.max(self.world.c - self.world.G @ desired, initial=-np.inf) > VIOLATION_TOL)
+        violation = float(np.max(self.world.c - self.world.G @ desired, initial=-np.inf))  # (> 0: a row violated)
+        info["violation"] = violation > VIOLATION_TOL
         env_action = desired if self.task.command is None else self.task.command(self.inner, desired)
         inner_obs, r_env, term, trunc, inner_info = self.inner.step(env_action)
         self._inner_obs = inner_obs
         self.position = self._locate(inner_obs, desired)
         self.desired = desired
         if self.task.scene is not None:
-            self.max_violation = max(self.max_violation, float(np.max(self.world.c - self.world.G @ desired)))
+            self.max_violation = max(self.max_violation, violation)
         self.trail.append(self.position.copy())
         self.t += 1
         terminated = bool(term)
