@@ -162,7 +162,8 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     t0 = time.perf_counter()
     try:
         env = KGRLEnv(load_task(cfg.task_spec, cfg.demos or None), seed=seed, adapt=cfg.adapt,
-                      control="delta" if cfg.method == "hil-serl" else "kmp")
+                      control="delta" if cfg.method == "hil-serl" else "kmp",
+                      rate_limit=cfg.safety.limits(cfg.stream.mode))
         task = env.descriptor(cfg.task_spec)
     except TaskError as exc:
         return _error(actor, exc)

@@ -34,6 +34,7 @@ class EpisodeStats:
     violation_steps: int = 0  # steps whose commanded P_t violated a hard constraint G P >= c
     workspace_exits: int = 0  # steps whose policy asked for a position outside the workspace box
     human_seconds: float = 0.0  # wall seconds of the intervened steps (from the previous step's end)
+    rate_limited_steps: int = 0  # steps whose position sent was limited in speed or acceleration (--rate-limit)
 
     def to_row(self) -> dict:
         row = asdict(self)
@@ -70,6 +71,7 @@ class EpisodeAccumulator:
         st.obstacle_steps += int(bool(info.get("in_obstacle", False)))
         st.violation_steps += int(bool(info.get("violation", False)))
         st.workspace_exits += int(bool(info.get("workspace_exit", False)))
+        st.rate_limited_steps += int(bool(info.get("rate_limited", False)))
         now = time.perf_counter()
         iv = bool(info.get("intervened", False))
         if iv:

@@ -139,7 +139,8 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
         world = build_task_world(task)
         scale_model, scale_text = load_scale(run_dir, actor, world.out_dim)
         env = KGRLEnv(world=world, seed=seed, scale_model=scale_model, adapt=adapted,
-                      control="delta" if cfg.method == "hil-serl" else "kmp")
+                      control="delta" if cfg.method == "hil-serl" else "kmp",
+                      rate_limit=cfg.safety.limits(cfg.stream.mode))  # (the run's: the same dynamics)
     except TaskError as exc:
         raise EvalError(str(exc)) from None
     policy = load_policy(model_zip, env, cfg.tqc, checkpoint_algo(model_zip, cfg))

@@ -5,7 +5,9 @@
   algorithm (``RunConfig.algo``, ``--algo``): another algorithm takes those that apply to it.
 * :class:`StreamSettings` -- the transition stream and its flow control (batch size, lead limit, outbox,
   timeouts, checkpoint interval).
-* :class:`RunConfig` -- a whole run: world, method, episodes, seed, processes, and the two above.
+* :class:`~khgrl.common.config.safety.SafetySettings` -- what the actor does to keep a robot safe (rate limits on
+  P_t, the watchdog).
+* :class:`RunConfig` -- a whole run: world, method, episodes, seed, processes, and the three above.
 
 Every field has its default, its help text and its roles here, once: the commands whose flags it is (``up``
 takes every setting; ``learner``, ``actor``, ``human`` and ``reference`` those whose roles name them).
@@ -29,11 +31,14 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from khgrl.common.config.assignments import parse_assignments
+from khgrl.common.config.fields import _LA, _LAH, _LAR, _LR, ACTOR, HUMAN, LEARNER, REFERENCE, ROLES, UP, _opt
 from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
+from khgrl.common.config.safety import SafetySettings
 
 __all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSERL_DEFAULTS", "HUMANS",
-           "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "RunConfig", "add_config_flags", "role_fields",
-           "parse_assignments", "resolve", "read_table", "load_file", "write_run_config", "read_run_file", "to_toml"]
+           "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "SafetySettings", "RunConfig",
+           "add_config_flags", "role_fields", "parse_assignments", "resolve", "read_table", "load_file",
+           "write_run_config", "read_run_file", "to_toml"]
 
 METHODS = ("khgrl", "kgrl", "hil-serl")
 HUMAN_METHODS, REFERENCE_METHODS = ("khgrl", "hil-serl"), ("khgrl", "kgrl")  # with a human; khgrl reference's
@@ -43,27 +48,6 @@ DEVICES = ("auto", "cpu", "cuda")
 MODES = ("simulation", "robot")
 HUMANS = ("scripted", "gui", "keyboard", "gamepad", "replay", "none")  # khgrl human's clients (test_config checks)
 PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)
-
-# The commands whose flags a setting is: ``khgrl up`` takes every setting (and writes them all into the run's
-# config file); each other command takes the settings whose roles name it.
-UP, LEARNER, ACTOR, HUMAN, REFERENCE = "up", "learner", "actor", "human", "reference"
-ROLES = (UP, LEARNER, ACTOR, HUMAN, REFERENCE)
-_LA, _LAH, _LR, _LAR = (LEARNER, ACTOR), (LEARNER, ACTOR, HUMAN), (LEARNER, REFERENCE), (LEARNER, ACTOR, REFERENCE)
-
-
-def _opt(default: Any, help: str, choices: tuple | None = None, *, roles: tuple[str, ...],  # noqa: A002
-         shown: str | None = None):
-    """A config field: its default, help text, allowed values, ``roles`` (the commands besides ``khgrl up`` whose
-    flag it is; () : ``khgrl up`` only; every field must say, so a new setting cannot silently be no flag) and, where
-    the default needs words, what ``--help`` shows as the default (``shown``)."""
-    if isinstance(default, (list, dict)):
-        raise TypeError("use tuples for sequence defaults (frozen settings)")
-    unknown = set(roles) - set(ROLES)
-    if unknown:
-        raise ValueError(f"unknown role(s) {sorted(unknown)}; roles are {ROLES}")
-    return field(default=default, metadata={"help": help, "choices": choices, "roles": frozenset((UP, *roles)),
-                                                   "shown": shown})
-
 
 @dataclass(frozen=True)
 class TQCSettings:
@@ -219,6 +203,7 @@ class RunConfig:
     stop_timeout: float = _opt(60.0, "seconds the processes get to stop cleanly", roles=())
     tqc: TQCSettings = field(default_factory=TQCSettings)
     stream: StreamSettings = field(default_factory=StreamSettings)
+    safety: SafetySettings = field(default_factory=SafetySettings)
 
     def validate(self) -> "RunConfig":
         if self.episodes < 1 or self.actors < 1:
@@ -240,6 +225,7 @@ class RunConfig:
             raise ValueError(f"algo {self.algo!r}: expected the name of a registered learner algorithm, e.g. tqc")
         self.tqc.validate()
         self.stream.validate(self.tqc.train_freq)
+        self.safety.validate(self.stream.correction_timeout)
         return self
 
     @property

@@ -26,9 +26,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DeltaControl", "STEP_FACTOR"]
+__all__ = ["DeltaControl", "STEP_FACTOR", "largest_step"]
 
 STEP_FACTOR = 2.0  # step = STEP_FACTOR x the demonstrations' largest per-step displacement
+
+
+def largest_step(demos: np.ndarray) -> float:
+    """The demonstrations' largest per-axis displacement between consecutive grid points (the task's speed scale).
+
+    :param demos: (M, N, O) demonstrations on the KMP grid.
+    """
+    d = np.asarray(demos, dtype=np.float64)
+    largest = float(np.max(np.abs(np.diff(d, axis=1)))) if d.ndim == 3 and d.shape[1] > 1 else 0.0
+    if not largest > 0.0:
+        raise ValueError("the demonstrations do not move: no speed scale")
+    return largest
 
 
 @dataclass(frozen=True)
@@ -53,11 +65,7 @@ class DeltaControl:
         :param low: the workspace's lower corner
         :param high: its upper corner
         """
-        d = np.asarray(demos, dtype=np.float64)
-        largest = float(np.max(np.abs(np.diff(d, axis=1)))) if d.shape[1] > 1 else 0.0
-        if not largest > 0.0:
-            raise ValueError("the demonstrations do not move: no step size for delta actions")
-        return cls(STEP_FACTOR * largest, np.asarray(low, np.float64), np.asarray(high, np.float64))
+        return cls(STEP_FACTOR * largest_step(demos), np.asarray(low, np.float64), np.asarray(high, np.float64))
 
     def act(self, position: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, bool]:
         """P_t for the policy's action: (the commanded position, whether the box clipped it).

@@ -21,7 +21,10 @@ baseline, :mod:`khgrl.common.tasks.delta`) a displacement instead: P_t = clip(po
 box, no band, reward r = the environment's (no r_a), and a correction is a takeover: a_h = the action towards P_h.
 
 Safety counts in ``info`` for every control: ``violation`` (the commanded P_t violates a hard constraint
-G P >= c) and ``workspace_exit`` (the policy asked for a position outside the workspace box).
+G P >= c) and ``workspace_exit`` (the policy asked for a position outside the workspace box). With ``rate_limit``
+(:class:`~khgrl.common.tasks.safety.RateLimiter`) the position sent to the task's environment is P_t rate-limited
+(``rate_limited``: it differs); the action cost r_a is the mapping's P_t's, the violation count and ``desired``
+are of the position sent.
 
 Scenes that change every episode (a task with a :class:`~khgrl.common.tasks.scene.Scene`): at every reset the
 placement is read from the first observation (``env.placement``, ``info["scene"]``) and, with ``adapt`` and the
@@ -42,6 +45,7 @@ from khgrl.common.kmp.scale import ScaleModel
 from khgrl.common.tasks.adapted import episode_scene
 from khgrl.common.tasks.api import Task, TaskError, value_bounds
 from khgrl.common.tasks.delta import DeltaControl
+from khgrl.common.tasks.safety import RateLimiter
 from khgrl.common.tasks.scene import scene_seed
 from khgrl.common.tasks.world import TaskWorld, build_task_world
 
@@ -78,13 +82,15 @@ class KGRLEnv(gym.Env):
     :param inner: the task's environment (default: ``task.make_env(seed)``).
     :param adapt: refit the KMP through the scene's via-points at every reset (tasks with a varying scene).
     :param control: "kmp" (eqs. 5-6, KGRL and KhGRL) or "delta" (the HIL-SERL baseline's delta actions).
+    :param rate_limit: ``(max_speed, max_accel)`` in units of the demonstrations' largest step: limit P_t's rate
+        (:class:`~khgrl.common.tasks.safety.RateLimiter`; None: no limit).
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
 
     def __init__(self, task: Task | None = None, *, seed: int = 0, scale_model: ScaleModel | None = None,
                  render_mode: str | None = None, world: TaskWorld | None = None, inner: gym.Env | None = None,
-                 adapt: bool = True, control: str = "kmp") -> None:
+                 adapt: bool = True, control: str = "kmp", rate_limit: tuple[float, float] | None = None) -> None:
         if control not in CONTROLS:
             raise ValueError(f"control must be one of {CONTROLS}, got {control!r}")
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -111,6 +117,8 @@ class KGRLEnv(gym.Env):
         self.adapt = bool(adapt)
         self.delta = DeltaControl.from_demos(self.world.demos, self.world.low, self.world.high) \
             if control == "delta" else None
+        self.limiter = None if rate_limit is None else RateLimiter.from_demos(self.world.demos, *rate_limit,
+                                                                               self.world.low, self.world.high)
         self.placement: dict[str, float] = {}
         self.via_points: list = []  # (grid step, position) of this episode's via-points
         self._correction: np.ndarray | None = None
@@ -134,6 +142,8 @@ class KGRLEnv(gym.Env):
         self.trail = [position.copy()]
         self._inner_obs = inner_obs
         self._done = False
+        if getattr(self, "limiter", None) is not None:
+            self.limiter.reset(position)
 
     def _locate(self, inner_obs: np.ndarray, fallback: np.ndarray) -> np.ndarray:
         if self.task.position is None:
@@ -262,10 +272,13 @@ class KGRLEnv(gym.Env):
         a = np.clip(a, -1.0, 1.0)
         L = self.mapping.scale_at(t, self.position)
         mean = self.mapping.mean(t)
-        info: dict = {"intervened": False, "clipped": False, "projected": False, "workspace_exit": False}
+        info: dict = {"intervened": False, "clipped": False, "projected": False, "workspace_exit": False,
+                      "rate_limited": False}
         desired, xi, stored = self._command(t, a, L, info)
         dp = desired - mean
         r_a = -self.task.action_cost * float(dp @ dp) if self.delta is None else 0.0
+        if self.limiter is not None:  # what the robot is sent
+            desired, info["rate_limited"] = self.limiter.limit(desired)
         violation = float(np.max(self.world.c - self.world.G @ desired, initial=-np.inf))  # (> 0: a row violated)
         info["violation"] = violation > VIOLATION_TOL
         env_action = desired if self.task.command is None else self.task.command(self.inner, desired)
@@ -287,6 +300,13 @@ class KGRLEnv(gym.Env):
                     constraints_active=0 if info["intervened"] or self.delta
                     else self.mapping.model.step_info.active_rows)
         return self._obs(), r_a + float(r_env), terminated, truncated, info
+
+    def hold(self) -> None:
+        """The actor holds the robot (e-stop, pause, a wait for the learner or a silent human): give the task's
+        ``hold`` adapter the position last sent, about once a control period (without one: nothing is sent; the
+        robot's controller keeps its last target)."""
+        if self.task.hold is not None:
+            self.task.hold(self.inner, self.desired.copy())
 
     # --------------------------------------------------------------- descriptor and drawing
     def descriptor(self, spec: str = ""):

@@ -172,10 +172,10 @@ def _process_parsers() -> dict[str, list[argparse.ArgumentParser]]:
 def test_each_commands_flags_are_the_settings_whose_roles_name_it():
     from dataclasses import fields as dc_fields
 
-    from khgrl.common.config.settings import ROLES, role_fields
+    from khgrl.common.config.settings import ROLES, SafetySettings, role_fields
 
-    every = [f for cls in (RunConfig, TQCSettings, StreamSettings) for f in dc_fields(cls)
-             if cls is not RunConfig or f.name not in ("tqc", "stream")]
+    every = [f for cls in (RunConfig, TQCSettings, StreamSettings, SafetySettings) for f in dc_fields(cls)
+             if cls is not RunConfig or f.name not in ("tqc", "stream", "safety")]
     for f in every:  # every setting says which commands take it, and khgrl up takes it
         assert "up" in f.metadata["roles"] and f.metadata["roles"] <= set(ROLES), f.name
     parsers = _process_parsers()
@@ -186,7 +186,7 @@ def test_each_commands_flags_are_the_settings_whose_roles_name_it():
     assert _flags(parsers["up"][0]) == {f.name for f in every}  # every field is a flag (of up at least)
     # the processes take what they use: the learner its TQC settings, the actor its stream settings
     assert {"learning_rate", "batch_size", "checkpoint_every", "device"} <= set(role_fields("learner"))
-    assert {"max_lead", "window", "rate", "method"} <= set(role_fields("actor"))
+    assert {"max_lead", "window", "rate", "method", "rate_limit", "human_silence_s"} <= set(role_fields("actor"))
     assert "run_dir" not in role_fields("reference") and "learning_rate" in role_fields("reference")
 
 

@@ -1,0 +1,56 @@
+"""The actor's safety settings (``[safety]`` in a run's config file, ``--rate-limit`` and friends on the command line):
+what stands between the desired position P_t and the robot (README, "On a real robot").
+
+* **Rate limits** on P_t, per axis, in units of the demonstrations' largest per-step displacement ``d`` (the task's
+  own speed scale): a step of P_t is at most ``max_speed`` d, and it changes from one step to the next by at most
+  ``max_accel`` d (:class:`~khgrl.common.tasks.safety.RateLimiter`). On in ``--mode robot``, off in simulation
+  (the setting of every experiment so far) unless ``--rate-limit on``.
+* **Watchdog**: a live human-input client that holds the robot and goes silent for ``human_silence_s`` freezes it at
+  its last P_t until the client speaks again or ``correction_timeout`` releases it; a control step that starts more
+  than ``deadline_margin`` periods late is counted and reported (the robot held its last P_t meanwhile).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from khgrl.common.config.fields import ACTOR, _opt
+
+__all__ = ["SafetySettings", "RATE_LIMITS"]
+
+RATE_LIMITS = ("auto", "on", "off")
+
+
+@dataclass(frozen=True)
+class SafetySettings:
+    """What the actor does to keep the robot safe (module docstring)."""
+
+    rate_limit: str = _opt("auto", "limit the speed and acceleration of P_t, the position sent to the robot: auto (on "
+                                   "in robot mode, off in simulation mode), on or off", RATE_LIMITS, roles=(ACTOR,))
+    max_speed: float = _opt(2.0, "with the rate limit: the largest step of P_t per control step on any axis, in units "
+                                 "of the demonstrations' largest per-step displacement", roles=(ACTOR,))
+    max_accel: float = _opt(0.5, "with the rate limit: the largest change of that step from one control step to the "
+                                 "next, in the same units (0: no acceleration limit)", roles=(ACTOR,))
+    human_silence_s: float = _opt(0.3, "a live human-input client holding the robot and silent this long freezes it "
+                                       "at its last P_t until the client speaks again or correction_timeout releases "
+                                       "it (s; 0: off)", roles=(ACTOR,))
+    deadline_margin: float = _opt(1.0, "with --rate: a control step that starts more than this many periods after its "
+                                       "deadline is counted as late and reported (the robot held meanwhile)",
+                                  roles=(ACTOR,))
+
+    def limits(self, mode: str) -> tuple[float, float] | None:
+        """``(max_speed, max_accel)`` when the rate limit is on in ``mode`` (``simulation`` or ``robot``), else None.
+
+        :param mode: the run's mode.
+        """
+        on = self.rate_limit == "on" or (self.rate_limit == "auto" and mode == "robot")
+        return (self.max_speed, self.max_accel) if on else None
+
+    def validate(self, correction_timeout: float) -> None:
+        if not self.max_speed > 0 or self.max_accel < 0:
+            raise ValueError("safety.max_speed must be > 0 and safety.max_accel >= 0")
+        if self.human_silence_s < 0 or self.deadline_margin < 0:
+            raise ValueError("safety.human_silence_s and safety.deadline_margin must be >= 0")
+        if self.human_silence_s >= correction_timeout > 0:
+            raise ValueError(f"safety.human_silence_s ({self.human_silence_s:g} s) must be shorter than "
+                             f"correction_timeout ({correction_timeout:g} s), which releases a silent client")
