@@ -72,6 +72,7 @@ class CorrectionArbiter:
         self.holder: str | None = None
         self.p_h: np.ndarray | None = None
         self.deadline = 0.0
+        self.heard = 0.0  # when the holder was last heard from (time.monotonic(), shifted by the actor's waits)
         self.lockstep: str | None = None  # client whose step-addressed word each step of this episode waits for
         self._addressed: dict[int, Correction] = {}  # step -> that client's message for it
         self._announced: tuple[int, Correction] | None = None  # (next episode, a client's word for its step 0)
@@ -207,7 +208,7 @@ class CorrectionArbiter:
             self.holder = client
             self.counts["holds"] += 1
         self.p_h = np.asarray(p_h, dtype=np.float64)
-        self.deadline = arrival + self.timeout
+        self.deadline, self.heard = arrival + self.timeout, arrival
         self.counts["applied"] += 1
 
     def _release(self) -> None:
@@ -222,6 +223,17 @@ class CorrectionArbiter:
         self._waited += seconds
         if self.holder is not None:
             self.deadline += seconds
+            self.heard += seconds
+
+    def silent(self, now: float) -> float:
+        """Seconds a live (not lock-step) holder has been silent (0.0 when nobody holds, or in lock-step, where the
+        actor waits for each word anyway): the watchdog's measure (:mod:`khgrl.actor.safety`).
+
+        :param now: ``time.monotonic()``.
+        """
+        if self.holder is None or self.lockstep is not None:
+            return 0.0
+        return max(0.0, now - self.heard)
 
     def _charge(self, now: float) -> None:
         """The holder held since the last step: spend its allowance; release it when that runs out."""

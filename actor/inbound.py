@@ -23,6 +23,7 @@ import time
 from typing import Any
 
 from khgrl.actor.human_limits import HumanPauses
+from khgrl.actor.safety import EStop
 from khgrl.common.delivery.actor_guard import ActorGuard
 from khgrl.common.delivery.senders import HUMAN_COMMANDS, read_for_actor
 from khgrl.common.delivery.trust import WeightsGate, learner_of
@@ -60,6 +61,7 @@ class Inbound:
         self.p, self.flag, self.dims = parts, flag, dims
         self.learners: set[str] = set()
         self.launcher_paused = False  # control/actor or control/all pause (the launcher's: no expiry)
+        self.estop: EStop | None = None  # the e-stop, pressed (latched until the launcher's release)
         self.human_pauses = HumanPauses(pause_s)
         self._new_learners = (float(MAX_LEARNERS), time.monotonic())  # token bucket: (tokens, when)
         self.wrong_task: str | None = None
@@ -95,8 +97,29 @@ class Inbound:
 
     @property
     def paused(self) -> bool:
-        """Whether the actor is paused: by the launcher, or by a human-input client whose pause has not expired."""
-        return self.launcher_paused or self.human_pauses.active(time.monotonic())
+        """Whether the actor is held: the e-stop, or a pause by the launcher or by a human-input client whose pause
+        has not expired."""
+        return self.estop is not None or self.launcher_paused or self.human_pauses.active(time.monotonic())
+
+    @property
+    def held_reason(self) -> str:
+        """Why the actor is held by a command ("" when it is not): the e-stop first."""
+        if self.estop is not None:
+            return f"e-stop by {self.estop.by}"
+        if self.launcher_paused:
+            return "paused by the launcher"
+        return "paused by a human-input client" if self.human_pauses.active(time.monotonic()) else ""
+
+    def press_estop(self, by: str, sent: float, episode: int) -> None:
+        """The e-stop is pressed (the first press counts; a press while it is latched is logged).
+
+        :param by: who pressed it.
+        :param sent: the command's timestamp (the sender's ``time.time()``).
+        :param episode: the actor's episode.
+        """
+        if self.estop is None:
+            self.estop = EStop(by=by, sent=sent, episode=episode, t=int(self.p.env.t))
+        log.warning("e-stop pressed by %s: the robot holds until `khgrl stop --release`", by)
 
     def handle(self, kind: str, key: str, payload, arrival: float, episode: int) -> None:
         """One inbox item.
@@ -121,17 +144,19 @@ class Inbound:
             if why := self.p.arbiter.offer(msg, arrival, episode, self.p.env.t):
                 self.p.rejects.reject("correction", key, ProtocolError(why))
         elif kind == "human_request":  # a person's pause or resume (e.g. the GUI's space bar), on its own key
-            self._on_human_request(msg, key, arrival)
+            self._on_human_request(msg, key, arrival, episode)
         else:
-            self._on_control(msg, key)
+            self._on_control(msg, key, episode)
 
-    def _on_human_request(self, msg: Control, key: str, arrival: float) -> None:
+    def _on_human_request(self, msg: Control, key: str, arrival: float, episode: int) -> None:
         client = msg.envelope.sender
         if not self.p.arbiter.assignments.allows(client):
             self.p.rejects.reject("control", key, ProtocolError(
                 f"{msg.command} from human-input client {client!r}, not assigned to actor {self.p.arbiter.actor}"))
             return
-        if msg.command == "pause":
+        if msg.command == "estop":
+            self.press_estop(f"human client {client}", msg.envelope.ts, episode)
+        elif msg.command == "pause":
             if not self.human_pauses.holds(client):
                 log.info("pause from human-input client %r (for %.0f s unless renewed)", client,
                          self.human_pauses.limit)
@@ -199,9 +224,15 @@ class Inbound:
         for k, why in ignored.items():
             self.guard.ignore(k, why, ours_alive=bool(self.learners))
 
-    def _on_control(self, msg: Control, key: str) -> None:
+    def _on_control(self, msg: Control, key: str, episode: int) -> None:
         attribute_control(msg, key, log)
-        if msg.command == "stop":
+        if msg.command == "estop":
+            self.press_estop(msg.envelope.sender, msg.envelope.ts, episode)
+        elif msg.command == "release":
+            if self.estop is not None:
+                log.warning("e-stop released by %s", msg.envelope.sender)
+            self.estop = None
+        elif msg.command == "stop":
             self.flag.set("stop command")
         elif msg.command == "pause":
             self.launcher_paused = True

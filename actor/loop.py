@@ -12,8 +12,10 @@ Per control step:
 3. record the transition (the stored action is ``info["action"]``: the human's a_h when intervened), publish a
    frame (``last`` on the episode's final one), and every ``batch`` transitions of the actor's running index
    (and at episode end) cut a batch (:class:`~khgrl.common.delivery.stream.TransitionStream`).
-Before the first episode of a run with ``--sampling rlpd`` the demonstrations go out as prior transitions
-(:mod:`khgrl.actor.demos`). At the end the actor waits until the learner holds every batch in a checkpoint.
+The watchdog (:mod:`khgrl.actor.safety`) holds the robot, and says why, while the loop waits (the e-stop, a pause,
+the learner) or a holding human is silent. Before the first episode of a run with ``--sampling rlpd`` the
+demonstrations go out as prior transitions (:mod:`khgrl.actor.demos`). At the end the actor waits until the learner
+holds every batch in a checkpoint.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from khgrl.actor.demos import replay_demos
 from khgrl.actor.inbound import Inbound
 from khgrl.actor.pacing import Pacer
 from khgrl.actor.parts import ActorParts
+from khgrl.actor.safety import Watchdog
 from khgrl.actor.telemetry import frame, status_info, summary
 from khgrl.common.config.settings import RunConfig
 from khgrl.common.delivery.actor_side import ActorDelivery
@@ -76,6 +79,10 @@ class ActorLoop:
                                       self.inbound, lambda item: self.inbound.handle(*item, episode=self.episode),
                                       self._publish_status)
         self.service, self.waits = self.delivery.service, self.delivery.waits
+        s = cfg.safety  # the watchdog holds the robot while the loop waits or a holding human is silent
+        self.watchdog = Watchdog(parts.env, self.inbound, parts.arbiter, s.human_silence_s, s.deadline_margin,
+                                 self.pacer.period, self.service, self._publish_status, lambda: bool(flag))
+        self.delivery.on_hold = self.watchdog.holding
 
     def join(self) -> None:
         """Before the first step: who is alive (waiting ``learner_wait`` s for one starting up), the current weights."""
@@ -125,18 +132,16 @@ class ActorLoop:
         return True
 
     def _before_step(self) -> bool:
-        """Inbox, flow control and pacing before a step; False if the actor is to stop."""
+        """Inbox, flow control, pacing and the watchdog before a step; False if the actor is to stop."""
         self.service()
         self.rate_limit()
-        if self.flag:
-            return False
-        if self.pacer.sleep():
-            # what arrived while pacing (a correction for the frame just published) applies to this step
-            self.service()
+        if not self.flag and self.pacer.sleep():
+            self.service()  # what arrived while pacing (a correction for the frame just published) applies now
             self.rate_limit()
-            if self.flag:
-                return False
-        return True
+        if self.watchdog.human_silence():  # held for a silent human: what arrived meanwhile (an e-stop) first
+            self.rate_limit()
+        self.watchdog.late(self.pacer.late)
+        return not self.flag
 
     def _action(self, obs: np.ndarray) -> np.ndarray:
         run_index = self.earlier_transitions + self.p.stream.count - self.p.stream.start_index
@@ -152,7 +157,7 @@ class ActorLoop:
         self.pacer.step_started()
         action = self._action(obs)
         if not p.arbiter.ready(env.t):
-            self._await_correction(env.t)
+            self.watchdog.await_word(env.t)
         p_h = p.arbiter.current(time.monotonic(), env.t)
         env.set_correction(p_h)
         next_obs, reward, terminated, truncated, info = env.step(action)
@@ -195,7 +200,8 @@ class ActorLoop:
                            arbiter=p.arbiter, rejects=p.rejects, waits=self.waits,
                            learner_alive=self.delivery.learner_alive, paused=self.inbound.paused,
                            periods=self.pacer.periods)
-        info = replace(info, alarm=self.inbound.guard.alarm or "")  # another process as this actor, two learners
+        info = replace(info, alarm=self.inbound.guard.alarm or "",  # another process as this actor, two learners
+                       held=self.watchdog.reason, safety=dict(self.watchdog.counts))
         p.link.publish(Status(role="actor", info=info))
 
     def rate_limit(self) -> None:
@@ -204,18 +210,8 @@ class ActorLoop:
         waited = self.delivery.rate_limit()
         if waited is not None:
             self.p.arbiter.extend(waited)
-
-    def _await_correction(self, step: int) -> None:
-        """A lock-step correction client has not yet sent its word for ``step``: wait for it (servicing the
-        inbox) at most the correction timeout, then carry on without it."""
-        t0 = time.monotonic()
-        arb = self.p.arbiter
-        arb.counts["lockstep_waits"] += 1
-        while not self.flag and not arb.ready(step):
-            if time.monotonic() - t0 > arb.timeout:
-                arb.give_up(step)
-                break
-            self.service(block=0.002)
+            self.watchdog.released()
+            self.pacer.resync()  # a hold is not lateness: the next step goes at once
 
     def summary(self, rc: int, wall: float) -> dict:
         """``summary.json`` of this part of the run.

@@ -200,7 +200,8 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         try:
             rc = loop.run()
         finally:
-            summary = {**loop.summary(rc, time.perf_counter() - t_run), "demo_transitions": loop.demo_transitions}
+            summary = {**loop.summary(rc, time.perf_counter() - t_run), "demo_transitions": loop.demo_transitions,
+                       "safety": loop.watchdog.summary()}
             _close(parts)
             StreamRecord(stream=parts.stream.stream, **parts.stream.position(), running=False).save(out_dir)
 

@@ -22,6 +22,7 @@ class Pacer:
         self.period = 1.0 / rate if rate > 0 else 0.0
         self.deadline = time.perf_counter()
         self.last_start: float | None = None
+        self.late = 0.0  # how late (s) the last deadline :meth:`sleep` waited for had passed (0: on time)
         self.periods: list[float] = []  # s between the starts of consecutive steps
 
     def sleep(self) -> bool:
@@ -30,12 +31,17 @@ class Pacer:
             return False
         self.deadline += self.period
         now = time.perf_counter()
+        self.late = max(0.0, now - self.deadline)
         if self.deadline < now - self.period:  # fell behind by more than a period: don't try to catch up
             self.deadline = now
         elif self.deadline > now:
             time.sleep(self.deadline - now)
             return True
         return False
+
+    def resync(self) -> None:
+        """The loop held on purpose (a pause, the e-stop, a wait): the next deadline is now, not a late one."""
+        self.deadline = time.perf_counter() - self.period
 
     def step_started(self) -> None:
         """A step starts now: record the period since the last one."""

@@ -85,6 +85,7 @@ PROCESS_COMMANDS = {
     "human": ("khgrl.human_bridge.main", "main", "a human-input process (scripted, gui, keyboard, gamepad or replay)"),
     "experiment": ("khgrl.deploy.experiment", "main", "methods x scenarios x seeds through the real system, resumable"),
     "report": ("khgrl.deploy.report", "main", "per-episode results of runs: figure and markdown table"),
+    "stop": ("khgrl.deploy.stop", "main", "stop a run, or press / release its e-stop (--now, --release)"),
     # by name: the benchmarks drive the deployment tools (benchmarks imports deploy, not the other way round)
     "bench": ("khgrl.benchmarks.cli", "main", "benchmarks that print numbers (khgrl bench --help)"),
 }

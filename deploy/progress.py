@@ -17,7 +17,7 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
-from khgrl.common.wire.messages import EpisodeReport, LearnerInfo, Status
+from khgrl.common.wire.messages import ActorInfo, EpisodeReport, LearnerInfo, Status
 
 __all__ = ["ProgressView", "ActorRow", "episode_line", "checkpoint_line", "plain_table"]
 
@@ -123,6 +123,7 @@ class ProgressView:
             tty = bool(getattr(sys.stdout, "isatty", lambda: False)())
         self.live = enabled and tty
         self.learner: LearnerInfo | None = None
+        self.held: dict[str, str] = {}  # actor -> why its robot is held ("": it is not)
         self._live = None
 
     def __enter__(self) -> "ProgressView":
@@ -156,6 +157,12 @@ class ProgressView:
 
         :param status: a decoded status message (info typed by role)
         """
+        if isinstance(status.info, ActorInfo) and status.info.held != self.held.get(status.info.id, ""):
+            self.held[status.info.id] = status.info.held  # the watchdog holds (or releases) the robot: say so
+            if not self.live:
+                print(f"[{status.info.id}] " + (f"robot held: {status.info.held}" if status.info.held
+                                                else "robot released"), flush=True)
+            self.refresh()
         if isinstance(status.info, LearnerInfo):
             before = self.learner.checkpoint_error if self.learner is not None else ""
             self.learner = status.info
@@ -184,6 +191,8 @@ class ProgressView:
             share = f"{li.sampled_prior / sampled:.0%}" if sampled else "-"
             text += f", UTD {li.utd:.2f}, prior: {li.prior_slots} slots, {share} of samples"
         failing = checkpoint_line(li, markup=markup)
+        held = "; ".join(f"{a}: {why}" for a, why in self.held.items() if why)
+        text += f"\nrobot held -- {held}" if held else ""
         return f"{text}\n{failing}" if failing else text
 
     def final_text(self) -> str:

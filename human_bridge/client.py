@@ -20,6 +20,7 @@ from typing import Iterator
 import numpy as np
 from khgrl.common.config.process import ProcessConfig
 from khgrl.common.delivery.declare import publisher, put, subscribe, token
+from khgrl.common.delivery.senders import HUMAN_COMMANDS
 from khgrl.common.delivery.task_link import fetch_task
 from khgrl.common.delivery.transport import Inbox, open_client, undeclare_all
 from khgrl.common.process import StopFlag
@@ -155,9 +156,12 @@ class HumanClient:
         self._status_seq += 1
 
     def control_actors(self, command: str) -> None:
-        """Ask the actors to ``pause`` or ``resume``, on this client's own ``human/<id>/request``."""
-        if command not in ("pause", "resume"):
-            raise ValueError(f"a human-input client may only pause or resume the actors, not {command!r}")
+        """Ask the actors to ``pause`` or ``resume``, or press the e-stop (``estop``: every actor this client is
+        assigned to holds its robot until the launcher releases it, ``khgrl stop --release``), on this client's own
+        ``human/<id>/request``."""
+        if command not in HUMAN_COMMANDS:
+            raise ValueError(f"a human-input client may only pause or resume the actors or press the e-stop, not "
+                             f"{command!r}")
         put(self.session, self.keys.human_request(self.client),
             encode(Control(command=command), self.client, self._control_seq), congestion="block",
             priority="interactive_high", express=True)

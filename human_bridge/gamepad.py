@@ -9,6 +9,8 @@ The same window and hold logic as ``khgrl human keyboard`` (:mod:`khgrl.human_br
   along ``view_axes[1]``; the further the stick is pushed, the faster (full push: ``--speed``).
 * **right stick vertical** (axis 3, ``--third-axis``) -- up / down along the third axis (``view_third``; z of a
   3-D task such as ``fetch:moved``).
+* **button 1** (``--estop-button``; "B" / "circle"), or x in the window -- the e-stop: every actor holds its robot
+  until ``khgrl stop RUN_DIR --release``.
 * A dead zone of 0.15 (:data:`~khgrl.human_bridge.velocity.DEAD_ZONE`) around the centre is no push. q or Esc in the
   window, or closing it, quits (releasing first); unplugging the controller releases.
 
@@ -27,6 +29,7 @@ from khgrl.human_bridge.velocity import DEAD_ZONE, Push, dead_zone
 __all__ = ["GamepadInput", "open_joystick", "add_arguments", "run", "HOLD_BUTTON", "THIRD_AXIS"]
 
 HOLD_BUTTON = 0
+ESTOP_BUTTON = 1  # "B" / "circle": the e-stop (x in the window too)
 THIRD_AXIS = 3  # the right stick's vertical axis on most pads (SDL's joystick numbering)
 
 
@@ -42,8 +45,9 @@ class GamepadInput:
     help = "hold button 0 + left stick (main view), right stick up/down (third axis); q: quit"
 
     def __init__(self, hold_button: int = HOLD_BUTTON, third_axis: int = THIRD_AXIS, zone: float = DEAD_ZONE,
-                 device=None) -> None:
+                 device=None, estop_button: int = ESTOP_BUTTON) -> None:
         self.hold_button, self.third_axis, self.zone, self.device = hold_button, third_axis, zone, device
+        self.estop_button = estop_button
         self.axes: dict[int, float] = {}
         self.buttons: set[int] = set()
 
@@ -65,6 +69,15 @@ class GamepadInput:
         elif event.type == getattr(pygame, "JOYDEVICEREMOVED", -1):
             self.clear()
         return False
+
+    def estop(self, event) -> bool:
+        """Whether ``event`` presses the e-stop button.
+
+        :param event: a pygame event.
+        """
+        import pygame
+
+        return event.type == pygame.JOYBUTTONDOWN and int(event.button) == self.estop_button
 
     def clear(self) -> None:
         """Forget the sticks and buttons (the controller went away)."""
@@ -104,6 +117,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--joystick", type=int, default=0, help="which controller (default: %(default)s)")
     parser.add_argument("--hold-button", type=int, default=HOLD_BUTTON,
                         help="the button that holds the robot while down (default: %(default)s)")
+    parser.add_argument("--estop-button", type=int, default=ESTOP_BUTTON,
+                        help="the button that presses the e-stop (default: %(default)s)")
     parser.add_argument("--third-axis", type=int, default=THIRD_AXIS,
                         help="the stick axis that moves the third output (default: %(default)s, the right "
                              "stick's vertical)")
@@ -117,4 +132,4 @@ def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
     :param proc: the resolved run settings.
     """
     return keyboard.run_pad(args, proc, "gamepad", lambda: GamepadInput(
-        args.hold_button, args.third_axis, device=open_joystick(args.joystick)))
+        args.hold_button, args.third_axis, device=open_joystick(args.joystick), estop_button=args.estop_button))

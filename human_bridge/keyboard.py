@@ -55,6 +55,13 @@ class Device(Protocol):
         """The device's state now."""
 
 
+def estop_event(event) -> bool:
+    """x pressed: the e-stop (every client's window; the actors hold until ``khgrl stop RUN_DIR --release``)."""
+    import pygame
+
+    return event.type == pygame.KEYDOWN and event.key == pygame.K_x
+
+
 def quit_event(event) -> bool:
     """Window closed, q or Esc."""
     import pygame
@@ -131,6 +138,7 @@ class PadClient:
         self.hold: VelocityHold | None = None
         self.frame: Frame | None = None
         self.quit = False
+        self.estopped = False  # x (or the device's e-stop button) was pressed
         self._t_task = -TASK_RETRY_S
         self._t_tick = time.monotonic()
         if task is not None:
@@ -173,12 +181,19 @@ class PadClient:
         self.fetch_task()
         self.pump()
         for event in (self.events or pygame.event.get)():
+            if estop_event(event) or getattr(self.device, "estop", lambda _: False)(event):
+                self.press_estop()
             if self.device.handle(event):
                 self.stop()
         now = time.monotonic()
         dt, self._t_tick = now - self._t_tick, now
         if self.hold is not None and not self.quit:
             self.hold.update(self.device.push(), dt)
+
+    def press_estop(self) -> None:
+        """The e-stop: every actor this client is assigned to holds its robot (until the launcher releases it)."""
+        self.estopped = True
+        self.link.control_actors("estop")
 
     def stop(self) -> None:
         """Quit (releasing first)."""
@@ -203,8 +218,9 @@ class PadClient:
         p = self.hold.p_h if self.hold.holding else (None if f is None else np.asarray(f.desired))
         label = "P_h" if self.hold.holding else "desired"
         vec = "" if p is None else f"{label}  " + "  ".join(f"{n} {x:.3f}" for n, x in zip(names, p))
+        state += "  E-STOP pressed (khgrl stop RUN_DIR --release)" if self.estopped else ""
         return [head, f"task {self.task.name} (O = {self.task.out_dim})  actor {self.actor}  {where}",
-                f"{state}  ({self.hold.sent} corrections sent)", vec, self.device.help]
+                f"{state}  ({self.hold.sent} corrections sent)", vec, self.device.help + "; x: e-stop"]
 
     def draw(self, surface) -> None:
         """Draw :meth:`lines` (the background turns red while holding)."""

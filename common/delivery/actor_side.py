@@ -64,6 +64,7 @@ class ActorDelivery:
         self.settings, self.flag, self.inbound, self.handle, self.status = settings, flag, inbound, handle, status
         self.waits = RateLimitStats()
         self._t_status = time.monotonic()
+        self.on_hold: Callable[[], None] | None = None  # called in every period of a wait (the actor's watchdog)
 
     @property
     def learner_alive(self) -> bool:
@@ -165,6 +166,8 @@ class ActorDelivery:
         self.waits.waits += 1
         w, s = self.weights, self.stream
         while not self.flag and self.must_wait():
+            if self.on_hold is not None:
+                self.on_hold()
             self.service(block=0.02)
             now = time.monotonic()
             if w.behind(s.ack_epoch, s.ack_version) and now - t0 > 1.0 and now - w.last_query > 1.0:

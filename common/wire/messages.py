@@ -19,7 +19,7 @@ __all__ = ["Dims", "ANY_DIMS", "Message", "TaskInfo", "Transitions", "Ack", "Wei
            "EpisodeReport", "Status", "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS"]
 
 MAX_BATCH = 4096  # transitions per batch message
-COMMANDS = ("pause", "resume", "stop", "checkpoint")
+COMMANDS = ("pause", "resume", "stop", "checkpoint", "estop", "release")  # estop / release: the e-stop's
 
 
 @dataclass(frozen=True)
@@ -377,7 +377,7 @@ class Status(Message):
 
 @dataclass(frozen=True)
 class Control(Message):
-    """``control/<target>``: pause, resume, stop or checkpoint."""
+    """``control/<target>``: pause, resume, stop, checkpoint, or the e-stop (``estop``, ``release``)."""
 
     KIND: ClassVar[str] = "control"
     command: str

@@ -253,7 +253,7 @@ def attribute_control(msg: Control, key: str, logger: logging.Logger) -> None:
     :param logger: the process's logger.
     """
     sender = msg.envelope.sender if msg.envelope is not None else "?"
-    if msg.command in ("stop", "pause") and sender != LAUNCHER:
+    if msg.command in ("stop", "pause", "estop", "release") and sender != LAUNCHER:
         logger.warning("control %s from %r on %s: not from the launcher", msg.command, sender, key)
     else:
         logger.info("control: %s from %r on %s", msg.command, sender, key)

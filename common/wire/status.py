@@ -69,6 +69,8 @@ class ActorInfo:
     paused: bool
     period_ms_p50: float | None
     alarm: str = ""  # another process publishes as this actor, or two learners run: in one line ("" when neither)
+    held: str = ""  # why the robot is held now ("" when it is not): the e-stop, a pause, the learner, a silent human
+    safety: _COUNTS = dataclasses.field(default_factory=dict)  # the watchdog's counts (actor/safety.py)
 
 
 @dataclass(frozen=True)

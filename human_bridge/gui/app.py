@@ -12,7 +12,8 @@ correction; while the button is held, one more for every frame of the driven act
 :data:`~khgrl.human_bridge.hold.KEEPALIVE_S` when no frame comes, e.g. the actor is paused); releasing the button
 sends the release. A live hold ends with its episode: on the episode's last frame (``last``) the GUI releases, and
 the person presses again to correct the next episode. The hold is :class:`~khgrl.human_bridge.hold.CorrectionHold`,
-the one every human client shares. Keys: space pauses / resumes the actors, tab chooses the
+the one every human client shares. Keys: space pauses / resumes the actors, x presses the e-stop (every actor holds
+its robot until ``khgrl stop RUN_DIR --release``), tab chooses the
 actor to drive, o toggles the overlays, q or Esc quits (releasing first).
 
 Scenes that change every episode (issue 22): the first frame of an episode (t = 0) of a varying-scene task whose KMP
@@ -48,7 +49,7 @@ from khgrl.human_bridge.hold import CorrectionHold
 __all__ = ["GuiApp", "ActorState", "EpisodeScene", "window_size", "CURVE_HEIGHT", "HELP"]
 
 CURVE_HEIGHT = 90  # the L(s) curve below the text strip (pixels)
-HELP = "drag: P_h  space: pause  tab: actor  o: overlays  q: quit"
+HELP = "drag: P_h  space: pause  x: e-stop  tab: actor  o: overlays  q: quit"
 TRAIL_MAX = 2000
 PAUSE_RENEW_S = 20.0  # while paused, ask again this often (actors end a pause not renewed within human_pause_s)
 
@@ -341,6 +342,8 @@ class GuiApp:
             self.stop()
         elif key == pygame.K_SPACE:
             self.toggle_pause()
+        elif key == pygame.K_x and self.control is not None:  # the e-stop (released by the launcher only)
+            self.control("estop")
         elif key == pygame.K_o:
             self.overlays = not self.overlays
         elif key == pygame.K_TAB:

@@ -1,0 +1,173 @@
+"""The actor's watchdog: when the robot must hold still, it holds its last position sent (never a jump), the task's
+``hold`` adapter hears about it every control period, and the status says why (README, "On a real robot").
+
+The robot is held, and the control loop takes no step, while:
+
+* the **e-stop** is pressed (``khgrl stop --now``, or the e-stop key of a human-input client): latched until the
+  launcher releases it (``khgrl stop --release``); the delay from the command to the hold is recorded;
+* a ``pause`` holds the actor (the launcher's, or a human-input client's);
+* the actor waits for the learner (simulation mode: flow control, e.g. a learner that stopped training);
+* a live human-input client holds the robot and has been silent for ``human_silence_s`` (a client that died
+  mid-hold): until it speaks again or ``correction_timeout`` releases its hold (then the policy drives again, through
+  the rate limit when it is on).
+
+A control step that starts more than ``deadline_margin`` periods late (``--rate``) is counted: the robot held its
+last position meanwhile, and the rate limit keeps the next one from jumping.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+__all__ = ["Watchdog", "EStop", "SAFETY_COUNTS"]
+
+log = logging.getLogger("khgrl.actor")
+
+SAFETY_COUNTS = ("estops", "late_steps", "human_silence_holds", "learner_holds", "pause_holds")
+
+
+@dataclass
+class EStop:
+    """One press of the e-stop.
+
+    :param by: who pressed it ("launcher" or "human client <id>").
+    :param sent: the command's timestamp (the sender's ``time.time()``).
+    :param episode: the episode the actor was in.
+    :param t: the step it was about to take.
+    """
+
+    by: str
+    sent: float
+    episode: int
+    t: int
+    latency_ms: float | None = None  # from the command's timestamp to the actor's first held period
+
+
+@dataclass
+class _Holding:
+    reason: str
+    since: float  # monotonic
+
+
+@dataclass
+class Watchdog:
+    """Holds the robot and says why (module docstring).
+
+    :param env: the actor's :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv` (``hold()``, ``t``).
+    :param inbound: the actor's :class:`~khgrl.actor.inbound.Inbound` (``held_reason``, ``estop``).
+    :param arbiter: the :class:`~khgrl.actor.arbiter.CorrectionArbiter` (``silent``, ``holder``, ``deadline``).
+    :param human_silence_s: a silent holder's limit (0: off).
+    :param deadline_margin: late steps, in periods (0: off).
+    :param period: the control period (s; 0: free-running, no deadlines).
+    """
+
+    env: Any
+    inbound: Any
+    arbiter: Any
+    human_silence_s: float = 0.3
+    deadline_margin: float = 1.0
+    period: float = 0.0
+    service: Callable[..., None] = lambda block=0.0: None
+    status: Callable[[], None] = lambda: None
+    stopped: Callable[[], bool] = lambda: False
+    counts: dict = field(default_factory=lambda: dict.fromkeys(SAFETY_COUNTS, 0))
+    held_s: dict = field(default_factory=dict)  # reason kind -> seconds held
+    estops: list = field(default_factory=list)
+    late_ms_max: float = 0.0
+    _now: _Holding | None = None
+
+    @property
+    def reason(self) -> str:
+        """Why the robot is held now ("" when it is not)."""
+        return self._now.reason if self._now is not None else ""
+
+    def holding(self) -> None:
+        """The loop waits (paused, e-stopped or for the learner): hold the robot, note why (called about every
+        20 ms while it waits)."""
+        why = self.inbound.held_reason or "waiting for the learner"
+        self._enter(why)
+        stop = self.inbound.estop
+        if stop is not None and stop.latency_ms is None:
+            stop.latency_ms = (time.time() - stop.sent) * 1e3
+            log.warning("e-stop by %s: robot held at episode %d step %d, %.1f ms after the command", stop.by,
+                        stop.episode, stop.t, stop.latency_ms)
+            self.estops.append(stop)
+            self.counts["estops"] += 1
+        self.env.hold()
+
+    def released(self) -> None:
+        """The wait is over: the loop steps again."""
+        if self._now is None:
+            return
+        kind = self._now.reason.split(" ")[0]
+        self.held_s[kind] = self.held_s.get(kind, 0.0) + time.monotonic() - self._now.since
+        log.info("robot released (%s for %.2f s)", self._now.reason, time.monotonic() - self._now.since)
+        self._now = None
+        self.status()
+
+    def _enter(self, reason: str) -> None:
+        if self._now is not None and self._now.reason == reason:
+            return
+        if self._now is not None:
+            self.released()
+        self._now = _Holding(reason, time.monotonic())
+        key = {"paused": "pause_holds", "waiting": "learner_holds"}.get(reason.split(" ")[0])
+        if key is not None:
+            self.counts[key] += 1
+        log.info("robot held: %s", reason)
+        self.status()
+
+    def human_silence(self) -> bool:
+        """Hold while a live client holding the robot is silent longer than ``human_silence_s``: until it speaks
+        again, or its silence reaches ``correction_timeout`` (the arbiter then releases it at the next step), or a
+        command holds the actor; returns whether it held.
+        """
+        arb = self.arbiter
+        if self.human_silence_s <= 0 or arb.silent(time.monotonic()) <= self.human_silence_s:
+            return False
+        client = arb.holder
+        self.counts["human_silence_holds"] += 1
+        self._enter(f"human client {client} silent for more than {self.human_silence_s:g} s")
+        while not self.stopped() and arb.holder == client and arb.silent(time.monotonic()) > self.human_silence_s \
+                and time.monotonic() <= arb.deadline and not self.inbound.paused:
+            self.service(block=0.02)
+            self.env.hold()
+        self.released()
+        return True
+
+    def await_word(self, step: int) -> None:
+        """A lock-step correction client has not yet sent its word for ``step``: the robot holds while the actor
+        waits for it (servicing the inbox), at most the correction timeout; then it carries on without it.
+
+        :param step: the step about to be taken.
+        """
+        t0 = time.monotonic()
+        arb = self.arbiter
+        arb.counts["lockstep_waits"] += 1
+        while not self.stopped() and not arb.ready(step):
+            if time.monotonic() - t0 > arb.timeout:
+                arb.give_up(step)
+                break
+            self.service(block=0.002)
+
+    def late(self, lateness: float) -> None:
+        """The step starts ``lateness`` s after its deadline: count it when beyond the margin.
+
+        :param lateness: seconds late (<= 0: on time).
+        """
+        if self.period <= 0 or self.deadline_margin <= 0 or lateness <= self.deadline_margin * self.period:
+            return
+        self.counts["late_steps"] += 1
+        self.late_ms_max = max(self.late_ms_max, lateness * 1e3)
+        log.warning("control step %.1f ms late (the robot held its last position meanwhile)", lateness * 1e3)
+
+    def summary(self) -> dict:
+        """What ``summary.json`` says under ``safety``."""
+        return {**self.counts, "held_s": {k: round(v, 3) for k, v in self.held_s.items()},
+                "late_ms_max": round(self.late_ms_max, 2),
+                "estop_latency_ms": [None if e.latency_ms is None else round(e.latency_ms, 2) for e in self.estops],
+                "estop_events": [{"by": e.by, "episode": e.episode, "t": e.t, "latency_ms": e.latency_ms}
+                                 for e in self.estops]}

@@ -1,0 +1,152 @@
+"""``khgrl stop``: stop a run, or press and release its e-stop, from any terminal (README, "On a real robot").
+
+    khgrl stop RUN_DIR --now          # e-stop: every actor holds its robot within one control period (latched)
+    khgrl stop RUN_DIR --release      # release the e-stop: the actors step again
+    khgrl stop RUN_DIR                # stop the run: the actors end (their batches flushed), then khgrl up ends
+    khgrl stop --run RUN --connect tls/HOST:7447 --zenoh-config launcher.json5 --now   # a run on other machines
+
+It joins the run's router as the launcher (``RUN_DIR/config.json`` gives the run id and endpoint; a ``--secure``
+run's launcher certificate is ``RUN_DIR/certs/zenoh/launcher.json5``: the router's access control lets only the
+launcher publish on ``control/**``), publishes the command on ``control/actor`` (or ``control/<ID>``) every half
+second, and waits until each live actor's status confirms it (held by the e-stop, no longer held, or gone).
+
+Exit codes: 0 every actor confirmed; 1 no router, no actor alive, or an actor did not confirm within ``--timeout``
+(named); 2 a bad argument (no such run directory).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+
+from khgrl.common.config.settings import read_run_file
+from khgrl.common.delivery.declare import alive_now, put, subscribe
+from khgrl.common.delivery.transport import open_client, undeclare_all
+from khgrl.common.wire.messages import Control, Status
+from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, decode, encode
+
+__all__ = ["main", "build_parser", "target"]
+
+REPEAT_S = 0.5
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="khgrl stop", description="Stop a run, or press / release its e-stop.")
+    p.add_argument("run_dir", nargs="?", metavar="RUN_DIR", help="the run's directory (khgrl up's --run-dir): run id, "
+                   "router endpoint and, for a --secure run, the launcher's certificate (default: --run/--connect)")
+    how = p.add_mutually_exclusive_group()
+    how.add_argument("--now", action="store_true", help="press the e-stop: every actor holds its robot within one "
+                     "control period until --release (default: stop the run)")
+    how.add_argument("--release", action="store_true", help="release the e-stop (default: stop the run)")
+    p.add_argument("--actor", default=None, help="only this actor (default: every actor)")
+    p.add_argument("--run", default=None, help="the run id, without RUN_DIR (default: RUN_DIR's)")
+    p.add_argument("--connect", default=None, help="the router's endpoint, without RUN_DIR (default: RUN_DIR's)")
+    p.add_argument("--zenoh-config", default=None, help="a Zenoh configuration file with the launcher's certificate "
+                   "(default: RUN_DIR/certs/zenoh/launcher.json5 for a --secure run, else none)")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the actors to confirm (default: "
+                   "%(default)s)")
+    return p
+
+
+def target(args: argparse.Namespace) -> tuple[str, str, str | None]:
+    """(run id, router endpoint, Zenoh configuration file) from RUN_DIR or the flags; raises ValueError.
+
+    :param args: the parsed arguments.
+    """
+    run, connect, conf = args.run, args.connect, args.zenoh_config
+    if args.run_dir:
+        cfg, runtime = read_run_file(Path(args.run_dir) / "config.json")  # (FileNotFoundError names it)
+        run, connect = run or runtime.get("run") or cfg.run, connect or runtime.get("endpoint")
+        secure = Path(args.run_dir) / "certs" / "zenoh" / "launcher.json5"
+        conf = conf or (str(secure) if runtime.get("secure") and secure.is_file() else None)
+    if not run or not connect:
+        raise ValueError("give RUN_DIR, or --run and --connect")
+    return run, connect, conf
+
+
+def _confirmed(command: str, held: str | None) -> bool:
+    """Whether an actor whose status says ``held`` (None: gone) has done ``command``."""
+    if command == "estop":
+        return held is None or held.startswith("e-stop")
+    if command == "release":
+        return held is None or not held.startswith("e-stop")
+    return held is None
+
+
+class _Actors:
+    """The actors' latest ``held`` from their statuses (a Zenoh thread writes)."""
+
+    def __init__(self) -> None:
+        self.held: dict[str, str] = {}
+        self.lock = threading.Lock()
+
+    def on_status(self, sample) -> None:
+        try:
+            msg = decode(Status, sample.payload.to_bytes())
+        except ProtocolError:
+            return
+        if msg.role == "actor":
+            with self.lock:
+                self.held[msg.info.id] = msg.info.held
+
+
+def _wait(session, keys: Keys, actors: _Actors, command: str, target_key: str, want: list[str],
+          timeout: float) -> list[str]:
+    """Publish ``command`` every :data:`REPEAT_S` until each actor in ``want`` confirms; the ones that did not."""
+    deadline, seq, left = time.monotonic() + timeout, 0, list(want)
+    while left and time.monotonic() < deadline:
+        put(session, target_key, _payload(command, seq), congestion="block", priority="interactive_high", express=True)
+        seq += 1
+        end = min(deadline, time.monotonic() + REPEAT_S)
+        while left and time.monotonic() < end:
+            time.sleep(0.01)
+            alive = {k.split("/")[-1] for k in alive_now(session, keys.alive("actor", "*"), 0.2)} \
+                if command == "stop" else set(want)
+            with actors.lock:
+                left = [a for a in left if not _confirmed(command, actors.held.get(a) if a in alive else None)]
+    return left
+
+
+def _payload(command: str, seq: int) -> bytes:
+    return encode(Control(command=command), LAUNCHER, seq)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    command = "estop" if args.now else "release" if args.release else "stop"
+    try:
+        run, connect, conf = target(args)
+        keys = Keys(run)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"khgrl stop: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        session = open_client(connect, timeout=5.0, zenoh_config=conf)
+    except ConnectionError as exc:
+        print(f"khgrl stop: error: {exc}", file=sys.stderr)
+        return 1
+    with session:
+        actors = _Actors()
+        sub = subscribe(session, keys.status("actor", "*"), actors.on_status)
+        try:
+            want = sorted(k.split("/")[-1] for k in alive_now(session, keys.alive("actor", args.actor or "*"), 1.0))
+            if not want:
+                print(f"khgrl stop: error: no actor of run {run} is alive at {connect}", file=sys.stderr)
+                return 1
+            t0 = time.monotonic()
+            left = _wait(session, keys, actors, command, keys.control(args.actor or "actor"), want, args.timeout)
+        finally:
+            undeclare_all(sub)
+    done = {"estop": "held by the e-stop", "release": "released", "stop": "stopped"}[command]
+    for a in want:
+        print(f"{a}: " + (f"not confirmed within {args.timeout:g} s" if a in left else done))
+    print(f"khgrl stop: {command} {'confirmed' if not left else 'NOT confirmed'} by {len(want) - len(left)} of "
+          f"{len(want)} actors in {time.monotonic() - t0:.2f} s")
+    return 1 if left else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
