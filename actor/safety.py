@@ -26,6 +26,7 @@ __all__ = ["Watchdog", "EStop", "SAFETY_COUNTS"]
 
 log = logging.getLogger("khgrl.actor")
 
+LEARNER_HOLD_S = 0.5  # a wait for the learner this long is a hold (logged, in the status); shorter ones are flow control
 SAFETY_COUNTS = ("estops", "late_steps", "human_silence_holds", "learner_holds", "pause_holds")
 
 
@@ -78,6 +79,7 @@ class Watchdog:
     estops: list = field(default_factory=list)
     late_ms_max: float = 0.0
     _now: _Holding | None = None
+    _waiting_since: float | None = None  # when the current wait began
 
     @property
     def reason(self) -> str:
@@ -86,9 +88,15 @@ class Watchdog:
 
     def holding(self) -> None:
         """The loop waits (paused, e-stopped or for the learner): hold the robot, note why (called about every
-        20 ms while it waits)."""
-        why = self.inbound.held_reason or "waiting for the learner"
-        self._enter(why)
+        20 ms while it waits; a wait for the learner becomes a hold after :data:`LEARNER_HOLD_S`)."""
+        now = time.monotonic()
+        if self._waiting_since is None:
+            self._waiting_since = now
+        why = self.inbound.held_reason
+        if not why and now - self._waiting_since < LEARNER_HOLD_S:  # flow control, every few steps in simulation
+            self.env.hold()
+            return
+        self._enter(why or "waiting for the learner")
         stop = self.inbound.estop
         if stop is not None and stop.latency_ms is None:
             stop.latency_ms = (time.time() - stop.sent) * 1e3
@@ -100,6 +108,7 @@ class Watchdog:
 
     def released(self) -> None:
         """The wait is over: the loop steps again."""
+        self._waiting_since = None
         if self._now is None:
             return
         kind = self._now.reason.split(" ")[0]

@@ -6,7 +6,10 @@ with no certificate (refused at the TLS handshake: nothing can be sent) and with
 made for the run (``monitor``, ``human-user``; ``actor-a0`` for the keys that are not an actor's): forged weights
 with version 10**9, transitions from a made-up actor id and under the real actor's key, a forged ack that would
 make the actor drop batches no checkpoint holds, a spoofed release and a forged correction of the scripted
-human's intervention, and ``control/all stop``. An observer session (the run's ``monitor`` certificate) records
+human's intervention, ``control/all stop``, and the e-stop (``control/all estop`` and a human's
+``human/scripted/request estop`` from the certificates that may not send them). The attack runs while the
+launcher's e-stop holds the actor (``khgrl stop RUN_DIR --now`` with the run's launcher certificate, then
+``--release``), so the run cannot end under it. An observer session (the run's ``monitor`` certificate) records
 every message the router delivers: none of the forged ones may arrive. Then the run must end on its own (exit 0,
 not stopped), hold no transition of the made-up actor, lose and duplicate nothing, and give the same episodes.csv
 as the plain run (every column but wall time).
@@ -20,11 +23,17 @@ import numpy as np
 import pytest
 
 from helpers import read_json, untimed
-from launch import FAST, Launcher, _rows, _run
+from launch import FAST, UP, Launcher, _env, _rows, _run
 
 pytestmark = pytest.mark.integration
 
 ARGS = [*FAST, "--episodes", "2", "--human-episodes", "2", "--seed", "11"]
+
+
+def _khgrl(*args: str):
+    import subprocess
+
+    return subprocess.run([*UP[:-1], *args], env=_env(), capture_output=True, text=True, timeout=60)
 
 
 def _session(run_dir, cn: str, endpoint: str):
@@ -55,6 +64,8 @@ def _forgeries(keys, weights_payload: bytes) -> list[tuple[str, str, bytes]]:
     out.append(("forged correction", keys.correction("scripted"), encode(
         Correction(client="scripted", actor="a0", active=True, p_h=np.array([0.99, 0.99])), "scripted", 10**6 + 1)))
     out.append(("control/all stop", keys.control("all"), encode(Control(command="stop"), "launcher", 10**6)))
+    out.append(("control/all estop", keys.control("all"), encode(Control(command="estop"), "launcher", 10**6 + 1)))
+    out.append(("a human's e-stop", keys.human_request("scripted"), encode(Control(command="estop"), "scripted", 9)))
     return out
 
 
@@ -104,7 +115,11 @@ def test_secure_run_rejects_every_attack_and_repeats_the_plain_run(tmp_path):
         up.wait_line("[a0] episode 1:", 300)
         runtime = read_json(up.run_dir / "config.json")["runtime"]
         assert runtime["endpoint"].startswith("tls/127.0.0.1:") and runtime["secure"] is True
+        estop = _khgrl("stop", str(up.run_dir), "--now")  # the launcher's certificate may press the e-stop
+        assert estop.returncode == 0 and "a0: held by the e-stop" in estop.stdout, estop.stdout + estop.stderr
         sent, seen = _attack(up, runtime)
+        release = _khgrl("stop", str(up.run_dir), "--release")
+        assert release.returncode == 0 and "a0: released" in release.stdout, release.stdout + release.stderr
         delivered = set(seen)
         through = sorted({attack for attack, payload in sent if payload in delivered})
         assert not through, f"forged messages got through the router: {through}"
@@ -117,6 +132,8 @@ def test_secure_run_rejects_every_attack_and_repeats_the_plain_run(tmp_path):
     assert summary["stopped_by"] is None and not summary["failed"]
     assert summary["a0"].get("refused_acks", 0) == 0, "the forged ack reached the actor"
     assert summary["a0"]["weights"]["final_version"] < 10**6 and not summary["a0"]["rejects"], summary["a0"]
+    safety = read_json(up.run_dir / "actor-a0" / "summary.json")["safety"]
+    assert [e["by"] for e in safety["estop_events"]] == ["launcher"], safety  # no forged e-stop reached the actor
     state = read_json(up.run_dir / "learner" / "checkpoint" / "state.json")
     assert set(state["actors"]) == {"a0"}, f"the learner admitted {sorted(state['actors'])}"
     from khgrl.benchmarks.scale import provenance_check
