@@ -82,7 +82,8 @@ PROCESS_COMMANDS = {
     "router": ("khgrl.deploy.router", "main", "a Zenoh router (zenoh-python in router mode)"),
     "learner": ("khgrl.learner.main", "main", "the learner process (TQC, replay buffer from the transition stream)"),
     "actor": ("khgrl.actor.main", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
-    "human": ("khgrl.human_bridge.main", "main", "a human-input process (scripted, gui, keyboard, gamepad or replay)"),
+    "human": ("khgrl.human_bridge.main", "main",
+              "a human-input process (scripted, gui, keyboard, gamepad, spacemouse or replay)"),
     "experiment": ("khgrl.deploy.experiment", "main", "methods x scenarios x seeds through the real system, resumable"),
     "report": ("khgrl.deploy.report", "main", "per-episode results of runs: figure and markdown table"),
     # by name: the benchmarks drive the deployment tools (benchmarks imports deploy, not the other way round)
