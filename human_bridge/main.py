@@ -12,6 +12,8 @@ Clients:
   (:mod:`khgrl.human_bridge.replay`).
 * ``keyboard`` / ``gamepad`` -- hold a key / button to intervene and move the desired position with the arrow
   keys / a stick in the task's view axes (:mod:`khgrl.human_bridge.keyboard`, :mod:`khgrl.human_bridge.gamepad`).
+* ``spacemouse`` -- the same with a 3Dconnexion SpaceMouse: hold its left button, push the cap in 3-D
+  (:mod:`khgrl.human_bridge.spacemouse`; ``khgrl[spacemouse]``).
 
 Started by ``khgrl up`` as ``khgrl human CLIENT --config RUN_DIR/config.json``; by hand (another machine) with
 ``--run RUN --connect EP`` and any run setting as a flag.
@@ -25,7 +27,7 @@ import sys
 
 from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
 from khgrl.common.process import die_with_parent
-from khgrl.human_bridge import gamepad, keyboard, replay, scripted
+from khgrl.human_bridge import gamepad, keyboard, replay, scripted, spacemouse
 from khgrl.human_bridge.gui import main as gui
 
 __all__ = ["main", "build_parser", "CLIENTS"]
@@ -37,6 +39,7 @@ CLIENTS = {
     "replay": (replay, "feed a recorded corrections.csv into a new run at the same episodes and steps"),
     "keyboard": (keyboard, "a small window: hold Space and move the robot with the arrow keys (no mouse)"),
     "gamepad": (gamepad, "hold button 0 and move the robot with the sticks of a game controller (no mouse)"),
+    "spacemouse": (spacemouse, "hold the left button and move the robot in 3-D with a 3Dconnexion SpaceMouse"),
 }
 
 

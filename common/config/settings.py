@@ -46,7 +46,8 @@ SAMPLINGS, TAKEOVERS = ("uniform", "rlpd"), ("steps", "episode")
 HILSERL_DEFAULTS = {"algo": "sac_ln", "tqc": {"sampling": "rlpd"}}  # what --method hil-serl implies unless set
 DEVICES = ("auto", "cpu", "cuda")
 MODES = ("simulation", "robot")
-HUMANS = ("scripted", "gui", "keyboard", "gamepad", "replay", "none")  # khgrl human's clients (test_config checks)
+# khgrl human's clients (test_config checks)
+HUMANS = ("scripted", "gui", "keyboard", "gamepad", "spacemouse", "replay", "none")
 PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)
 
 @dataclass(frozen=True)
@@ -172,8 +173,9 @@ class RunConfig:
     run: str = _opt("", "run id, the key prefix khgrl/<run>/", roles=_LAH, shown="derived from the run directory")
     actors: int = _opt(1, "number of actor processes", roles=())
     human: str = _opt("scripted", "human-input client (khgrl only): scripted, gui (a window to drag the robot), "
-                                  "keyboard, gamepad (move the desired position with keys / a stick), replay (a "
-                                  "recorded session, --replay FILE), none", HUMANS, roles=())
+                                  "keyboard, gamepad, spacemouse (move the desired position with keys / a stick / "
+                                  "a 3Dconnexion SpaceMouse), replay (a recorded session, --replay FILE), none",
+                        HUMANS, roles=())
     human_clients: str = _opt("", "which actors each human-input client may correct and pause: "
                                   "'CLIENT=ACTOR[,ACTOR...]' entries separated by ';' (CLIENT=*: every actor; a client "
                                   "not listed: none)", roles=(ACTOR,), shown="every client, every actor")
