@@ -26,7 +26,7 @@ __all__ = ["Watchdog", "EStop", "SAFETY_COUNTS"]
 
 log = logging.getLogger("khgrl.actor")
 
-LEARNER_HOLD_S = 0.5  # a wait for the learner this long is a hold (logged, in the status); shorter ones are flow control
+LEARNER_HOLD_S = 0.5  # a wait for the learner this long is a hold (logged, in the status); shorter: flow control
 SAFETY_COUNTS = ("estops", "late_steps", "human_silence_holds", "learner_holds", "pause_holds")
 
 
