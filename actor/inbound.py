@@ -62,6 +62,7 @@ class Inbound:
         self.learners: set[str] = set()
         self.launcher_paused = False  # control/actor or control/all pause (the launcher's: no expiry)
         self.estop: EStop | None = None  # the e-stop, pressed (latched until the launcher's release)
+        self.awaiting_ready: int | None = None  # the episode that waits for a person's ready (--confirm-reset)
         self.human_pauses = HumanPauses(pause_s)
         self._new_learners = (float(MAX_LEARNERS), time.monotonic())  # token bucket: (tokens, when)
         self.wrong_task: str | None = None
@@ -99,7 +100,8 @@ class Inbound:
     def paused(self) -> bool:
         """Whether the actor is held: the e-stop, or a pause by the launcher or by a human-input client whose pause
         has not expired."""
-        return self.estop is not None or self.launcher_paused or self.human_pauses.active(time.monotonic())
+        return self.estop is not None or self.awaiting_ready is not None or self.launcher_paused \
+            or self.human_pauses.active(time.monotonic())
 
     @property
     def held_reason(self) -> str:
@@ -108,7 +110,22 @@ class Inbound:
             return f"e-stop by {self.estop.by}"
         if self.launcher_paused:
             return "paused by the launcher"
-        return "paused by a human-input client" if self.human_pauses.active(time.monotonic()) else ""
+        if self.human_pauses.active(time.monotonic()):
+            return "paused by a human-input client"
+        if self.awaiting_ready is not None:
+            return f"waiting for ready before episode {self.awaiting_ready} (khgrl ready RUN_DIR, or r in a client)"
+        return ""
+
+    def ready(self, by: str) -> None:
+        """A person says the robot is ready for the next episode (ignored, logged, when none waits for it).
+
+        :param by: who.
+        """
+        if self.awaiting_ready is None:
+            log.info("ready from %s ignored: no episode waits for it", by)
+            return
+        log.info("ready from %s: episode %d starts", by, self.awaiting_ready)
+        self.awaiting_ready = None
 
     def press_estop(self, by: str, sent: float, episode: int) -> None:
         """The e-stop is pressed (the first press counts; a press while it is latched is logged).
@@ -156,6 +173,8 @@ class Inbound:
             return
         if msg.command == "estop":
             self.press_estop(f"human client {client}", msg.envelope.ts, episode)
+        elif msg.command == "ready":
+            self.ready(f"human client {client}")
         elif msg.command == "pause":
             if not self.human_pauses.holds(client):
                 log.info("pause from human-input client %r (for %.0f s unless renewed)", client,
@@ -228,6 +247,8 @@ class Inbound:
         attribute_control(msg, key, log)
         if msg.command == "estop":
             self.press_estop(msg.envelope.sender, msg.envelope.ts, episode)
+        elif msg.command == "ready":
+            self.ready(msg.envelope.sender)
         elif msg.command == "release":
             if self.estop is not None:
                 log.warning("e-stop released by %s", msg.envelope.sender)

@@ -30,6 +30,7 @@ from khgrl.actor.demos import replay_demos
 from khgrl.actor.inbound import Inbound
 from khgrl.actor.pacing import Pacer
 from khgrl.actor.parts import ActorParts
+from khgrl.actor.reset import reset_phase
 from khgrl.actor.safety import Watchdog
 from khgrl.actor.telemetry import frame, status_info, summary
 from khgrl.common.config.settings import RunConfig
@@ -116,6 +117,8 @@ class ActorLoop:
 
     def _episode(self, acc: EpisodeAccumulator) -> bool:
         env = self.p.env
+        if not reset_phase(self, self.episode + 1):  # the path back to the start, a person's ready
+            return False
         obs, _ = env.reset_episode(self.episode + 1)
         acc.start()
         self.episode = acc.episode
@@ -123,7 +126,7 @@ class ActorLoop:
         ep = _Episode(started=time.perf_counter())
         done = False
         while not done and not self.flag:
-            if not self._before_step():
+            if not self.before_step():
                 break
             obs, done = self._step(obs, acc, ep)
         if not done:
@@ -131,7 +134,7 @@ class ActorLoop:
         self._end_episode(acc, ep)
         return True
 
-    def _before_step(self) -> bool:
+    def before_step(self) -> bool:
         """Inbox, flow control, pacing and the watchdog before a step; False if the actor is to stop."""
         self.service()
         self.rate_limit()

@@ -77,6 +77,7 @@ class Watchdog:
     counts: dict = field(default_factory=lambda: dict.fromkeys(SAFETY_COUNTS, 0))
     held_s: dict = field(default_factory=dict)  # reason kind -> seconds held
     estops: list = field(default_factory=list)
+    paths: list = field(default_factory=list)  # the reset paths between episodes (actor/reset.py)
     late_ms_max: float = 0.0
     _now: _Holding | None = None
     _waiting_since: float | None = None  # when the current wait began
@@ -179,4 +180,4 @@ class Watchdog:
                 "late_ms_max": round(self.late_ms_max, 2),
                 "estop_latency_ms": [None if e.latency_ms is None else round(e.latency_ms, 2) for e in self.estops],
                 "estop_events": [{"by": e.by, "episode": e.episode, "t": e.t, "latency_ms": e.latency_ms}
-                                 for e in self.estops]}
+                                 for e in self.estops], "reset_paths": self.paths}

@@ -4,11 +4,13 @@
     khgrl stop RUN_DIR --release      # release the e-stop: the actors step again
     khgrl stop RUN_DIR                # stop the run: the actors end (their batches flushed), then khgrl up ends
     khgrl stop --run RUN --connect tls/HOST:7447 --zenoh-config launcher.json5 --now   # a run on other machines
+    khgrl ready RUN_DIR               # --confirm-reset: the robot is ready, the next episode may start
 
 It joins the run's router as the launcher (``RUN_DIR/config.json`` gives the run id and endpoint; a ``--secure``
 run's launcher certificate is ``RUN_DIR/certs/zenoh/launcher.json5``: the router's access control lets only the
 launcher publish on ``control/**``), publishes the command on ``control/actor`` (or ``control/<ID>``) every half
-second, and waits until each live actor's status confirms it (held by the e-stop, no longer held, or gone).
+second, and waits until each live actor's status confirms it (held by the e-stop, no longer held by it, no longer
+waiting for ready, or gone).
 
 Exit codes: 0 every actor confirmed; 1 no router, no actor alive, or an actor did not confirm within ``--timeout``
 (named); 2 a bad argument (no such run directory).
@@ -28,19 +30,26 @@ from khgrl.common.delivery.transport import open_client, undeclare_all
 from khgrl.common.wire.messages import Control, Status
 from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, decode, encode
 
-__all__ = ["main", "build_parser", "target"]
+__all__ = ["main", "ready_main", "build_parser", "target"]
 
 REPEAT_S = 0.5
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="khgrl stop", description="Stop a run, or press / release its e-stop.")
+def build_parser(prog: str = "khgrl stop") -> argparse.ArgumentParser:
+    """The parser of ``khgrl stop`` (or, with ``prog="khgrl ready"``, of ``khgrl ready``: no --now / --release).
+
+    :param prog: the command's name.
+    """
+    ready = prog.endswith("ready")
+    p = argparse.ArgumentParser(prog=prog, description="Say the robot is ready for the next episode (--confirm-reset)."
+                                if ready else "Stop a run, or press / release its e-stop.")
     p.add_argument("run_dir", nargs="?", metavar="RUN_DIR", help="the run's directory (khgrl up's --run-dir): run id, "
                    "router endpoint and, for a --secure run, the launcher's certificate (default: --run/--connect)")
-    how = p.add_mutually_exclusive_group()
-    how.add_argument("--now", action="store_true", help="press the e-stop: every actor holds its robot within one "
-                     "control period until --release (default: stop the run)")
-    how.add_argument("--release", action="store_true", help="release the e-stop (default: stop the run)")
+    if not ready:
+        how = p.add_mutually_exclusive_group()
+        how.add_argument("--now", action="store_true", help="press the e-stop: every actor holds its robot within "
+                         "one control period until --release (default: stop the run)")
+        how.add_argument("--release", action="store_true", help="release the e-stop (default: stop the run)")
     p.add_argument("--actor", default=None, help="only this actor (default: every actor)")
     p.add_argument("--run", default=None, help="the run id, without RUN_DIR (default: RUN_DIR's)")
     p.add_argument("--connect", default=None, help="the router's endpoint, without RUN_DIR (default: RUN_DIR's)")
@@ -73,6 +82,8 @@ def _confirmed(command: str, held: str | None) -> bool:
         return held is None or held.startswith("e-stop")
     if command == "release":
         return held is None or not held.startswith("e-stop")
+    if command == "ready":
+        return held is None or not held.startswith("waiting for ready")
     return held is None
 
 
@@ -116,7 +127,16 @@ def _payload(command: str, seq: int) -> bytes:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    command = "estop" if args.now else "release" if args.release else "stop"
+    return _send(args, "estop" if args.now else "release" if args.release else "stop")
+
+
+def ready_main(argv: list[str] | None = None) -> int:
+    """``khgrl ready``: the robot is ready, the episode that waits for it may start."""
+    return _send(build_parser("khgrl ready").parse_args(argv), "ready")
+
+
+def _send(args: argparse.Namespace, command: str) -> int:
+    """Send ``command`` to the run's actors until they confirm; the exit code."""
     try:
         run, connect, conf = target(args)
         keys = Keys(run)
@@ -140,10 +160,11 @@ def main(argv: list[str] | None = None) -> int:
             left = _wait(session, keys, actors, command, keys.control(args.actor or "actor"), want, args.timeout)
         finally:
             undeclare_all(sub)
-    done = {"estop": "held by the e-stop", "release": "released", "stop": "stopped"}[command]
+    done = {"estop": "held by the e-stop", "release": "released", "stop": "stopped", "ready": "ready"}[command]
     for a in want:
         print(f"{a}: " + (f"not confirmed within {args.timeout:g} s" if a in left else done))
-    print(f"khgrl stop: {command} {'confirmed' if not left else 'NOT confirmed'} by {len(want) - len(left)} of "
+    print(f"khgrl {'ready' if command == 'ready' else 'stop'}: {command} "
+          f"{'confirmed' if not left else 'NOT confirmed'} by {len(want) - len(left)} of "
           f"{len(want)} actors in {time.monotonic() - t0:.2f} s")
     return 1 if left else 0
 

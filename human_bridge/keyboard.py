@@ -62,6 +62,13 @@ def estop_event(event) -> bool:
     return event.type == pygame.KEYDOWN and event.key == pygame.K_x
 
 
+def ready_event(event) -> bool:
+    """r pressed: the robot is ready for the next episode (``--confirm-reset``)."""
+    import pygame
+
+    return event.type == pygame.KEYDOWN and event.key == pygame.K_r
+
+
 def quit_event(event) -> bool:
     """Window closed, q or Esc."""
     import pygame
@@ -183,6 +190,8 @@ class PadClient:
         for event in (self.events or pygame.event.get)():
             if estop_event(event) or getattr(self.device, "estop", lambda _: False)(event):
                 self.press_estop()
+            elif ready_event(event):
+                self.link.control_actors("ready")
             if self.device.handle(event):
                 self.stop()
         now = time.monotonic()
@@ -220,7 +229,7 @@ class PadClient:
         vec = "" if p is None else f"{label}  " + "  ".join(f"{n} {x:.3f}" for n, x in zip(names, p))
         state += "  E-STOP pressed (khgrl stop RUN_DIR --release)" if self.estopped else ""
         return [head, f"task {self.task.name} (O = {self.task.out_dim})  actor {self.actor}  {where}",
-                f"{state}  ({self.hold.sent} corrections sent)", vec, self.device.help + "; x: e-stop"]
+                f"{state}  ({self.hold.sent} corrections sent)", vec, self.device.help + "; x: e-stop; r: ready"]
 
     def draw(self, surface) -> None:
         """Draw :meth:`lines` (the background turns red while holding)."""

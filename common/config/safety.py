@@ -5,6 +5,8 @@ what stands between the desired position P_t and the robot (README, "On a real r
   own speed scale): a step of P_t is at most ``max_speed`` d, and it changes from one step to the next by at most
   ``max_accel`` d (:class:`~khgrl.common.tasks.safety.RateLimiter`). On in ``--mode robot``, off in simulation
   (the setting of every experiment so far) unless ``--rate-limit on``.
+* **Reset phase**: between episodes the robot returns to the start along a rate-limited path (``reset_path``; on in
+  robot mode), and with ``confirm_reset`` it holds before each episode until a person says it is ready.
 * **Watchdog**: a live human-input client that holds the robot and goes silent for ``human_silence_s`` freezes it at
   its last P_t until the client speaks again or ``correction_timeout`` releases it; a control step that starts more
   than ``deadline_margin`` periods late is counted and reported (the robot held its last P_t meanwhile).
@@ -34,6 +36,11 @@ class SafetySettings:
     human_silence_s: float = _opt(0.3, "a live human-input client holding the robot and silent this long freezes it "
                                        "at its last P_t until the client speaks again or correction_timeout releases "
                                        "it (s; 0: off)", roles=(ACTOR,))
+    reset_path: str = _opt("auto", "between episodes, drive the robot back to the start (the KMP mean at phase 0) "
+                                   "along a path within the rate limits before the next reset: auto (in robot mode), "
+                                   "on or off", RATE_LIMITS, roles=(ACTOR,))
+    confirm_reset: bool = _opt(False, "before each episode, hold the robot until a person says it is ready (khgrl "
+                                      "ready RUN_DIR, or r in a human client's window)", roles=(ACTOR,))
     deadline_margin: float = _opt(1.0, "with --rate: a control step that starts more than this many periods after its "
                                        "deadline is counted as late and reported (the robot held meanwhile)",
                                   roles=(ACTOR,))
@@ -44,6 +51,14 @@ class SafetySettings:
         :param mode: the run's mode.
         """
         on = self.rate_limit == "on" or (self.rate_limit == "auto" and mode == "robot")
+        return (self.max_speed, self.max_accel) if on else None
+
+    def path(self, mode: str) -> tuple[float, float] | None:
+        """The limits of the path back to the start between episodes in ``mode`` (None: no path; the reset alone).
+
+        :param mode: the run's mode.
+        """
+        on = self.reset_path == "on" or (self.reset_path == "auto" and mode == "robot")
         return (self.max_speed, self.max_accel) if on else None
 
     def validate(self, correction_timeout: float) -> None:

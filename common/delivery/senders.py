@@ -17,7 +17,7 @@ from khgrl.common.wire.protocol import Keys, decode
 
 __all__ = ["owner", "SenderError", "HUMAN_COMMANDS", "read_for_actor", "read_for_learner"]
 
-HUMAN_COMMANDS = ("pause", "resume", "estop")  # what a human-input client may ask the actors (human/<id>/request)
+HUMAN_COMMANDS = ("pause", "resume", "estop", "ready")  # what a human-input client may ask the actors (its request)
 _ACTOR_KINDS: dict[str, type[Message]] = {"ack": Ack, "correction": Correction, "control": Control,
                                           "human_request": Control}
 
@@ -56,7 +56,7 @@ def read_for_actor(kind: str, key: str, payload: bytes, dims: Dims) -> Message:
         raise SenderError(f"client {msg.client!r} published on {key}", "correction")
     if kind == "human_request" and (msg.command not in HUMAN_COMMANDS or msg.envelope.sender != owner(key)):
         raise SenderError(f"{msg.command!r} from {msg.envelope.sender!r} on {key}: a human client may only pause, "
-                          f"resume or press the e-stop", "control")
+                          f"resume, press the e-stop or say ready", "control")
     return msg
 
 

@@ -301,6 +301,30 @@ class KGRLEnv(gym.Env):
                     else self.mapping.model.step_info.active_rows)
         return self._obs(), r_a + float(r_env), terminated, truncated, info
 
+    def reset_path(self, limits: tuple[float, float], max_steps: int = 10_000):
+        """Between episodes: drive the robot back to the start -- the KMP mean at phase 0 -- along the way it came
+        (its trail in reverse: a path it has been on, not a straight line through what it went around), within
+        ``limits`` (a :class:`~khgrl.common.tasks.safety.RateLimiter`, from rest), stepping the task's environment
+        with each position (no transition, no reward); yields each position sent, until it is at the start.
+
+        :param limits: ``(max_speed, max_accel)`` in units of the demonstrations' largest step.
+        :param max_steps: a bound on the path's length.
+        """
+        start = np.asarray(self.world.model.grid_mean[0], dtype=np.float64)
+        lim = RateLimiter.from_demos(self.world.demos, *limits, self.world.low, self.world.high)
+        lim.reset(self.desired)
+        waypoints = [*reversed(self.trail), start]
+        k = 0
+        for _ in range(max_steps):
+            while k < len(waypoints) - 1 and np.max(np.abs(waypoints[k] - lim.last)) <= lim.speed:
+                k += 1  # the next point of the trail not within a step
+            p = lim.limit(waypoints[k])[0]
+            inner_obs = self.inner.step(p if self.task.command is None else self.task.command(self.inner, p))[0]
+            self.position, self.desired = self._locate(inner_obs, p), p
+            yield p
+            if k == len(waypoints) - 1 and np.max(np.abs(p - start)) <= 1e-9 and not np.any(lim.velocity):
+                return
+
     def hold(self) -> None:
         """The actor holds the robot (e-stop, pause, a wait for the learner or a silent human): give the task's
         ``hold`` adapter the position last sent, about once a control period (without one: nothing is sent; the

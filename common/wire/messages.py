@@ -19,7 +19,7 @@ __all__ = ["Dims", "ANY_DIMS", "Message", "TaskInfo", "Transitions", "Ack", "Wei
            "EpisodeReport", "Status", "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS"]
 
 MAX_BATCH = 4096  # transitions per batch message
-COMMANDS = ("pause", "resume", "stop", "checkpoint", "estop", "release")  # estop / release: the e-stop's
+COMMANDS = ("pause", "resume", "stop", "checkpoint", "estop", "release", "ready")  # e-stop; a person's ready
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,7 @@ from khgrl.human_bridge.hold import CorrectionHold
 __all__ = ["GuiApp", "ActorState", "EpisodeScene", "window_size", "CURVE_HEIGHT", "HELP"]
 
 CURVE_HEIGHT = 90  # the L(s) curve below the text strip (pixels)
-HELP = "drag: P_h  space: pause  x: e-stop  tab: actor  o: overlays  q: quit"
+HELP = "drag: P_h  space: pause  x: e-stop  r: ready  tab: actor  o: overlays  q: quit"
 TRAIL_MAX = 2000
 PAUSE_RENEW_S = 20.0  # while paused, ask again this often (actors end a pause not renewed within human_pause_s)
 
@@ -344,6 +344,8 @@ class GuiApp:
             self.toggle_pause()
         elif key == pygame.K_x and self.control is not None:  # the e-stop (released by the launcher only)
             self.control("estop")
+        elif key == pygame.K_r and self.control is not None:  # the robot is ready for the next episode
+            self.control("ready")
         elif key == pygame.K_o:
             self.overlays = not self.overlays
         elif key == pygame.K_TAB:

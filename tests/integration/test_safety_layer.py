@@ -1,7 +1,10 @@
 """The actor's safety layer with real processes (``actor/safety.py``, ``common/tasks/safety.py``, ``khgrl stop``).
 
-One ``khgrl up`` of the passage world at 20 Hz with ``--rate-limit on`` (no scripted human), watched by this test's
-own Zenoh session (every frame and status), goes through three faults in its first episode:
+One ``khgrl up`` of the passage world at 20 Hz with ``--rate-limit on --reset-path on --confirm-reset`` (no
+scripted human), watched by this test's own Zenoh session (every frame and status). Before each episode the actor
+holds until ``khgrl ready RUN_DIR`` (no frame before it; a thread of this test says ready when the status asks), and
+before the second it first drives the robot back to the start within the rate limits. The run goes through three
+faults:
 
 1. ``khgrl stop RUN_DIR --now``: the actor holds within one control period (the delay from the command's timestamp to
    its first held period, measured by the actor), no frame comes while it holds, the status says ``e-stop by
@@ -34,8 +37,8 @@ from launch import FAST, UP, Launcher, _env
 pytestmark = pytest.mark.integration
 
 RATE = 20.0
-ARGS = [*FAST, "--method", "khgrl", "--human", "none", "--episodes", "1", "--seed", "4", "--rate", str(RATE),
-        "--rate-limit", "on"]
+ARGS = [*FAST, "--method", "khgrl", "--human", "none", "--episodes", "2", "--seed", "4", "--rate", str(RATE),
+        "--rate-limit", "on", "--reset-path", "on", "--confirm-reset"]
 FAR = (0.95, 0.95)
 HUMAN = """
 import sys, time
@@ -100,6 +103,18 @@ class Watch:
         self.session.close()
 
 
+def _say_ready(up: Launcher, watch: Watch, done: threading.Event, answered: list[tuple[int, float, int]]) -> None:
+    """Answer each ``waiting for ready before episode N`` once with ``khgrl ready`` (N, when, frames before)."""
+    while not done.is_set():
+        with watch.lock:
+            asked = [int(h.split()[5]) for _, h in watch.held if h.startswith("waiting for ready before episode")]
+        for n in sorted(set(asked) - {a[0] for a in answered}):
+            answered.append((n, time.time(), len(watch.frames)))
+            ready = _khgrl("ready", str(up.run_dir))
+            assert ready.returncode == 0 and "a0: ready" in ready.stdout, ready.stdout + ready.stderr
+        done.wait(0.1)
+
+
 def _khgrl(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([*UP[:-1], *args], env=_env(), capture_output=True, text=True, timeout=60)
 
@@ -160,11 +175,12 @@ def test_estop_watchdog_and_rate_limit_hold_a_real_actor(tmp_path):
     from khgrl.common.tasks.world import build_task_world
 
     up = Launcher(tmp_path, tmp_path / "run", *ARGS)
-    watch = None
+    watch, done, answered = None, threading.Event(), []
     try:
         wait_for(lambda: (up.run_dir / "config.json").exists() and up.proc.poll() is None, 60, "config.json")
         runtime = read_json(up.run_dir / "config.json")["runtime"]
         watch = Watch(runtime["endpoint"], runtime["run"])
+        threading.Thread(target=_say_ready, args=(up, watch, done, answered), daemon=True).start()
         wait_for(lambda: len(watch.frames) > 40, 90, "the actor's frames")
         _estop(up, watch)
         killed = _silent_human(up, watch, runtime)
@@ -172,9 +188,11 @@ def test_estop_watchdog_and_rate_limit_hold_a_real_actor(tmp_path):
         rc = up.proc.wait(timeout=200)
         assert rc == 0, f"khgrl up exited {rc}\n{up.stdout}\n{up.stderr}"
     finally:
+        done.set()
         if watch is not None:
             watch.close()
         up.cleanup()
+    assert [a[0] for a in answered] == [1, 2] and answered[0][2] == 0, answered  # no step before the first ready
     s = read_json(up.run_dir / "actor-a0" / "summary.json")["safety"]
     period_ms = 1e3 / RATE
     print(f"e-stop latency {s['estop_latency_ms']} ms (period {period_ms:.0f} ms); held {s['held_s']} s")
@@ -193,6 +211,8 @@ def test_estop_watchdog_and_rate_limit_hold_a_real_actor(tmp_path):
     assert len(steps) > 100 and max(steps) <= limit + 1e-9, (max(steps), limit)
     dragged = [b for a, b in zip(frames, frames[1:]) if b[3] and b[:2] == (a[0], a[1] + 1)]
     assert len(dragged) >= 15, "the human held the robot for a second"
+    (path,) = s["reset_paths"]  # back to the start before episode 2, within the limits
+    assert path["episode"] == 2 and path["steps"] > 0 and path["max_step"] <= limit + 1e-9, path
     rows = (up.run_dir / "actor-a0" / "episodes.csv").read_text().splitlines()
     assert int(rows[1].split(",")[rows[0].split(",").index("rate_limited_steps")]) > 0
     acct = provenance_check(up.run_dir)

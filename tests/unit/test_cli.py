@@ -66,7 +66,7 @@ def test_process_commands_run_the_process_modules():
         "learner": ("khgrl.learner.main", "main"),
         "actor": ("khgrl.actor.main", "main"), "human": ("khgrl.human_bridge.main", "main"),
         "experiment": ("khgrl.deploy.experiment", "main"), "report": ("khgrl.deploy.report", "main"),
-        "stop": ("khgrl.deploy.stop", "main"),
+        "stop": ("khgrl.deploy.stop", "main"), "ready": ("khgrl.deploy.stop", "ready_main"),
         "bench": ("khgrl.benchmarks.cli", "main")}
 
 

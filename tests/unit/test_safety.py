@@ -81,3 +81,16 @@ def test_kgrl_env_sends_the_limited_position_and_counts_it():
         assert info["r_a"] == pytest.approx(info_free["r_a"])  # r_a is the mapping's P_t's (eq. 7)
         assert np.array_equal(info_free["desired"], far)  # without the limit the far corner is sent at once
     assert limited == 10
+
+
+def test_the_reset_path_returns_to_the_start_within_the_limits():
+    env = KGRLEnv(load_task("passage:low_cov"), seed=0)
+    env.reset()
+    env.set_correction(np.array(env.world.high))  # the episode ends far from the start
+    for _ in range(30):
+        env.step(np.zeros(2))
+    start = env.world.model.grid_mean[0]
+    last, path = env.desired.copy(), list(env.reset_path((2.0, 0.5)))
+    steps = np.abs(np.diff(np.vstack([last, *path]), axis=0))
+    assert len(path) > 10 and np.max(steps) <= 2.0 * largest_step(env.world.demos) + 1e-12
+    assert np.allclose(path[-1], start) and np.allclose(env.position, start, atol=1e-3)  # the robot went there
