@@ -181,3 +181,33 @@ class RecordingPublisher:
             return
         self.sent.append((actor, None if p_h is None else tuple(float(v) for v in p_h), episode, t, step))
         self.active[actor] = p_h is not None
+
+
+class FakePub:
+    """A stand-in for a client's correction publisher: what it would send, in a list."""
+
+    def __init__(self) -> None:
+        self.sent: list[tuple] = []
+
+    def send(self, actor, p_h, episode=0, t=0, step=None) -> None:
+        import numpy as np
+
+        self.sent.append((actor, None if p_h is None else np.array(p_h), episode, t))
+
+
+class FakeLink:
+    """A stand-in for HumanClient in a pad client's tests: frames from a list, corrections into a list."""
+
+    def __init__(self, client: str = "kb") -> None:
+        self.client = client
+        self.pub, self.queue, self.flag = FakePub(), [], False
+        self.commands: list[str] = []
+
+    def next(self):
+        return ("k", self.queue.pop(0)) if self.queue else None
+
+    def publish_status(self) -> None:
+        pass
+
+    def control_actors(self, command: str) -> None:
+        self.commands.append(command)

@@ -27,7 +27,7 @@ from khgrl.human_bridge.gamepad import GamepadInput  # noqa: E402
 from khgrl.human_bridge.keyboard import WINDOW, KeyboardInput, PadClient  # noqa: E402
 from khgrl.human_bridge.velocity import Push  # noqa: E402
 
-from helpers import REPO, ProcGroup, python_main, read_json, unique_run, wait_for  # noqa: E402
+from helpers import REPO, FakeLink, ProcGroup, python_main, read_json, unique_run, wait_for  # noqa: E402
 
 OWN = "khgrl.deploy.examples.own_task:make_task"  # a 3-D task (O = 3, view axes x/y, third z), 200 steps an episode
 OWN_LOW, OWN_HIGH = np.array([0.02, 0.02, 0.02]), np.array([0.98, 0.98, 0.8])
@@ -109,34 +109,11 @@ def test_joystick_events_posted_to_pygame_make_pushes(display):
     assert g.handle(_key(pygame.KEYDOWN, pygame.K_q)) and g.handle(_ev(pygame.QUIT))
 
 
-class _Pub:
-    def __init__(self):
-        self.sent: list[tuple] = []
-
-    def send(self, actor, p_h, episode=0, t=0, step=None):
-        self.sent.append((actor, None if p_h is None else np.array(p_h), episode, t))
-
-
-class _Link:
-    """A stand-in for HumanClient: frames from a list, corrections into a list."""
-
-    client = "kb"
-
-    def __init__(self):
-        self.pub, self.queue, self.flag = _Pub(), [], False
-
-    def next(self):
-        return ("k", self.queue.pop(0)) if self.queue else None
-
-    def publish_status(self):
-        pass
-
-
 def test_pad_client_sends_the_held_p_h_and_draws_its_state(display):
     from khgrl.human_bridge.gui.task import local_descriptor
 
     task = local_descriptor("passage:low_cov")  # 2-D: the third push moves nothing
-    link, events = _Link(), []
+    link, events = FakeLink("kb"), []
     c = PadClient(link, KeyboardInput(), actor="a0", speed=0.5, run="r", task=task,
                   events=lambda: [events.pop(0) for _ in range(len(events))])
     c.step()
@@ -160,9 +137,18 @@ def test_pad_client_sends_the_held_p_h_and_draws_its_state(display):
     assert not c.hold.holding and link.pub.sent[-1][1] is None
     c.draw(display)
     assert c.lines()[2].startswith("free")
+    events += [_key(pygame.KEYDOWN, pygame.K_x), _key(pygame.KEYDOWN, pygame.K_r)]
+    c.step()  # the e-stop, then ready: both to the actors on the client's own request key
+    assert link.commands == ["estop", "ready"] and "E-STOP pressed" in c.lines()[2]
     events += [_key(pygame.KEYDOWN, pygame.K_RETURN), _key(pygame.KEYDOWN, pygame.K_ESCAPE)]
     c.step()  # a toggled hold, then quit: released on the way out
     assert c.quit and not c.hold.holding and link.pub.sent[-1][1] is None
+    pad = GamepadInput(estop_button=3)
+    c = PadClient(link, pad, actor="a0", speed=0.5, run="r", task=task, events=lambda: [events.pop(0)
+                                                                                        for _ in range(len(events))])
+    events += [_ev(pygame.JOYBUTTONDOWN, joy=0, instance_id=0, button=3)]
+    c.step()
+    assert link.commands == ["estop", "ready", "estop"]  # the gamepad's e-stop button
 
 
 # ------------------------------------------------------------------------------------------ the process

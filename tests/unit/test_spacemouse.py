@@ -16,6 +16,7 @@ import pytest
 from khgrl.human_bridge.spacemouse import COMPACT, ReportReplay, SpaceMouseInput, open_spacemouse
 from khgrl.human_bridge.velocity import DEAD_ZONE, Push, dead_zone
 
+from helpers import FakeLink
 from spacemouse_reports import FULL, USB_NO_BUTTONS, WIRELESS, buttons, rotation, translation
 from test_velocity import _desc, _frame
 
@@ -116,27 +117,6 @@ def test_a_report_file_replays_its_reports(tmp_path):
     assert sm.push() == Push(hold=True, h=1.0, d=1.0) and sm.reports == 2
 
 
-class _Pub:
-    def __init__(self):
-        self.sent: list[tuple] = []
-
-    def send(self, actor, p_h, episode=0, t=0, step=None):
-        self.sent.append((actor, None if p_h is None else np.array(p_h), episode, t))
-
-
-class _Link:
-    client = "sm"
-
-    def __init__(self):
-        self.pub, self.queue, self.flag = _Pub(), [], False
-
-    def next(self):
-        return ("k", self.queue.pop(0)) if self.queue else None
-
-    def publish_status(self):
-        pass
-
-
 def test_on_a_2d_task_the_cap_moves_the_two_view_axes_and_lifting_moves_nothing():
     import time
 
@@ -144,7 +124,7 @@ def test_on_a_2d_task_the_cap_moves_the_two_view_axes_and_lifting_moves_nothing(
 
     task = _desc((0.0, 0.0), (1.0, 1.0), third=-1)  # O = 2, no third axis
     sm, hid = _mouse()
-    link = _Link()
+    link = FakeLink("sm")
     c = PadClient(link, sm, actor="a0", speed=0.5, name="spacemouse", run="r", task=task, events=lambda: [])
     start = np.array([0.3, 0.5])
     link.queue.append(_frame(start, t=3))
