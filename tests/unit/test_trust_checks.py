@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from khgrl.actor.arbiter import CorrectionArbiter
+from khgrl.actor.human_limits import Assignments
 from khgrl.actor.inbound import Inbound
 from khgrl.actor.weights import PolicyWeights, WeightsReceiver, WeightsUpdate
 from khgrl.common.delivery.trust import HOLD_S, MAX_VERSIONS_PER_S, VERSION_SLACK, WeightsGate, learner_of
@@ -240,3 +241,27 @@ def test_learner_logs_who_stopped_it(tmp_path, caplog):
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert warnings == ["control stop from 'intruder' on khgrl/unit/control/all: not from the launcher"]
     assert loop.flag.reason == "stop command" and loop.checkpoint_requested
+
+
+def test_the_estop_is_latched_until_the_launchers_release_and_ready_only_counts_when_asked(tmp_path):
+    inbound, parts, _ = _inbound(tmp_path)
+    human = K.human_request("kb")
+    inbound.handle("human_request", human, encode(Control(command="ready"), "kb", 0), 0.0, episode=1)
+    assert not inbound.paused  # a ready nobody waits for is ignored (not kept for later)
+    inbound.handle("human_request", human, encode(Control(command="estop"), "kb", 1), 0.0, episode=1)
+    assert inbound.paused and inbound.held_reason == "e-stop by human client kb"
+    for key, sender in ((human, "kb"), (K.control("all"), "launcher")):  # a human's resume, the launcher's resume
+        inbound.handle("human_request" if sender == "kb" else "control", key,
+                       encode(Control(command="resume"), sender, 2), 0.0, episode=1)
+    assert inbound.estop is not None and inbound.paused  # neither releases the e-stop
+    inbound.handle("human_request", human, encode(Control(command="release"), "kb", 3), 0.0, episode=1)
+    assert inbound.estop is not None and parts.rejects.by_kind() == {"control": 1}  # a human may not release it
+    inbound.handle("control", K.control("actor"), encode(Control(command="release"), "launcher", 4), 0.0, episode=1)
+    assert inbound.estop is None and not inbound.paused
+    inbound.awaiting_ready = 2
+    assert inbound.paused and inbound.held_reason.startswith("waiting for ready before episode 2")
+    inbound.handle("human_request", human, encode(Control(command="ready"), "kb", 5), 0.0, episode=1)
+    assert inbound.awaiting_ready is None and not inbound.paused
+    parts.arbiter.assignments = Assignments("a0", "other=a0")  # kb is not assigned to this actor
+    inbound.handle("human_request", human, encode(Control(command="estop"), "kb", 6), 0.0, episode=1)
+    assert inbound.estop is None and parts.rejects.by_kind() == {"control": 2}
