@@ -30,9 +30,10 @@ from khgrl.actor.demos import replay_demos
 from khgrl.actor.inbound import Inbound
 from khgrl.actor.pacing import Pacer
 from khgrl.actor.parts import ActorParts
+from khgrl.actor.physical import SOURCE
 from khgrl.actor.reset import reset_phase
 from khgrl.actor.safety import Watchdog
-from khgrl.actor.telemetry import frame, status_info, summary
+from khgrl.actor.telemetry import frame, status_info
 from khgrl.common.config.settings import RunConfig
 from khgrl.common.delivery.actor_side import ActorDelivery
 from khgrl.common.metrics import EpisodeAccumulator
@@ -161,9 +162,11 @@ class ActorLoop:
         action = self._action(obs)
         if not p.arbiter.ready(env.t):
             self.watchdog.await_word(env.t)
-        p_h = p.arbiter.current(time.monotonic(), env.t)
-        env.set_correction(p_h)
+        p_h, physical = p.physical.correction(self.episode, p.arbiter.current(time.monotonic(), env.t))
+        env.set_correction(p_h)  # (a hand on the arm, --physical, wins over a remote client's drag)
+        before = env.position.copy()
         next_obs, reward, terminated, truncated, info = env.step(action)
+        p.physical.observe(self.episode, int(info["t"]), before, info)
         acc.add(reward, info)
         ep.ret += float(reward)
         iv = bool(info["intervened"])
@@ -175,7 +178,7 @@ class ActorLoop:
         p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]))
         t = int(info["t"])
         if iv and p_h is not None:
-            p.record.write(self.episode, t, p.arbiter.holder, p_h, info)
+            p.record.write(self.episode, t, SOURCE if physical else p.arbiter.holder, p_h, info)
             p.arbiter.counts["projected_steps"] += int(bool(info.get("projected")))
         done = terminated or truncated
         p.link.publish(frame(env, self.id, self.episode, info, t, iv, ep.ret, done))
@@ -186,6 +189,7 @@ class ActorLoop:
     def _end_episode(self, acc: EpisodeAccumulator, ep: _Episode) -> None:
         p = self.p
         p.env.set_correction(None)
+        p.physical.end_episode()
         p.scale.refit(ep.segment, self.episode)
         st = acc.finish(time.perf_counter() - ep.started)
         p.record.flush()
@@ -215,15 +219,3 @@ class ActorLoop:
             self.p.arbiter.extend(waited)
             self.watchdog.released()
             self.pacer.resync()  # a hold is not lateness: the next step goes at once
-
-    def summary(self, rc: int, wall: float) -> dict:
-        """``summary.json`` of this part of the run.
-
-        :param rc: the exit code.
-        :param wall: seconds the run took.
-        """
-        p = self.p
-        return summary(actor=self.id, rc=rc, stopped_by=self.flag.reason, wall=wall, episodes=p.episodes.new,
-                       first_episode=self.first_episode, stream=p.stream, weights=p.weights, arbiter=p.arbiter,
-                       rejects=p.rejects, waits=self.waits, max_lead=self.cfg.stream.max_lead, rate=self.cfg.rate,
-                       periods=self.pacer.periods, scale_updates=p.scale.updates, realtime=self.realtime)

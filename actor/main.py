@@ -39,9 +39,11 @@ from khgrl.actor.human_limits import Assignments, HoldAllowance
 from khgrl.actor.loop import ActorLoop
 from khgrl.actor.pacing import set_realtime
 from khgrl.actor.parts import ActorParts
+from khgrl.actor.physical import PhysicalHands
 from khgrl.actor.record import CorrectionRecord
 from khgrl.actor.results import EpisodeLog
 from khgrl.actor.telemetry import TensorBoard
+from khgrl.actor.telemetry import summary as actor_summary
 from khgrl.actor.weights import PolicyWeights, WeightsReceiver
 from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
 from khgrl.common.config.settings import HUMAN_METHODS
@@ -54,6 +56,7 @@ from khgrl.common.delivery.transport import Inbox, open_client
 from khgrl.common.delivery.trust import WeightsGate
 from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
 from khgrl.common.tasks.api import TaskError, load_task
+from khgrl.common.tasks.scripted_human import ScriptedHuman, ScriptedHumanConfig
 from khgrl.common.wire.checks import RejectCounter, ident
 from khgrl.common.wire.protocol import Keys
 
@@ -76,7 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, start: StreamStart,
-                 resume: bool, task=None, key: bytes | None = None) -> ActorParts:
+                 resume: bool, task=None, key: bytes | None = None, physical: PhysicalHands | None = None
+                 ) -> ActorParts:
     """Declare everything on the session and wire the loop's parts (declaration order as the protocol expects:
     subscribers, publishers, the weights receiver, then the liveliness token)."""
     cfg, keys = pc.cfg, Keys(pc.run)
@@ -111,11 +115,40 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                       record=CorrectionRecord(out_dir / "corrections.csv", pc.run, actor, append=resume,
                                              dim=env.mapping.model.out_dim),
                       episodes=episodes, tensorboard=TensorBoard(out_dir / "tb" if cfg.tensorboard else None),
-                      rejects=rejects, task=task, announcer=announcer)
+                      rejects=rejects, task=task, announcer=announcer, physical=physical or PhysicalHands.off())
+
+
+def _physical(cfg, env, out_dir: Path) -> PhysicalHands:
+    """``--physical``: detection (and the scripted physical human of the human episodes); raises TaskError."""
+    if cfg.physical == "off":
+        return PhysicalHands.off()
+    human = None
+    if cfg.physical == "scripted":
+        if env.task.scripted_human is None:
+            raise TaskError(f"task {env.task.name!r} has no scripted human to decide where the physical one pushes")
+        human = ScriptedHuman(env.task.scripted_human, ScriptedHumanConfig(episodes=cfg.human_episodes, seed=cfg.seed))
+    return PhysicalHands(env, cfg.physical, human, out_dir)
+
+
+def _summary(loop: ActorLoop, rc: int, wall: float) -> dict:
+    """``summary.json`` of this part of the run.
+
+    :param loop: the actor's loop.
+    :param rc: the exit code.
+    :param wall: seconds the run took.
+    """
+    p = loop.p
+    out = actor_summary(actor=loop.id, rc=rc, stopped_by=loop.flag.reason, wall=wall, episodes=p.episodes.new,
+                        first_episode=loop.first_episode, stream=p.stream, weights=p.weights, arbiter=p.arbiter,
+                        rejects=p.rejects, waits=loop.waits, max_lead=loop.cfg.stream.max_lead, rate=loop.cfg.rate,
+                        periods=loop.pacer.periods, scale_updates=p.scale.updates, realtime=loop.realtime)
+    return {**out, "demo_transitions": loop.demo_transitions, "safety": loop.watchdog.summary(),
+            "physical": p.physical.counts}
 
 
 def _close(parts: ActorParts) -> None:
     parts.record.close()
+    parts.physical.close()
     parts.weights.receiver.stop()
     if parts.announcer is not None:
         parts.announcer.undeclare()
@@ -165,6 +198,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
                       control="delta" if cfg.method == "hil-serl" else "kmp",
                       rate_limit=cfg.safety.limits(cfg.stream.mode))
         task = env.descriptor(cfg.task_spec)
+        physical = _physical(cfg, env, out_dir)
     except TaskError as exc:
         return _error(actor, exc)
     env.action_space.seed(seed)  # SB3 seeds the action space it samples warm-up actions from
@@ -193,15 +227,14 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
                                  f"this id is refused (give it another --id)")
         start = open_stream(out_dir, cfg.stream.outbox_memory, actor, resume)
         resume = resume or start.continued
-        parts = _build_parts(pc, actor, session, env, policy, out_dir, start, resume, task, key)
+        parts = _build_parts(pc, actor, session, env, policy, out_dir, start, resume, task, key, physical)
         loop = ActorLoop(cfg, actor, parts, flag)
         loop.join()
         loop.realtime = set_realtime(cfg.actor_rt_priority) if cfg.actor_rt_priority > 0 else False
         try:
             rc = loop.run()
         finally:
-            summary = {**loop.summary(rc, time.perf_counter() - t_run), "demo_transitions": loop.demo_transitions,
-                       "safety": loop.watchdog.summary()}
+            summary = _summary(loop, rc, time.perf_counter() - t_run)
             _close(parts)
             StreamRecord(stream=parts.stream.stream, **parts.stream.position(), running=False).save(out_dir)
 

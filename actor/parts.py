@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from khgrl.actor.arbiter import CorrectionArbiter
 from khgrl.actor.exploration import ExplorationScale
+from khgrl.actor.physical import PhysicalHands
 from khgrl.actor.record import CorrectionRecord
 from khgrl.actor.results import EpisodeLog
 from khgrl.actor.telemetry import TensorBoard
@@ -38,3 +39,4 @@ class ActorParts:
     rejects: RejectCounter
     task: Any = None  # khgrl.common.wire.descriptor.TaskDescriptor this actor announced
     announcer: Any = None  # khgrl.common.delivery.task_link.TaskAnnouncer
+    physical: PhysicalHands = field(default_factory=PhysicalHands.off)  # --physical (off: does nothing)

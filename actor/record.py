@@ -39,12 +39,12 @@ class CorrectionRecord:
     :param dim: O, the size of P_h (columns p_h_x, p_h_y, p_h_z, p_h_3, ...).
     """
 
-    FIELDS = ("run", "actor", "episode", "step", "time", "client", "p_h_x", "p_h_y", "projected", "clipped")
+    FIELDS = ("run", "actor", "episode", "step", "time", "client", "p_h_x", "p_h_y", "projected", "clipped", "source")
 
     def __init__(self, path: Path, run: str, actor: str, append: bool = False, dim: int = 2) -> None:
         self.path = Path(path)
         names = tuple(f"p_h_{'xyz'[k] if k < 3 else k}" for k in range(dim))
-        self.FIELDS = ("run", "actor", "episode", "step", "time", "client", *names, "projected", "clipped")
+        self.FIELDS = ("run", "actor", "episode", "step", "time", "client", *names, "projected", "clipped", "source")
         self.run, self.actor = run, actor
         if append:
             trim_partial_line(self.path)  # a killed actor's last row may be half written
@@ -68,7 +68,7 @@ class CorrectionRecord:
             return
         self._w.writerow((self.run, self.actor, int(episode), int(t), f"{time.time():.6f}", client or "",
                           *(repr(float(v)) for v in p_h), int(bool(info.get("projected"))),
-                          int(bool(info.get("clipped")))))
+                          int(bool(info.get("clipped"))), "physical" if client == "physical" else "remote"))
         self.rows += 1
 
     def flush(self) -> None:

@@ -46,6 +46,7 @@ SAMPLINGS, TAKEOVERS = ("uniform", "rlpd"), ("steps", "episode")
 HILSERL_DEFAULTS = {"algo": "sac_ln", "tqc": {"sampling": "rlpd"}}  # what --method hil-serl implies unless set
 DEVICES = ("auto", "cpu", "cuda")
 MODES = ("simulation", "robot")
+PHYSICAL = ("off", "detect", "scripted")
 # khgrl human's clients (test_config checks)
 HUMANS = ("scripted", "gui", "keyboard", "gamepad", "spacemouse", "replay", "none")
 PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)
@@ -159,6 +160,10 @@ class RunConfig:
                                 "the HIL-SERL baseline (delta actions in the task's own space, no KMP band; the "
                                 "human takes over; implies --algo sac_ln --sampling rlpd unless given)", METHODS,
                        roles=(ACTOR, HUMAN, REFERENCE))
+    physical: str = _opt("off", "physical corrections: detect (the actor takes a push on the arm, seen in its "
+                                "measured position, as the human's P_h), scripted (and, in simulation, a scripted "
+                                "physical human pushes the arm in the human episodes: a task with a push hook, "
+                                "e.g. panda:pick) or off", PHYSICAL, roles=(ACTOR,))
     adapt: bool = _opt(True, "refit the KMP through the via-points of a task whose scene changes every episode, at "
                              "every reset (a task with a Scene; --no-adapt: the demonstrations' KMP in every scene)",
                        roles=(ACTOR,))
@@ -180,7 +185,7 @@ class RunConfig:
                                   "'CLIENT=ACTOR[,ACTOR...]' entries separated by ';' (CLIENT=*: every actor; a client "
                                   "not listed: none)", roles=(ACTOR,), shown="every client, every actor")
     human_episodes: tuple[int, ...] = _opt(PAPER_EPISODES, "episodes with scripted corrections (the paper's)",
-                                           roles=(HUMAN, REFERENCE))
+                                           roles=(HUMAN, ACTOR, REFERENCE))
     takeover: str = _opt("steps", "--method hil-serl: the scripted human takes over in the steps it corrects KhGRL "
                                   "in (steps), or in every step of its episodes, on the KMP mean elsewhere (episode)",
                          TAKEOVERS, roles=(HUMAN,))
@@ -221,6 +226,8 @@ class RunConfig:
         parse_assignments(self.human_clients)  # (raises ValueError naming a bad entry)
         if self.human == "replay" and self.method == "khgrl" and not self.replay:
             raise ValueError("human 'replay' needs replay: the corrections.csv of a recorded run (--replay FILE)")
+        if self.physical != "off" and self.method not in HUMAN_METHODS:
+            raise ValueError(f"physical corrections need a method with a human ({', '.join(HUMAN_METHODS)})")
         if self.connect_timeout <= 0 or self.rate < 0:
             raise ValueError("connect_timeout must be > 0 and rate >= 0")
         if not self.algo.isidentifier():

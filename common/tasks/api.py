@@ -118,6 +118,9 @@ class Task:
     :param action_cost: weight of r_a = -action_cost |P_t - eta0_t|^2 (eq. 7).
     :param command: adapter ``command(env, p_t) -> env action`` (None: the action is P_t itself).
     :param position: ``position(obs) -> (O,)`` the robot in command coordinates (None: the command last sent).
+    :param push: ``push(env, p_h)``, simulation only (``--physical scripted``): the scripted physical human pushes the
+        robot towards ``p_h`` with a force during the next step (None: lets go); a robot whose controller yields to
+        force (None: the task cannot be pushed).
     :param hold: ``hold(env, p_t)``, called about once a control period while the actor holds the robot (e-stop,
         pause, waiting for the learner or a silent human) with the position last sent: for a driver that needs a
         steady command stream (None: nothing is sent; a position-controlled arm keeps its last target).
@@ -146,6 +149,7 @@ class Task:
     command: Callable[[Any, np.ndarray], Any] | None = None
     position: Callable[[np.ndarray], np.ndarray] | None = None
     hold: Callable[[Any, np.ndarray], None] | None = None
+    push: Callable[[Any, np.ndarray | None], None] | None = None
     scripted_human: Callable[..., np.ndarray | None] | None = None
     view: View = field(default_factory=View)
     success_key: str = "success"

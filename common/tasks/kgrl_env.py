@@ -161,6 +161,11 @@ class KGRLEnv(gym.Env):
         return np.concatenate([inner, [self.mapping.phases[t]], dev]).astype(np.float32)
 
     @property
+    def inner_obs(self) -> np.ndarray | None:
+        """The task environment's latest observation (None before the first reset)."""
+        return self._inner_obs
+
+    @property
     def phase(self) -> float:
         return float(self.mapping.phases[min(self.t, self.horizon - 1)])
 

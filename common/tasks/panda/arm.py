@@ -61,6 +61,7 @@ TCP = slice(15, 18)  # the pinch site's position
 CUBE = slice(18, 21)  # the cube's position
 QVEL_BOUND = 10.0  # rad/s
 MAX_GRIPPER_COMMAND = 255.0
+PUSH_FORCE, PUSH_NEAR = 30.0, 0.02  # the scripted physical human's push (N), tapered within this distance (m)
 
 
 def panda_command(p_t: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -171,6 +172,7 @@ class PandaPosition(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        self.push(None)  # (a push does not outlive its episode)
         self._obs, _ = self.env.reset(seed=seed, options=options)
         if self.region is not None:
             self._place()
@@ -185,6 +187,25 @@ class PandaPosition(gym.Env):
         self.t += 1
         truncated = bool(truncated) or self.t >= self.horizon
         return self._flat(), float(reward), bool(terminated), truncated, {"succeed": bool(info.get("succeed"))}
+
+    def push(self, p_h: np.ndarray | None) -> None:
+        """The scripted physical human: a force on the gripper's base body towards ``p_h`` during the next step(s),
+        ``PUSH_FORCE`` N, in proportion within ``PUSH_NEAR`` of the pinch site (MuJoCo's ``xfrc_applied``; gym-hil's
+        operational-space controller yields to it: about 2 cm per 20 N held); None lets go.
+
+        :param p_h: where the hand pushes the gripper towards (None: no force).
+        """
+        import mujoco
+
+        base = self.base
+        body = mujoco.mj_name2id(base.model, mujoco.mjtObj.mjOBJ_BODY, "base")
+        force = np.zeros(3)
+        if p_h is not None:  # a firm hand: PUSH_FORCE towards p_h, less only within PUSH_NEAR of it
+            gap = np.asarray(p_h, np.float64) - self.gripper_pos
+            dist = float(np.linalg.norm(gap))
+            force = PUSH_FORCE * gap / max(dist, PUSH_NEAR) if dist > 0 else force
+        base.data.xfrc_applied[body, :3] = force
+        base.data.xfrc_applied[body, 3:] = 0.0
 
     def camera_frame(self, size: int = 360) -> np.ndarray:
         """gym-hil's front camera now, (size, size, 3) uint8 (offscreen; ``khgrl eval --gif`` puts it beside the
