@@ -40,8 +40,10 @@ class Pacer:
         return False
 
     def resync(self) -> None:
-        """The loop held on purpose (a pause, the e-stop, a wait): the next deadline is now, not a late one."""
+        """The loop held on purpose (a pause, the e-stop, a wait): the next deadline is now, not a late one, and the
+        time held is not a loop period."""
         self.deadline = time.perf_counter() - self.period
+        self.last_start = None
 
     def step_started(self) -> None:
         """A step starts now: record the period since the last one."""

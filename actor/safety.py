@@ -22,12 +22,25 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-__all__ = ["Watchdog", "EStop", "SAFETY_COUNTS"]
+__all__ = ["Watchdog", "EStop", "SAFETY_COUNTS", "hold_kind"]
 
 log = logging.getLogger("khgrl.actor")
 
 LEARNER_HOLD_S = 0.5  # a wait for the learner this long is a hold (logged, in the status); shorter: flow control
-SAFETY_COUNTS = ("estops", "late_steps", "human_silence_holds", "learner_holds", "pause_holds")
+SAFETY_COUNTS = ("estops", "late_steps", "human_silence_holds", "learner_holds", "pause_holds", "ready_holds")
+
+
+def hold_kind(reason: str) -> str:
+    """The kind of a hold's reason: ``estop``, ``pause``, ``ready``, ``learner`` or ``human`` (``summary.json``'s
+    ``safety.held_s`` keys).
+
+    :param reason: the reason the status shows.
+    """
+    for prefix, kind in (("e-stop", "estop"), ("paused", "pause"), ("waiting for ready", "ready"),
+                         ("waiting for the learner", "learner"), ("human client", "human")):
+        if reason.startswith(prefix):
+            return kind
+    return "other"
 
 
 @dataclass
@@ -112,7 +125,7 @@ class Watchdog:
         self._waiting_since = None
         if self._now is None:
             return
-        kind = self._now.reason.split(" ")[0]
+        kind = hold_kind(self._now.reason)
         self.held_s[kind] = self.held_s.get(kind, 0.0) + time.monotonic() - self._now.since
         log.info("robot released (%s for %.2f s)", self._now.reason, time.monotonic() - self._now.since)
         self._now = None
@@ -124,7 +137,7 @@ class Watchdog:
         if self._now is not None:
             self.released()
         self._now = _Holding(reason, time.monotonic())
-        key = {"paused": "pause_holds", "waiting": "learner_holds"}.get(reason.split(" ")[0])
+        key = {"pause": "pause_holds", "learner": "learner_holds", "ready": "ready_holds"}.get(hold_kind(reason))
         if key is not None:
             self.counts[key] += 1
         log.info("robot held: %s", reason)

@@ -139,6 +139,15 @@ BENCHMARKS: dict[str, Benchmark] = {
         _flag("--rt-priority", type=int, default=0,
               help="actor loop under SCHED_FIFO at this priority, 0: normal scheduling (default: %(default)s)"),
         SEED, OUT)),
+    "robot": Benchmark("khgrl.benchmarks.robot_run", "run_robot_benchmark",
+                       "a robot-style run in real time: gym-hil's Panda at 10 Hz in robot mode with the safety layer, "
+                       "confirmed resets, an e-stop, physical pushes and a learner SIGKILL + resume", (
+        _flag("--rate", type=float, default=10.0, help="the control rate in Hz (default: %(default)s)"),
+        _flag("--episodes", type=int, default=4, help="episodes, at least 3 (default: %(default)s)"),
+        _flag("--down", type=float, default=3.0, help="seconds the learner stays dead (default: %(default)s)"),
+        _flag("--seed", type=int, default=1, help="seed (default: %(default)s)"),
+        _flag("--work", default="runs/bench-robot", help="run directories (default: %(default)s)"),
+        OUT)),
     "queries": Benchmark("khgrl.benchmarks.queries", "run_queries_benchmark",
                          "the learner's gradient steps/s while a monitor floods the weights queryable", (
         _flag("--qps", type=float, default=1000.0, help="queries per second of the flood (default: %(default)s)"),

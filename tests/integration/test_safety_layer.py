@@ -93,9 +93,9 @@ class Watch:
         with self.lock:
             return sum(t0 <= f[0] <= t1 for f in self.frames)
 
-    def said(self, text: str) -> bool:
+    def said(self, text: str, since: float = 0.0) -> bool:
         with self.lock:
-            return any(text in h for _, h in self.held)
+            return any(text in h for t, h in self.held if t >= since)
 
     def close(self) -> None:
         for s in self.subs:
@@ -132,7 +132,7 @@ def _estop(up: Launcher, watch: Watch) -> None:
     t_held = time.time()
     time.sleep(1.5)
     assert watch.frames_between(t_held, time.time()) == 0, "the actor stepped during the e-stop"
-    assert watch.said("e-stop by launcher")
+    assert watch.said("e-stop by launcher", t_held - 2.0)
     release = _khgrl("stop", str(up.run_dir), "--release")
     assert release.returncode == 0 and "a0: released" in release.stdout, release.stdout + release.stderr
     wait_for(lambda: watch.frames_between(time.time() - 0.5, time.time()) > 3, 10, "frames after the release")
@@ -149,7 +149,7 @@ def _silent_human(up: Launcher, watch: Watch, runtime: dict) -> float:
         human.kill()  # SIGKILL mid-hold
         human.wait(10)
     killed = time.time()
-    wait_for(lambda: watch.said("human client t silent"), 10, "the status naming the silent client")
+    wait_for(lambda: watch.said("human client t silent", killed), 10, "the status naming the silent client")
     wait_for(lambda: watch.frames_between(time.time() - 0.5, time.time()) > 3, 10, "frames after the release")
     return killed
 
@@ -157,8 +157,9 @@ def _silent_human(up: Launcher, watch: Watch, runtime: dict) -> float:
 def _stopped_learner(up: Launcher, watch: Watch) -> float:
     pid = read_json(up.run_dir / "pids.json")["children"]["learner"]
     os.kill(pid, signal.SIGSTOP)
+    stopped = time.time()
     try:
-        wait_for(lambda: watch.said("waiting for the learner"), 15, "the status saying the robot waits")
+        wait_for(lambda: watch.said("waiting for the learner", stopped), 15, "the status saying the robot waits")
         t_held = time.time()
         time.sleep(1.0)
         assert watch.frames_between(t_held, time.time()) == 0, "the actor stepped without the learner"
@@ -200,7 +201,7 @@ def test_estop_watchdog_and_rate_limit_hold_a_real_actor(tmp_path):
     assert s["human_silence_holds"] >= 1 and s["learner_holds"] >= 1, s
     silence = s["held_s"]["human"]  # from human_silence_s (0.3) to correction_timeout (0.5) of silence
     assert 0.1 <= silence <= 0.45, s
-    assert s["held_s"]["waiting"] >= 1.0 and s["held_s"]["e-stop"] >= 1.5, s
+    assert s["held_s"]["learner"] >= 1.0 and s["held_s"]["estop"] >= 1.5 and s["held_s"]["ready"] > 0, s
     assert _gap(watch, killed) >= 0.1  # no step while the silent human's hold was frozen
 
     world = build_task_world(load_task("passage:low_cov"))
