@@ -76,15 +76,18 @@ def target(args: argparse.Namespace) -> tuple[str, str, str | None]:
     return run, connect, conf
 
 
-def _confirmed(command: str, held: str | None) -> bool:
-    """Whether an actor whose status says ``held`` (None: gone) has done ``command``."""
+def _confirmed(command: str, alive: bool, held: str | None) -> bool:
+    """Whether an actor has done ``command``: it is gone (``alive`` False), or its latest status (``held``; None: none
+    since the command went out) says so."""
+    if not alive:
+        return True
+    if command == "stop" or held is None:
+        return False
     if command == "estop":
-        return held is None or held.startswith("e-stop")
+        return held.startswith("e-stop")
     if command == "release":
-        return held is None or not held.startswith("e-stop")
-    if command == "ready":
-        return held is None or not held.startswith("waiting for ready")
-    return held is None
+        return not held.startswith("e-stop")
+    return not held.startswith("waiting for ready")  # ready
 
 
 class _Actors:
@@ -113,11 +116,10 @@ def _wait(session, keys: Keys, actors: _Actors, command: str, target_key: str, w
         seq += 1
         end = min(deadline, time.monotonic() + REPEAT_S)
         while left and time.monotonic() < end:
-            time.sleep(0.01)
-            alive = {k.split("/")[-1] for k in alive_now(session, keys.alive("actor", "*"), 0.2)} \
-                if command == "stop" else set(want)
+            time.sleep(0.05)
+            alive = {k.split("/")[-1] for k in alive_now(session, keys.alive("actor", "*"), 0.5)}
             with actors.lock:
-                left = [a for a in left if not _confirmed(command, actors.held.get(a) if a in alive else None)]
+                left = [a for a in left if not _confirmed(command, a in alive, actors.held.get(a))]
     return left
 
 
