@@ -4,8 +4,10 @@
 The robot is held, and the control loop takes no step, while:
 
 * the **e-stop** is pressed (``khgrl stop --now``, or the e-stop key of a human-input client): latched until the
-  launcher releases it (``khgrl stop --release``); the delay from the command to the hold is recorded;
+  launcher releases it (``khgrl stop --release``); the delay from the command's timestamp to the hold is recorded
+  (the sender's clock: exact on one machine, as good as the clocks' sync across machines);
 * a ``pause`` holds the actor (the launcher's, or a human-input client's);
+* before an episode, with ``--confirm-reset``, until a person says the robot is ready (:mod:`khgrl.actor.reset`);
 * the actor waits for the learner (simulation mode: flow control, e.g. a learner that stopped training);
 * a live human-input client holds the robot and has been silent for ``human_silence_s`` (a client that died
   mid-hold): until it speaks again or ``correction_timeout`` releases its hold (then the policy drives again, through
@@ -26,6 +28,7 @@ __all__ = ["Watchdog", "EStop", "SAFETY_COUNTS", "hold_kind"]
 
 log = logging.getLogger("khgrl.actor")
 
+LATE_LOG_S = 10.0  # at most one log line about late steps this often
 LEARNER_HOLD_S = 0.5  # a wait for the learner this long is a hold (logged, in the status); shorter: flow control
 SAFETY_COUNTS = ("estops", "late_steps", "human_silence_holds", "learner_holds", "pause_holds", "ready_holds")
 
@@ -76,6 +79,9 @@ class Watchdog:
     :param human_silence_s: a silent holder's limit (0: off).
     :param deadline_margin: late steps, in periods (0: off).
     :param period: the control period (s; 0: free-running, no deadlines).
+    :param service: the loop's inbox service (``service(block=seconds)``), called while it holds.
+    :param status: publishes the actor's status (at once when a hold starts or ends).
+    :param stopped: whether the actor is to stop.
     """
 
     env: Any
@@ -94,6 +100,7 @@ class Watchdog:
     late_ms_max: float = 0.0
     _now: _Holding | None = None
     _waiting_since: float | None = None  # when the current wait began
+    _late_logged: float = -float("inf")
 
     @property
     def reason(self) -> str:
@@ -185,7 +192,11 @@ class Watchdog:
             return
         self.counts["late_steps"] += 1
         self.late_ms_max = max(self.late_ms_max, lateness * 1e3)
-        log.warning("control step %.1f ms late (the robot held its last position meanwhile)", lateness * 1e3)
+        now = time.monotonic()
+        if now - self._late_logged >= LATE_LOG_S:  # (at most one line per LATE_LOG_S: a loaded machine is late often)
+            self._late_logged = now
+            log.warning("control step %.1f ms late (the robot held its last position meanwhile; %d late steps so far)",
+                        lateness * 1e3, self.counts["late_steps"])
 
     def summary(self) -> dict:
         """What ``summary.json`` says under ``safety``."""
