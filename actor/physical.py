@@ -51,7 +51,7 @@ class PhysicalHands:
             self._fh = open(path, "a", newline="")
             self._w = csv.writer(self._fh)
             if new:
-                self._w.writerow(("episode", "step", "pushed", "detected", "deviation", "motion"))
+                self._w.writerow(("episode", "step", "pushed", "detected", "deviation", "motion", "contact"))
 
     @classmethod
     def off(cls) -> PhysicalHands:
@@ -89,14 +89,15 @@ class PhysicalHands:
         """
         if not self.on:
             return
-        was = self.detector.active
-        now = self.detector.update(info["desired"], before, self.env.position)
+        was, task = self.detector.active, self.env.task
+        contact = bool(task.contact(self.env.inner)) if task.contact is not None else False
+        now = self.detector.update(info["desired"], before, self.env.position, contact)
         self.counts["interactions"] += int(now and not was)
         self.counts["pushed_steps"] += int(self.pushed)
         self.counts["detected_steps"] += int(now)
         if self._fh is not None:
             dev, motion = self.detector.last
-            self._w.writerow((episode, t, int(self.pushed), int(now), f"{dev:.5g}", f"{motion:.5g}"))
+            self._w.writerow((episode, t, int(self.pushed), int(now), f"{dev:.5g}", f"{motion:.5g}", int(contact)))
 
     def end_episode(self) -> None:
         """The episode ended: the hand lets go, the detector starts afresh."""

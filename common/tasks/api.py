@@ -121,6 +121,9 @@ class Task:
     :param push: ``push(env, p_h)``, simulation only (``--physical scripted``): the scripted physical human pushes the
         robot towards ``p_h`` with a force during the next step (None: lets go); a robot whose controller yields to
         force (None: the task cannot be pushed).
+    :param contact: ``contact(env) -> bool``: the robot touches what it means to now (an object in its closed gripper,
+        a surface it presses): ``--physical`` starts no interaction then (to positions, a hand and a held object
+        look the same). None: never.
     :param hold: ``hold(env, p_t)``, called about once a control period while the actor holds the robot (e-stop,
         pause, waiting for the learner or a silent human) with the position last sent: for a driver that needs a
         steady command stream (None: nothing is sent; a position-controlled arm keeps its last target).
@@ -150,6 +153,7 @@ class Task:
     position: Callable[[np.ndarray], np.ndarray] | None = None
     hold: Callable[[Any, np.ndarray], None] | None = None
     push: Callable[[Any, np.ndarray | None], None] | None = None
+    contact: Callable[[Any], bool] | None = None
     scripted_human: Callable[..., np.ndarray | None] | None = None
     view: View = field(default_factory=View)
     success_key: str = "success"

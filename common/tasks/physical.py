@@ -11,8 +11,9 @@ Per control step, with P_t the position sent, x_{t-1} and x_t the measured posit
 * while it lasts, P_t is the arm's own position (the controller stops resisting), and it **ends** after
   ``off_steps`` consecutive steps with ``|v| <= motion``: the hand let go (or holds still; the policy takes over).
 
-A push along the way the robot goes anyway leaves no deviation and is not seen (nor needs to be); contact with the
-table or a held object that holds the arm back more than ``deviation`` would be taken for a hand.
+A push along the way the robot goes anyway leaves no deviation and is not seen (nor needs to be). A held object or a
+surface the arm presses holds it back like a hand: while the task says the robot is in contact (``Task.contact``,
+e.g. its gripper closed) no interaction starts -- a push then is not seen.
 The thresholds are in units of the demonstrations' largest per-step displacement (the task's speed scale), as the
 rate limits are (:mod:`khgrl.common.config.safety`). It uses positions only: no force sensor (a task whose robot
 gives an external-force estimate could add it; none here does).
@@ -62,12 +63,13 @@ class PhysicalDetector:
         """A new episode: no interaction."""
         self.active, self._count = False, 0
 
-    def update(self, p_t: np.ndarray, before: np.ndarray, after: np.ndarray) -> bool:
+    def update(self, p_t: np.ndarray, before: np.ndarray, after: np.ndarray, contact: bool = False) -> bool:
         """One step: whether an interaction holds the arm after it.
 
         :param p_t: the position sent in this step.
         :param before: the measured position before it.
         :param after: the measured position after it.
+        :param contact: the robot touches what it means to (the task's ``contact``): no interaction starts.
         """
         p_t, before, after = (np.asarray(a, np.float64) for a in (p_t, before, after))
         v = after - before
@@ -78,7 +80,7 @@ class PhysicalDetector:
             if self._count >= self.off_steps:
                 self.active, self._count = False, 0
             return self.active
-        pushed = self.last[0] > self.deviation
+        pushed = self.last[0] > self.deviation and not contact
         self._count = self._count + 1 if pushed else 0
         if self._count >= self.on_steps:
             self.active, self._count = True, 0

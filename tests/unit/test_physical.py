@@ -56,3 +56,11 @@ def test_off_does_nothing_and_a_task_without_a_push_hook_is_refused():
 
     with pytest.raises(TaskError, match="no push hook"):
         PhysicalHands(KGRLEnv(load_task("passage:low_cov")), "scripted")
+
+
+def test_no_interaction_starts_while_the_task_says_the_robot_is_in_contact():
+    det = PhysicalDetector(deviation=0.03, motion=0.005, on_steps=2, off_steps=3)
+    arm = [[0, 0], [0.05, 0], [0.06, 0], [0.07, 0], [0.08, 0]]
+    held = [det.update(np.zeros(2), np.array(b), np.array(a), contact=c)
+            for (b, a), c in zip(zip(arm, arm[1:]), (True, True, False, False))]
+    assert held == [False, False, False, True]  # the count starts only once the contact is over

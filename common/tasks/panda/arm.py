@@ -145,6 +145,12 @@ class PandaPosition(gym.Env):
         return np.asarray(self.base.data.mocap_pos[0], np.float64).copy()
 
     @property
+    def gripper_closed(self) -> bool:
+        """Whether the gripper is commanded closed (what a real gripper's status reports; the task's ``contact``:
+        closed on the cube, or on nothing)."""
+        return bool(self._obs is not None and self._obs["agent_pos"][GRIP] / MAX_GRIPPER_COMMAND > 0.5)
+
+    @property
     def gripper_pos(self) -> np.ndarray:
         """The pinch site's position now (metres)."""
         return np.asarray(self._obs["agent_pos"][15:18], np.float64)

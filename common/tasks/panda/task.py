@@ -148,7 +148,7 @@ def make_task(scenario: str = "pick", *, horizon: int = HORIZON, seed: int = 0) 
         make_env=lambda s: PandaPosition(horizon=horizon, workspace=BOUNDS, gripper=sched, region=REGION),
         demos=teacher_demos(n=horizon, seed=seed), kmp=KMP, workspace=BOUNDS, default_scale=DEFAULT_SCALE,
         learn_scale=True, action_cost=10.0, position=lambda obs: np.asarray(obs, np.float64)[TCP],
-        push=lambda env, p_h: env.push(p_h),
+        push=lambda env, p_h: env.push(p_h), contact=lambda env: env.gripper_closed,
         scripted_human=PandaGuide(), success_key="succeed", reward_bound=1.0, obs_bound=10.0,
         scene=Scene(region=f"cube x in [{x0}, {x1}], y in [{y0}, {y1}] m (uniform; gym-hil's sampling bounds)",
                     describe=describe, via_points=lambda obs: via_points(obs, horizon)),
