@@ -116,8 +116,9 @@ class PhysicalHands:
 
 
 def detection(rows: list[dict]) -> dict:
-    """Per-step precision and recall of the detected steps against the pushed ones, the delay in steps from a push's
-    first step to its detection, and the detected steps in episodes without a push.
+    """Per-step precision and recall of the detected steps against the pushed ones (also over the pushed steps without
+    contact), the delay in steps from a push's first step to its detection, and the detected steps in episodes
+    without a push.
 
     :param rows: ``physical.csv``'s rows (``episode``, ``step``, ``pushed``, ``detected``).
     """
@@ -134,9 +135,12 @@ def detection(rows: list[dict]) -> dict:
             start = None
         if start is not None and (not pushed[i] or (i + 1 < len(rows) and episodes[i + 1] != episodes[i])):
             start = None  # the push ended undetected
+    free = np.array([not int(r.get("contact") or 0) for r in rows], bool)  # (no contact column: all free)
     quiet = [e for e in np.unique(episodes) if not pushed[episodes == e].any()]
     return {"steps": len(rows), "pushed": int(pushed.sum()), "detected": int(found.sum()),
             "precision": tp / found.sum() if found.any() else None,
             "recall": tp / pushed.sum() if pushed.any() else None, "delay_steps": delays,
+            "recall_without_contact": int(np.sum(pushed & found & free)) / int(np.sum(pushed & free))
+            if np.any(pushed & free) else None,
             "false_in_quiet_episodes": int(sum(found[episodes == e].sum() for e in quiet)),
             "quiet_episodes": len(quiet)}

@@ -35,7 +35,8 @@ def one(run: Path) -> dict:
     phys = run / "actor-a0" / "physical.csv"
     if phys.is_file():
         d = detection(_rows(phys))
-        out.update(precision=d["precision"], recall=d["recall"], delays=d["delay_steps"],
+        out.update(precision=d["precision"], recall=d["recall"], recall_without_contact=d["recall_without_contact"],
+                   delays=d["delay_steps"],
                    false_quiet=d["false_in_quiet_episodes"], quiet=d["quiet_episodes"], pushed=d["pushed"])
     return out
 
@@ -44,8 +45,11 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("runs", type=Path)
     p.add_argument("--out", type=Path, default=Path("docs/results_physical"))
+    p.add_argument("--overwrite", action="store_true", help="replace an existing per_run.json")
     args = p.parse_args()
     rows = [one(r) for r in sorted(args.runs.glob("panda_pick-*-seed*")) if (r / "actor-a0" / "episodes.csv").is_file()]
+    if args.out.joinpath("per_run.json").is_file() and not args.overwrite:
+        raise SystemExit(f"{args.out / 'per_run.json'} exists: --overwrite to replace it")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "per_run.json").write_text(json.dumps(rows, indent=2, default=float))
     for r in rows:
