@@ -14,6 +14,8 @@ faults:
    which client is silent, then the policy drives again -- through the rate limit, no jump.
 3. The learner is SIGSTOPped (simulation mode: the actor waits for it): the watchdog holds the robot and says
    ``waiting for the learner`` until SIGCONT.
+4. The actor itself is SIGSTOPped for 0.4 s (a stalled control loop): the late step is counted, and the next P_t
+   does not jump.
 
 Throughout, no two consecutive frames' P_t differ by more than the speed limit on any axis, even while the human
 drags to the far corner (the step the human asked for is many times larger), and nothing is lost.
@@ -186,6 +188,10 @@ def test_estop_watchdog_and_rate_limit_hold_a_real_actor(tmp_path):
         _estop(up, watch)
         killed = _silent_human(up, watch, runtime)
         _stopped_learner(up, watch)
+        actor = read_json(up.run_dir / "pids.json")["children"]["a0"]
+        os.kill(actor, signal.SIGSTOP)  # the control loop stalls for 8 periods
+        time.sleep(0.4)
+        os.kill(actor, signal.SIGCONT)
         rc = up.proc.wait(timeout=200)
         assert rc == 0, f"khgrl up exited {rc}\n{up.stdout}\n{up.stderr}"
     finally:
@@ -203,6 +209,7 @@ def test_estop_watchdog_and_rate_limit_hold_a_real_actor(tmp_path):
     assert 0.1 <= silence <= 0.45, s
     assert s["held_s"]["learner"] >= 1.0 and s["held_s"]["estop"] >= 1.5 and s["held_s"]["ready"] > 0, s
     assert _gap(watch, killed) >= 0.1  # no step while the silent human's hold was frozen
+    assert s["late_steps"] >= 1 and s["late_ms_max"] >= 300, s  # the stalled loop's step was late and counted
 
     world = build_task_world(load_task("passage:low_cov"))
     limit = 2.0 * largest_step(world.demos)
