@@ -189,6 +189,7 @@ def test_estop_watchdog_and_rate_limit_hold_a_real_actor(tmp_path):
         killed = _silent_human(up, watch, runtime)
         _stopped_learner(up, watch)
         actor = read_json(up.run_dir / "pids.json")["children"]["a0"]
+        wait_for(lambda: watch.frames_between(time.time() - 0.3, time.time()) > 3, 10, "steps after SIGCONT")
         os.kill(actor, signal.SIGSTOP)  # the control loop stalls for 8 periods
         time.sleep(0.4)
         os.kill(actor, signal.SIGCONT)
