@@ -55,8 +55,8 @@ def build_parser(prog: str = "khgrl stop") -> argparse.ArgumentParser:
     p.add_argument("--connect", default=None, help="the router's endpoint, without RUN_DIR (default: RUN_DIR's)")
     p.add_argument("--zenoh-config", default=None, help="a Zenoh configuration file with the launcher's certificate "
                    "(default: RUN_DIR/certs/zenoh/launcher.json5 for a --secure run, else none)")
-    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the actors to confirm (default: "
-                   "%(default)s)")
+    p.add_argument("--timeout", type=float, default=None, help="seconds to wait for the actors to confirm (default: "
+                   "5; a plain stop 20, for the actors' final flush)")
     return p
 
 
@@ -139,16 +139,18 @@ def ready_main(argv: list[str] | None = None) -> int:
 
 def _send(args: argparse.Namespace, command: str) -> int:
     """Send ``command`` to the run's actors until they confirm; the exit code."""
+    prog = "khgrl ready" if command == "ready" else "khgrl stop"
+    timeout = args.timeout if args.timeout is not None else 20.0 if command == "stop" else 5.0
     try:
         run, connect, conf = target(args)
         keys = Keys(run)
     except (ValueError, FileNotFoundError) as exc:
-        print(f"khgrl stop: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     try:
         session = open_client(connect, timeout=5.0, zenoh_config=conf)
     except ConnectionError as exc:
-        print(f"khgrl stop: error: {exc}", file=sys.stderr)
+        print(f"{prog}: error: {exc}", file=sys.stderr)
         return 1
     with session:
         actors = _Actors()
@@ -156,16 +158,16 @@ def _send(args: argparse.Namespace, command: str) -> int:
         try:
             want = sorted(k.split("/")[-1] for k in alive_now(session, keys.alive("actor", args.actor or "*"), 1.0))
             if not want:
-                print(f"khgrl stop: error: no actor of run {run} is alive at {connect}", file=sys.stderr)
+                print(f"{prog}: error: no actor of run {run} is alive at {connect}", file=sys.stderr)
                 return 1
             t0 = time.monotonic()
-            left = _wait(session, keys, actors, command, keys.control(args.actor or "actor"), want, args.timeout)
+            left = _wait(session, keys, actors, command, keys.control(args.actor or "actor"), want, timeout)
         finally:
             undeclare_all(sub)
     done = {"estop": "held by the e-stop", "release": "released", "stop": "stopped", "ready": "ready"}[command]
     for a in want:
-        print(f"{a}: " + (f"not confirmed within {args.timeout:g} s" if a in left else done))
-    print(f"khgrl {'ready' if command == 'ready' else 'stop'}: {command} "
+        print(f"{a}: " + (f"not confirmed within {timeout:g} s" if a in left else done))
+    print(f"{prog}: {command} "
           f"{'confirmed' if not left else 'NOT confirmed'} by {len(want) - len(left)} of "
           f"{len(want)} actors in {time.monotonic() - t0:.2f} s")
     return 1 if left else 0
