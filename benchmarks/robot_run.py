@@ -65,17 +65,6 @@ class _Watch:
             return self.frames[-1][1:] if self.frames else (0, -1)
 
 
-def _task_file(run_dir: Path, task: str) -> None:
-    """The learner's task file, as ``khgrl up`` writes it (a learner started by hand takes its spaces from it)."""
-    from khgrl.common.config.settings import resolve
-    from khgrl.common.delivery.task_link import TASK_FILE, save_task
-    from khgrl.deploy.launcher import check_task
-
-    path = run_dir / "learner" / TASK_FILE
-    path.parent.mkdir(parents=True, exist_ok=True)
-    save_task(path, check_task(resolve(overrides={"task": task, "adapt": False})))
-
-
 def _drive(session, keys, watch: _Watch, procs, learner_args: list[str], actor, down: float) -> dict:
     """Say ready, press the e-stop, kill and restart the learner, until the actor exits; what happened when."""
     from khgrl.common.delivery.declare import put
@@ -124,7 +113,7 @@ def run_robot_benchmark(rate: float = 10.0, episodes: int = 4, down: float = 3.0
     :param out: also write the results as JSON here
     """
     from khgrl.actor.physical import detection
-    from khgrl.benchmarks.runtime.procs import BenchProcs, run_id
+    from khgrl.benchmarks.runtime.procs import BenchProcs, run_id, task_file
     from khgrl.benchmarks.scale import provenance_check
     from khgrl.common.delivery.transport import open_client
     from khgrl.common.wire.protocol import Keys
@@ -137,7 +126,7 @@ def run_robot_benchmark(rate: float = 10.0, episodes: int = 4, down: float = 3.0
     procs, watch = BenchProcs(work_dir), _Watch()
     both = ["--mode", "robot", "--seed", str(seed), "--learning-starts", "64"]
     world = ["--task", "panda:pick", "--no-adapt", *both]
-    _task_file(run_dir, "panda:pick")
+    task_file(run_dir, {"task": "panda:pick", "adapt": False})
     try:
         ep = procs.router()
         learner_args = ["--run", run, "--connect", ep, "--run-dir", str(run_dir), "--id", "learner", *both]

@@ -15,7 +15,7 @@ from khgrl.common.delivery.transport import free_port, wait_reachable
 from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 
 __all__ = ["REPO", "TRAIN_FREQ", "BENCH_ACTOR", "BenchProcs", "wait_until", "run_id", "pct", "load",
-           "passage_task_file"]
+           "passage_task_file", "task_file"]
 
 REPO = Path(__file__).resolve().parents[2]
 TRAIN_FREQ = TQCSettings().train_freq
@@ -69,14 +69,24 @@ class BenchProcs:
 def passage_task_file(run_dir: Path) -> None:
     """``RUN_DIR/learner/task.msgpack`` of the passage world (high_cov), as ``khgrl up`` writes it: a learner
     started by hand takes its spaces from there instead of waiting for an actor to announce the task."""
-    from khgrl.common.config.settings import RunConfig
+    task_file(run_dir)
+
+
+def task_file(run_dir: Path, overrides: dict | None = None) -> None:
+    """``RUN_DIR/learner/task.msgpack`` of the run settings ``overrides`` (default: the passage world, high_cov), as
+    ``khgrl up`` writes it (kept if it exists).
+
+    :param run_dir: the run directory.
+    :param overrides: run settings, e.g. ``{"task": "panda:pick", "adapt": False}``.
+    """
+    from khgrl.common.config.settings import resolve
     from khgrl.common.delivery.task_link import TASK_FILE, save_task
     from khgrl.deploy.launcher import check_task
 
     path = Path(run_dir) / "learner" / TASK_FILE
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
-        save_task(path, check_task(RunConfig()))
+        save_task(path, check_task(resolve(overrides=overrides)))
 
 
 def wait_until(cond: Callable[[], Any], timeout: float, what: str, procs: tuple[Proc, ...] | list[Proc] = (),
