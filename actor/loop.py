@@ -124,6 +124,7 @@ class ActorLoop:
         acc.start()
         self.episode = acc.episode
         self.p.arbiter.new_episode(self.episode)
+        self.p.steps.start(self.episode, env)
         ep = _Episode(started=time.perf_counter())
         done = False
         while not done and not self.flag:
@@ -132,7 +133,7 @@ class ActorLoop:
             obs, done = self._step(obs, acc, ep)
         if not done:
             return False
-        self._end_episode(acc, ep)
+        self._end_episode(acc, ep, obs)
         return True
 
     def before_step(self) -> bool:
@@ -176,6 +177,7 @@ class ActorLoop:
             p.scale.refit(ep.segment, self.episode)
             ep.segment = []
         p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]))
+        p.steps.step(obs, info, env, reward, terminated, truncated, p_h, physical)
         t = int(info["t"])
         if iv and p_h is not None:
             p.record.write(self.episode, t, SOURCE if physical else p.arbiter.holder, p_h, info)
@@ -186,13 +188,14 @@ class ActorLoop:
             p.stream.cut()
         return next_obs, done
 
-    def _end_episode(self, acc: EpisodeAccumulator, ep: _Episode) -> None:
+    def _end_episode(self, acc: EpisodeAccumulator, ep: _Episode, final_obs: np.ndarray) -> None:
         p = self.p
         p.env.set_correction(None)
         p.physical.end_episode()
         p.scale.refit(ep.segment, self.episode)
         st = acc.finish(time.perf_counter() - ep.started)
         p.record.flush()
+        p.steps.finish(final_obs, st)  # (steps/episode-N.npz)
         p.tensorboard.episode(st)
         p.episodes.add(st, p.env.scene_row())
         p.link.publish(EpisodeReport(actor=self.id, stats=asdict(st)))

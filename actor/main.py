@@ -55,6 +55,7 @@ from khgrl.common.delivery.task_link import TaskAnnouncer
 from khgrl.common.delivery.transport import Inbox, open_client
 from khgrl.common.delivery.trust import WeightsGate
 from khgrl.common.process import StopFlag, die_with_parent, install_stop_handlers, setup_process_logging
+from khgrl.common.step_records import StepRecord
 from khgrl.common.tasks.api import TaskError, load_task
 from khgrl.common.tasks.scripted_human import ScriptedHuman, ScriptedHumanConfig
 from khgrl.common.wire.checks import RejectCounter, ident
@@ -115,7 +116,8 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                       record=CorrectionRecord(out_dir / "corrections.csv", pc.run, actor, append=resume,
                                              dim=env.mapping.model.out_dim),
                       episodes=episodes, tensorboard=TensorBoard(out_dir / "tb" if cfg.tensorboard else None),
-                      rejects=rejects, task=task, announcer=announcer, physical=physical or PhysicalHands.off())
+                      rejects=rejects, task=task, announcer=announcer, physical=physical or PhysicalHands.off(),
+                      steps=StepRecord(out_dir))
 
 
 def _physical(cfg, env, out_dir: Path) -> PhysicalHands:
