@@ -26,10 +26,11 @@ def _cmd_demos_make(args: argparse.Namespace) -> int:
 def _cmd_kmp_fit(args: argparse.Namespace) -> int:
     from khgrl.common.kmp.fit import KMPConfig, box_constraints, fit_model
     from khgrl.common.kmp.plots import plot_kmp
+    from khgrl.common.lerobot.demos import is_lerobot_spec, load_lerobot_demos
     from khgrl.common.tasks.demos import load_demos
     from khgrl.common.tasks.passage.scenarios import get_scenario
 
-    demos = load_demos(args.demos)
+    demos = load_lerobot_demos(args.demos) if is_lerobot_spec(args.demos) else load_demos(args.demos)
     config = KMPConfig(
         lam=args.lam, beta=args.beta, length_scale=args.length_scale, n_components=args.components, seed=args.seed
     )
@@ -113,7 +114,9 @@ def _add_demos(sub) -> None:
 def _add_kmp(sub) -> None:
     kmp = sub.add_parser("kmp", help="LC-NS-KMP models").add_subparsers(dest="action", required=True, metavar="ACTION")
     p = kmp.add_parser("fit", help="fit GMM/GMR + LC-NS-KMP to a demonstration file and plot it")
-    p.add_argument("demos", help="demonstrations (.npz with array 'demos' (M,N,O), or .csv 'demo,step,y0,...')")
+    p.add_argument("demos", help="demonstrations (.npz with array 'demos' (M,N,O), or .csv 'demo,step,y0,...', or a "
+                                 "LeRobot dataset lerobot:PATH[?feature=NAME&dims=A:B&n=N]: one demonstration per "
+                                 "episode, resampled to n points, default the longest episode's frames)")
     p.add_argument("--out", default="runs/kmp.png",
                    help="PNG to write (a .json summary is written beside it; default: %(default)s)")
     p.add_argument("--lam", type=float, default=1.0, help="KMP regulariser lambda (default: %(default)s)")

@@ -121,7 +121,8 @@ def load_run_task(cfg: Any, cwd: str | None = None) -> tuple[Any, str]:
     if cwd and Path(cwd).is_dir():
         if cwd not in sys.path:
             sys.path.append(cwd)
-        demos = demos if demos is None or Path(demos).exists() else str(Path(cwd) / demos)
+        if demos is not None and not demos.startswith("lerobot:") and not Path(demos).exists():
+            demos = str(Path(cwd) / demos)
     spec = cfg.task_spec
     try:
         return load_task(spec, demos), spec

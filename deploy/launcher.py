@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import shutil
 import sys
 import time
 from dataclasses import dataclass, field
@@ -149,7 +148,7 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     """
     cfg = _resolve_config(args)
     if cfg.demos:
-        cfg = dataclasses.replace(cfg, demos=str(Path(cfg.demos).resolve()))
+        cfg = dataclasses.replace(cfg, demos=rundir.resolve_demos(cfg.demos))
     run_dir = Path(cfg.run_dir)
     _check_run_dir(run_dir, args, cfg.checkpoint_dir)
     check_algorithm(cfg.algo)
@@ -201,10 +200,8 @@ def prepare_run_dir(plan: RunPlan) -> None:
         part = int(plan.previous.get("part", 1)) + 1
         rundir.archive_part(plan.run_dir, part - 1)
     if plan.cfg.demos and not plan.resume:  # the run keeps the demonstrations it was trained from
-        kept = plan.run_dir / f"demos{Path(plan.cfg.demos).suffix}"
-        kept.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(plan.cfg.demos, kept)
-        plan.cfg = dataclasses.replace(plan.cfg, demos=str(kept.resolve()))
+        kept = rundir.keep_demos(plan.run_dir, plan.cfg.task_spec, plan.cfg.demos)
+        plan.cfg = dataclasses.replace(plan.cfg, demos=str(kept))
     run_key.create(plan.run_dir, fresh=not plan.resume)  # the learner signs acks and weights, actors check
     if plan.secure:
         plan.secure_run = prepare_secure_run(plan.run_dir, plan.endpoint, run_identities(plan.cfg))

@@ -9,7 +9,8 @@ Layout::
     RUN_DIR/pids.json                 the launcher's and its children's process ids (latest start)
     RUN_DIR/logs/<process>.log        each process's output (appended to by a resumed run)
     RUN_DIR/learner/...               checkpoints, TensorBoard scalars
-    RUN_DIR/actor-<id>/...            episodes.csv/json, summary.json, corrections.csv, tb/
+    RUN_DIR/actor-<id>/...            episodes.csv/json, summary.json, corrections.csv, tb/, steps/
+    RUN_DIR/demos.npz (or .csv)       the demonstrations of ``--demos`` (a ``lerobot:`` source resampled)
 
 A resumed run is one run in several parts: ``config.json`` always describes the part now running (its
 ``runtime`` says ``resumed``, ``part`` and ``first_started``); the earlier parts' ``config.json``,
@@ -24,7 +25,7 @@ import shutil
 from pathlib import Path
 
 __all__ = ["RunDirError", "results_in", "has_checkpoint", "clear_run", "archive_part", "previous_runtime",
-           "make_run_id", "write_pids"]
+           "make_run_id", "write_pids", "resolve_demos", "keep_demos"]
 
 # entries that mark a directory as holding (part of) a run; --overwrite deletes exactly these
 _RESULT_FILES = ("config.json", "config.toml", "summary.json", "pids.json")
@@ -122,3 +123,37 @@ def write_pids(run_dir: Path, launcher: int, children: dict[str, int]) -> None:
     :param children: process id by process name
     """
     (run_dir / "pids.json").write_text(json.dumps({"launcher": launcher, "children": children}, indent=2))
+
+
+def resolve_demos(demos: str) -> str:
+    """A ``--demos`` value with its path made absolute (children run elsewhere): a file, or the folder of a
+    ``lerobot:PATH?...`` source.
+
+    :param demos: the ``--demos`` value.
+    """
+    from khgrl.common.lerobot.demos import is_lerobot_spec, parse_spec
+
+    return parse_spec(demos, resolve=True).text() if is_lerobot_spec(demos) else str(Path(demos).resolve())
+
+
+def keep_demos(run_dir: Path, task_spec: str, demos: str) -> Path:
+    """Keep the demonstrations a run is trained from in the run directory; returns the kept file, which the
+    processes then read: a file is copied (``RUN_DIR/demos.npz`` or ``.csv``); a ``lerobot:`` source is written
+    resampled as ``RUN_DIR/demos.npz`` (array ``demos``, (M, N, O), and ``source``, the spec it came from).
+
+    :param run_dir: the run directory.
+    :param task_spec: the run's task (a ``lerobot:`` source is resampled to its N).
+    :param demos: the resolved ``--demos`` value.
+    """
+    import numpy as np
+    from khgrl.common.lerobot.demos import is_lerobot_spec
+    from khgrl.common.tasks.api import load_task
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if not is_lerobot_spec(demos):
+        kept = run_dir / f"demos{Path(demos).suffix}"
+        shutil.copyfile(demos, kept)
+        return kept.resolve()
+    kept = run_dir / "demos.npz"
+    np.savez_compressed(kept, demos=load_task(task_spec, demos).demos, source=np.array(demos))
+    return kept.resolve()

@@ -155,7 +155,10 @@ class RunConfig:
                      roles=(ACTOR, HUMAN), shown="passage:<scenario>")
     scenario: str = _opt("high_cov", "passage-world scenario (shorthand for --task passage:SCENARIO)",
                          roles=(ACTOR, HUMAN, REFERENCE))
-    demos: str = _opt("", "demonstration file (.npz/.csv, M x N x O) instead of the task's", roles=(ACTOR, HUMAN))
+    demos: str = _opt("", "demonstrations instead of the task's: a file (.npz/.csv, M x N x O) or a local LeRobot "
+                          "dataset, lerobot:PATH[?feature=observation.state&dims=A:B&n=N] (one episode per "
+                          "demonstration, linearly interpolated over its phase to the task's N points; README, "
+                          "'LeRobot datasets')", roles=(ACTOR, HUMAN))
     method: str = _opt("khgrl", "khgrl: human corrections and a learned exploration scale; kgrl: neither; hil-serl: "
                                 "the HIL-SERL baseline (delta actions in the task's own space, no KMP band; the "
                                 "human takes over; implies --algo sac_ln --sampling rlpd unless given)", METHODS,

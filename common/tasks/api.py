@@ -38,6 +38,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 from khgrl.common.kmp.fit import KMPConfig
+from khgrl.common.lerobot.demos import is_lerobot_spec
 from khgrl.common.tasks.scene import Scene, ViaPoint, scene_seed
 from khgrl.common.wire.descriptor import MAX_BOUND, OBS_BOUND, REWARD_BOUND
 
@@ -251,7 +252,8 @@ def load_task(spec: str, demos: str | Path | None = None) -> Task:
 
     :param spec: ``passage:high_cov``, ``passage:low_cov`` or ``package.module:callable`` (a callable returning
         a :class:`Task`, or a :class:`Task` itself).
-    :param demos: a .npz/.csv demonstration file that replaces the task's.
+    :param demos: a .npz/.csv demonstration file that replaces the task's, or a LeRobot dataset
+        ``lerobot:PATH[?feature=NAME&dims=A:B&n=N]`` (:mod:`khgrl.common.lerobot.demos`).
     :raises TaskError: naming what is wrong.
     """
     fn, args = _import_factory(spec)
@@ -267,8 +269,23 @@ def load_task(spec: str, demos: str | Path | None = None) -> Task:
     if not isinstance(task, Task):
         raise TaskError(f"task {spec!r}: the factory returned {type(task).__name__}, not a khgrl.task.Task")
     if demos:
-        task = task.with_demos(Path(demos))
+        task = task.with_demos(_lerobot_demos(task, str(demos)) if is_lerobot_spec(demos) else Path(demos))
     return task
+
+
+def _lerobot_demos(task: Task, spec: str) -> np.ndarray:
+    """``--demos lerobot:PATH...``: the dataset's episodes resampled to the task's N, checked against its O."""
+    from khgrl.common.lerobot.demos import LeRobotDemoError, load_lerobot_demos  # the library: only here
+
+    n = o = None
+    if task.demos is not None:  # the task's own demonstrations give N and O
+        _, n, o = task_demos(task).shape
+    elif np.ndim(task.workspace[0]) == 1:
+        o = len(task.workspace[0])
+    try:
+        return load_lerobot_demos(spec, n=n, o=o)
+    except LeRobotDemoError as exc:
+        raise TaskError(f"task {task.name!r}: {exc}") from None
 
 
 # ------------------------------------------------------------------------------------ checks
