@@ -156,6 +156,9 @@ def build_parser() -> argparse.ArgumentParser:
     from khgrl.deploy.evaluate import add_parser as _add_eval
 
     _add_eval(sub)
+    from khgrl.deploy.export import add_parser as _add_export
+
+    _add_export(sub)
     from khgrl.deploy.certs import add_parser as _add_certs
     from khgrl.deploy.secure import add_configs_parser
 

@@ -34,7 +34,8 @@ import types
 from pathlib import Path
 from typing import Any
 
-__all__ = ["LeRobotMissing", "NotADataset", "INSTALL_HINT", "lerobot_dataset_class", "open_dataset", "INTERVENTION",
+__all__ = ["LeRobotMissing", "NotADataset", "INSTALL_HINT", "lerobot_dataset_class", "open_dataset", "quiet",
+           "INTERVENTION",
            "REWARD", "DONE", "STATE", "ACTION"]
 
 INSTALL_HINT = "pip install 'khgrl[lerobot]'"
@@ -181,7 +182,7 @@ def open_dataset(path: str | Path):
         raise NotADataset(f"{root}: not a LeRobot dataset (no meta/info.json; LeRobot's v3.0 format has meta/, "
                           f"data/ and videos/)")
     dataset_class = lerobot_dataset_class()
-    _quiet()
+    quiet()
     try:
         return dataset_class(f"local/{root.name}", root=root, video_backend="pyav")
     except Exception as exc:  # noqa: BLE001 - whatever the library raises on a folder it cannot read
@@ -189,7 +190,7 @@ def open_dataset(path: str | Path):
         raise NotADataset(f"{root}: LeRobot's loader cannot read it as a dataset ({text})") from None
 
 
-def _quiet() -> None:
+def quiet() -> None:
     """No per-episode "Map" progress bars from ``datasets`` (KhGRL shows its own progress)."""
     import datasets
 

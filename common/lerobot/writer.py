@@ -1,0 +1,102 @@
+"""Write a LeRobot dataset (format v3.0) with LeRobot's own writer, all or nothing.
+
+``LeRobotDataset.create`` in a temporary folder beside the output, ``add_frame`` per frame, ``save_episode`` per
+episode, ``finalize``; then the folder is renamed into place (an existing output is replaced only with
+``overwrite``, and only once the new one is complete). A failure, Ctrl-C included, removes the temporary folder:
+nothing half-written is left at the output.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from khgrl.common.lerobot.library import lerobot_dataset_class, quiet
+
+__all__ = ["Episode", "write_dataset", "SIDECAR"]
+
+SIDECAR = "meta/khgrl.json"  # provenance beside LeRobot's own meta/info.json (which has no field for it)
+
+
+@dataclass
+class Episode:
+    """One episode to write.
+
+    :param task: its task string (LeRobot's per-frame ``task``).
+    :param columns: feature name -> (F, *shape) array in the feature's dtype, F frames.
+    """
+
+    task: str
+    columns: dict[str, np.ndarray]
+
+    @property
+    def frames(self) -> int:
+        """F, the number of frames."""
+        return len(next(iter(self.columns.values())))
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not overwrite:
+        raise FileExistsError(f"{out} exists: give --overwrite to replace it, or another output folder")
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out} exists and is not a folder: not replaced")
+
+
+def write_dataset(out: str | Path, *, fps: int, features: dict, episodes: Iterable[Episode], overwrite: bool = False,
+                  sidecar: dict | None = None, on_episode: Callable[[Episode], None] | None = None) -> Path:
+    """Write ``episodes`` as the LeRobot dataset folder ``out``; returns its path.
+
+    :param out: the dataset folder to write.
+    :param fps: frames per second (LeRobot's ``fps``: frame k of an episode has timestamp k / fps).
+    :param features: LeRobot's feature dict (``{name: {"dtype", "shape", "names"}}``).
+    :param episodes: the episodes, each a non-empty :class:`Episode`.
+    :param overwrite: replace an existing ``out``.
+    :param sidecar: written as JSON to ``out/meta/khgrl.json`` (provenance).
+    :param on_episode: called after each episode is saved (progress).
+    :raises FileExistsError: ``out`` exists and not ``overwrite``.
+    :raises ValueError: no episodes, or a frame the library refuses (its message).
+    """
+    out = Path(out)
+    _check_out(out, overwrite)
+    dataset_class = lerobot_dataset_class()
+    quiet()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        ds = dataset_class.create(repo_id=f"local/{out.name}", fps=int(fps), features=features, root=tmp,
+                                  use_videos=False, video_backend="pyav")
+        count = 0
+        for ep in episodes:
+            for i in range(ep.frames):
+                ds.add_frame({**{k: v[i] for k, v in ep.columns.items()}, "task": ep.task})
+            with warnings.catch_warnings():  # its statistics histogram a bool feature as uint8, and says so
+                warnings.filterwarnings("ignore", "Converting input from bool", RuntimeWarning)
+                ds.save_episode()
+            count += 1
+            if on_episode is not None:
+                on_episode(ep)
+        ds.finalize()
+        if count == 0:
+            raise ValueError(f"{out}: no episodes to write")
+        if sidecar is not None:
+            (tmp / SIDECAR).write_text(json.dumps(sidecar, indent=2) + "\n")
+        _move_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _move_into_place(tmp: Path, out: Path) -> None:
+    old = out.parent / f".{out.name}.replaced-{os.getpid()}"
+    if out.exists():
+        os.replace(out, old)
+    os.replace(tmp, out)
+    shutil.rmtree(old, ignore_errors=True)
