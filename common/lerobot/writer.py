@@ -69,6 +69,7 @@ def write_dataset(out: str | Path, *, fps: int, features: dict, episodes: Iterab
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
+    ds = None
     try:
         ds = dataset_class.create(repo_id=f"local/{out.name}", fps=int(fps), features=features, root=tmp,
                                   use_videos=False, video_backend="pyav")
@@ -89,9 +90,20 @@ def write_dataset(out: str | Path, *, fps: int, features: dict, episodes: Iterab
             (tmp / SIDECAR).write_text(json.dumps(sidecar, indent=2) + "\n")
         _move_into_place(tmp, out)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _discard(ds, tmp)
         raise
     return out
+
+
+def _discard(ds, tmp: Path) -> None:
+    """Remove a failed write: close the library's writers first (closing flushes its buffered episode metadata,
+    which would otherwise land in the folder after it is removed)."""
+    if ds is not None:
+        try:
+            ds.finalize()
+        except Exception:  # noqa: BLE001 - the write failed already; its own error is the one raised
+            pass
+    shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _move_into_place(tmp: Path, out: Path) -> None:
