@@ -56,6 +56,7 @@ DEFAULT_CPUS = 2.0  # a run's learner and actor, one core each
 MAX_RETRIES = 2  # Ray re-runs a task whose worker died, this many times
 LOG_TAIL_LINES = 40
 CANCEL_GRACE_S = 15.0  # after ray.cancel, before ray.cancel(force=True)
+WAIT_HINT_S = 120.0  # no run started this long after submitting: say what they need
 _SCRATCH = "khgrl-ray"  # under the worker's temporary directory
 _PR_SET_PDEATHSIG = 1
 
@@ -271,6 +272,7 @@ class RayRunner:
         self.cfg = runner.cfg
         self.live: dict[str, Any] = {}  # run name -> its task's ObjectRefGenerator
         self.status: dict[str, str] = {}
+        self.started = False  # a task has started on a worker
 
     def _init(self, ray: Any) -> None:
         address = self.cfg.ray
@@ -304,6 +306,7 @@ class RayRunner:
     def _event(self, name: str, item: dict) -> None:
         progress = self.runner.progress
         if item["event"] == "start":
+            self.started = True
             progress.start(name, note=f"running on {item['node']}")
             self.runner.record(name, status="running", node=item["node"], started=time.strftime("%Y-%m-%dT%H:%M:%S"))
         elif item["event"] == "episode":
@@ -364,8 +367,13 @@ class RayRunner:
         self._init(ray)
         try:
             self._submit(ray, specs)
-            cancelled = False
+            cancelled, hint_at = False, time.time() + WAIT_HINT_S
             while self.live:
+                if not self.started and time.time() > hint_at:
+                    hint_at = float("inf")
+                    print(f"khgrl experiment: no run started on {self.cfg.ray} after {WAIT_HINT_S:.0f} s: does a "
+                          f"node have {self.cfg.ray_cpus:g} CPUs and {self.cfg.ray_gpus:g} GPUs free? (ray status)",
+                          file=sys.stderr, flush=True)
                 if self.runner.stopping and not cancelled:
                     cancelled = True
                     self._cancel(ray)
