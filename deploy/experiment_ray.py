@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import gzip
 import io
 import os
 import platform
@@ -42,6 +43,7 @@ import sys
 import tarfile
 import tempfile
 import time
+import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Protocol
@@ -148,6 +150,7 @@ def unpack_run(data: bytes, dest: Path, accept: Callable[[Path], bool] | None = 
     :param dest: the run directory to create
     :param accept: checks the unpacked folder (e.g. that it holds a finished run)
     :return: whether ``dest`` now holds the run
+    :raises ValueError: for a broken archive or one with paths outside the run
     """
     if dest.exists():
         raise FileExistsError(f"{dest} exists: not overwritten")
@@ -155,8 +158,11 @@ def unpack_run(data: bytes, dest: Path, accept: Callable[[Path], bool] | None = 
     tmp = dest.parent / f".{dest.name}.{os.getpid()}.{secrets.token_hex(4)}.unpacking"
     tmp.mkdir()  # as the local path's run directories: the umask's mode
     try:
-        with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
-            tar.extractall(tmp, filter="data")  # no absolute paths, no escapes from tmp, no devices
+        try:
+            with tarfile.open(fileobj=io.BytesIO(data), mode="r:gz") as tar:
+                tar.extractall(tmp, filter="data")  # no absolute paths, no escapes from tmp, no devices
+        except (tarfile.TarError, EOFError, zlib.error, gzip.BadGzipFile) as exc:
+            raise ValueError(f"{dest.name}: a broken or unsafe run archive: {exc}") from exc
         if accept is not None and not accept(tmp):
             return False
         if dest.exists():
@@ -313,10 +319,13 @@ class RayRunner:
             progress.advance(name, item["episode"])
         elif item["event"] == "end":
             self.live.pop(name)
-            ok = item["returncode"] == 0 and unpack_run(  # finished, even during a Ctrl-C: kept
-                item["tar"], self.runner.out / name, self.is_done)
+            try:  # finished, even during a Ctrl-C: kept
+                error = ""
+                ok = item["returncode"] == 0 and unpack_run(item["tar"], self.runner.out / name, self.is_done)
+            except (ValueError, OSError) as exc:  # a broken archive, OUT/<name> made meanwhile, a full disk
+                ok, error = False, str(exc)
             status = "done" if ok else ("interrupted" if self.runner.stopping else "failed")
-            extra = {} if ok else {"log_tail": item["log_tail"]}
+            extra = {} if ok else {"log_tail": item["log_tail"], **({"error": error} if error else {})}
             self._finish(name, status, item["wall_time_s"], returncode=item["returncode"], node=item["node"], **extra)
 
     def _finish(self, name: str, status: str, wall: float, **info) -> None:
