@@ -336,11 +336,11 @@ class RayRunner:
     def _failed(self, name: str, exc: BaseException) -> None:
         """A task that raised (version mismatch, worker died past the retries) or was cancelled."""
         self.live.pop(name, None)
-        text = str(exc)
+        text = str(exc).strip() or type(exc).__name__
         if "No module named 'khgrl" in text:
             text = f"khgrl is not installed on the worker (install the head's khgrl there): {text}"
         status = "interrupted" if self.runner.stopping else "failed"
-        self._finish(name, status, 0.0, error=text.strip().splitlines()[-1][:500], log_tail=text[-4000:])
+        self._finish(name, status, 0.0, error=text.splitlines()[-1][:500], log_tail=text[-4000:])
 
     def _cancel(self, ray: Any) -> None:
         """Ctrl-C: cancel every task (a KeyboardInterrupt in it stops its run), then kill what is left."""
