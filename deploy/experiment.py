@@ -15,7 +15,8 @@ named after it with ``:`` and ``.`` as ``_`` (``fetch:moved`` -> ``fetch_moved-k
 Resumable: a run whose directory holds a finished result (every process exited 0, all episodes) is not
 redone; any other run directory (an interrupted or failed run) is wiped and the run starts again from
 scratch, so no half-run is ever mixed into the results. ``OUT/experiment.json`` records the resolved
-configuration, the machine and every run's status and wall time; ``khgrl report OUT`` analyses it.
+configuration, the machine and every run's status and wall time; ``khgrl report OUT`` analyses it. With ``--ray
+ADDRESS`` the runs are Ray tasks on a cluster's workers instead (:mod:`khgrl.deploy.experiment_ray`).
 """
 
 from __future__ import annotations
@@ -37,13 +38,13 @@ from pathlib import Path
 
 from khgrl.common.config.settings import HUMAN_METHODS, PAPER_EPISODES, REFERENCE_METHODS, TQCSettings, read_table
 from khgrl.common.tasks.passage.scenarios import SCENARIOS
+from khgrl.deploy.experiment_ray import DEFAULT_CPUS, EPISODE_LINE, RayRunner, add_ray_arguments, check_ray_settings
 from khgrl.deploy.run_results import METHOD_LABEL
 
 __all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main",
            "build_parser"]
 
 SYSTEMS = ("distributed", "reference")
-_EPISODE_LINE = re.compile(r"\[a0\] episode (\d+):|^\s*(\d+)/(\d+) episodes")
 
 
 @dataclass
@@ -61,6 +62,9 @@ class ExperimentConfig:
     jobs: int = 1  # runs at a time
     max_lead: int = 8  # khgrl up --max-lead (8: lock-step with the learner, as the single-process reference)
     timeout: float = 0.0  # seconds per run (0: none)
+    ray: str = ""  # a Ray cluster's address (or "auto", "local"): each run a Ray task there (experiment_ray.py)
+    ray_cpus: float = DEFAULT_CPUS  # per run, with ray
+    ray_gpus: float = 0.0  # per run, with ray (> 0: the learner runs with --device cuda)
 
     def validate(self) -> "ExperimentConfig":
         bad = [s for s in self.scenarios if s not in SCENARIOS] + [m for m in self.methods if m not in METHOD_LABEL]
@@ -87,6 +91,7 @@ class ExperimentConfig:
             raise ValueError(f"max_lead must be >= the learner's train frequency ({TQCSettings().train_freq})")
         if any(e < 1 for e in self.human_episodes):
             raise ValueError("human_episodes are 1-based episode numbers")
+        check_ray_settings(self.ray, self.ray_cpus, self.ray_gpus, self.system)
         return self
 
 
@@ -176,6 +181,7 @@ class _Runner:
         self.lock = threading.Lock()
         self.stopping = False
         self.procs: dict[str, subprocess.Popen] = {}
+        self.ray = RayRunner(self, lambda s: run_argv(s, cfg, self.out / s.name), lambda d: run_is_done(d, cfg))
 
     def record(self, name: str, **info) -> None:
         """Update one run's entry in ``experiment.json`` (merged under a file lock: several invocations on one
@@ -215,7 +221,7 @@ class _Runner:
             for line in proc.stdout:
                 log.write(line)
                 log.flush()
-                m = _EPISODE_LINE.search(line)
+                m = EPISODE_LINE.search(line)
                 if m:
                     self.progress.advance(spec.name, int(m.group(1) or m.group(2)))
             rc = proc.wait()
@@ -287,11 +293,11 @@ class _Progress:
         if self._p is not None:
             self._p.advance(self._overall)
 
-    def start(self, name: str) -> None:
+    def start(self, name: str, note: str = "") -> None:
         if self._p is not None:
-            self.tasks[name] = self._p.add_task(name, total=self.episodes, note="")
+            self.tasks[name] = self._p.add_task(name, total=self.episodes, note=note)
         else:
-            self._print(f"{name}: started")
+            self._print(f"{name}: started{' ' + note if note else ''}")
 
     def advance(self, name: str, episode: int) -> None:
         if self._p is not None and name in self.tasks:
@@ -308,7 +314,8 @@ class _Progress:
 def run(args: argparse.Namespace) -> int:
     overrides = {"out": args.out, "scenarios": args.scenarios, "tasks": args.tasks, "methods": args.methods,
                  "seeds": args.seeds, "episodes": args.episodes, "human_episodes": args.human_episodes,
-                 "system": args.system, "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout}
+                 "system": args.system, "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout,
+                 "ray": args.ray, "ray_cpus": args.ray_cpus, "ray_gpus": args.ray_gpus}
     try:
         cfg = load_config(args.config, overrides)
     except (ValueError, OSError, TypeError) as exc:
@@ -323,14 +330,18 @@ def run(args: argparse.Namespace) -> int:
         return 0
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(asdict(cfg), indent=2))
-    print(f"khgrl experiment: {len(specs)} runs ({cfg.system}) into {out}, {cfg.jobs} at a time", flush=True)
+    where = f"as Ray tasks on {cfg.ray}, {cfg.ray_cpus:g} CPUs each" if cfg.ray else f"{cfg.jobs} at a time"
+    print(f"khgrl experiment: {len(specs)} runs ({cfg.system}) into {out}, {where}", flush=True)
     t0 = time.time()
     progress = _Progress(len(specs), cfg.episodes, enabled=not args.no_progress and sys.stdout.isatty())
     runner = _Runner(cfg, specs, progress)
     previous = signal.signal(signal.SIGINT, lambda *_: runner.stop())
     try:
         with progress, ThreadPoolExecutor(max_workers=cfg.jobs) as pool:
-            results = list(pool.map(runner.one, specs))
+            results = runner.ray.run_all(specs) if cfg.ray else list(pool.map(runner.one, specs))
+    except RuntimeError as exc:  # --ray without Ray installed, or no cluster at the address
+        print(f"khgrl experiment: error: {exc}", file=sys.stderr)
+        return 2
     finally:
         signal.signal(signal.SIGINT, previous)
     for name, info in list(runner.status.items()):  # runs another invocation was still running when it last wrote
@@ -370,6 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true",
                    help="list the runs, their state and commands; run nothing (default: off)")
     p.add_argument("--no-progress", action="store_true", help="plain lines instead of progress bars (default: off)")
+    add_ray_arguments(p)
     p.set_defaults(func=run)
     return p
 
