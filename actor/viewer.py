@@ -16,7 +16,7 @@ import logging
 from typing import Any, Callable
 
 import numpy as np
-from khgrl.common.rerun_log import RunLogger, ViewTarget, open_recording
+from khgrl.common.rerun_log import RunLogger, ViewTarget, blueprint, open_recording
 
 __all__ = ["LiveView", "live_listeners"]
 
@@ -44,6 +44,8 @@ class LiveView:
         self._projector: np.ndarray | None = None
         w = env.world
         self._guard(self.logger.scene, w.demos, (w.low, w.high), tuple(w.view.shapes))
+        if target.actors and target.actors[0] == actor:  # one actor sends the layout (it knows of a camera)
+            self._guard(self.logger.rec.send_blueprint, blueprint(list(target.actors), self.camera is not None))
 
     def _guard(self, fn: Callable, *args: Any) -> None:
         if not self.on:
@@ -79,10 +81,11 @@ class LiveView:
 
     def finish(self, episode: int, arrays: dict[str, np.ndarray], stats: Any) -> None:
         """The episode finished: its band, return, success and the weights version."""
-        ret = float(getattr(stats, "ret", float(np.sum(arrays["reward"]))))
-        success = bool(getattr(stats, "success", False))
+        self._guard(self._finish, episode, arrays, stats)
+
+    def _finish(self, episode: int, arrays: dict[str, np.ndarray], stats: Any) -> None:
         version = self.version() if self.version is not None else None
-        self._guard(self.logger.finish, episode, arrays, ret, success, version)
+        self.logger.finish(episode, arrays, float(stats.ret), bool(stats.success), version)
 
     def close(self) -> None:
         """Send what is left (up to :data:`FLUSH_S`) and disconnect."""

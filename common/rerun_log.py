@@ -27,7 +27,7 @@ entity                                  what                             when
                                         camera
 ``/actor/ID/band``                      LineStrips3D: the band's low and episode end (last step)
                                         high edge over the episode
-``/actor/ID/episode/return``, ``.../    Scalars                          episode end (``episode`` timeline only)
+``/actor/ID/episode/return``, ``.../    Scalars                          episode end (no ``step``)
 success``, ``.../weights_version``
 ``/learner/...``                        Scalars: ``utd``, ``ingested``,  each learner status (``ingested``
                                         ``version``, ``grad_steps_per_s``  timeline)
@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["APPLICATION_ID", "INSTALL_HINT", "VIEW_ENV", "ViewTarget", "RunLogger", "import_rerun", "to3",
-           "band_half", "band_edges", "open_recording"]
+           "band_half", "band_edges", "open_recording", "blueprint"]
 
 APPLICATION_ID = "khgrl"
 INSTALL_HINT = "pip install 'khgrl[view]'"
@@ -67,11 +67,13 @@ class ViewTarget:
     :param url: the gRPC sink, ``rerun+http://127.0.0.1:PORT/proxy``.
     :param camera_every: the actor logs the simulator's camera image every this many steps (0: never).
     :param camera_size: its width and height in pixels.
+    :param actors: the run's actor ids (the first sends the recording's layout, :func:`blueprint`).
     """
 
     url: str
     camera_every: int = 10
     camera_size: int = 256
+    actors: tuple[str, ...] = ()
 
     def to_env(self) -> str:
         return json.dumps(asdict(self))
@@ -83,7 +85,8 @@ class ViewTarget:
         if not raw:
             return None
         try:
-            return ViewTarget(**json.loads(raw))
+            data = json.loads(raw)
+            return ViewTarget(**{**data, "actors": tuple(data.get("actors", ()))})
         except (TypeError, ValueError) as exc:
             raise ValueError(f"${VIEW_ENV} is not a view target ({exc}): {raw!r}") from exc
 
@@ -150,6 +153,26 @@ def open_recording(recording_id: str, *, url: str | None = None, save: str | Non
     return rec
 
 
+def blueprint(actors: list[str], camera: bool = True) -> Any:
+    """The layout a recording opens with: the 3-D scene (task and actors) beside the first actor's camera, L over the
+    run and the episodes' returns and successes; the time panel on ``run_step``.
+
+    :param actors: the actor ids.
+    :param camera: show the camera view (a task with a simulator camera).
+    """
+    import rerun.blueprint as rrb
+
+    scene = ["/task/**", *(f"/actor/{a}/**" for a in actors), *(f"- /actor/{a}/camera" for a in actors)]
+    side = [rrb.TimeSeriesView(name="L (exploration scale)", contents=[f"/actor/{a}/scale" for a in actors]),
+            rrb.TimeSeriesView(name="episodes", contents=[f"/actor/{a}/episode/**" for a in actors]),
+            rrb.TimeSeriesView(name="intervened", contents=[f"/actor/{a}/intervened" for a in actors])]
+    if camera and actors:
+        side.insert(0, rrb.Spatial2DView(name="camera", origin=f"/actor/{actors[0]}/camera"))
+    return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(name="scene", origin="/", contents=scene),
+                                        rrb.Vertical(*side), column_shares=[3, 2]),
+                         rrb.TimePanel(timeline="run_step"), collapse_panels=False)
+
+
 class RunLogger:
     """Logs a run's scene, episodes and steps into a Rerun recording stream (the entities of the module docstring).
 
@@ -195,12 +218,11 @@ class RunLogger:
     # ------------------------------------------------------------------ an episode
     def _time(self, episode: int, step: int | None) -> None:
         self.rec.set_time("episode", sequence=int(episode))
+        self.rec.set_time("run_step", sequence=int(self.run_step))
         if step is None:
             self.rec.disable_timeline("step")
-            self.rec.disable_timeline("run_step")
         else:
             self.rec.set_time("step", sequence=int(step))
-            self.rec.set_time("run_step", sequence=int(self.run_step))
 
     def start(self, episode: int, scene: dict[str, np.ndarray]) -> None:
         """An episode begins: its KMP mean (H, O) and via-points (V, 1 + O).

@@ -374,7 +374,7 @@ def main(argv: list[str] | None = None) -> int:
     install_stop_handlers(flag)
     try:
         plan = plan_run(args, ["khgrl", "up", *argv])
-        view = run_view(args, plan.run_id, plan.run_dir)  # --view: checked before anything is written
+        view = run_view(args, plan)  # --view: checked before anything is written
         if plan.cfg.connect:  # fail fast (ConnectionError naming it) if nothing listens there
             wait_reachable(plan.endpoint, plan.cfg.connect_timeout, stop=lambda: bool(flag))
         prepare_run_dir(plan)

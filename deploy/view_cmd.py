@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from khgrl.common.rerun_log import RunLogger, import_rerun, open_recording
+from khgrl.common.rerun_log import RunLogger, blueprint, import_rerun, open_recording
 from khgrl.common.step_records import read_steps
 
 __all__ = ["main", "build_parser", "log_run", "episode_results"]
@@ -80,7 +80,9 @@ def log_run(run_dir: Path, rec: Any, world: Any) -> dict[str, int]:
     :param world: the run's :class:`~khgrl.common.tasks.world.TaskWorld` (its demonstrations, workspace, shapes).
     """
     counts = {"actors": 0, "episodes": 0, "steps": 0, "learner_rows": 0}
-    for actor_dir in sorted(p for p in run_dir.glob("actor-*") if p.is_dir()):
+    actor_dirs = sorted(p for p in run_dir.glob("actor-*") if p.is_dir())
+    rec.send_blueprint(blueprint([p.name[len("actor-"):] for p in actor_dirs], camera=False))
+    for actor_dir in actor_dirs:
         logger = RunLogger(rec, actor_dir.name[len("actor-"):])
         logger.scene(world.demos, (world.low, world.high), tuple(world.view.shapes))
         results = episode_results(actor_dir)

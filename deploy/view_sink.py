@@ -88,14 +88,14 @@ def parse_view(spec: str, overwrite: bool = False) -> ViewSpec:
     return ViewSpec("file", path.resolve())
 
 
-def run_view(args: argparse.Namespace, run_id: str, run_dir: Path) -> "RunView":
+def run_view(args: argparse.Namespace, plan: Any) -> "RunView":
     """``khgrl up``'s view from its flags (ValueError for a bad ``--view``; the sink's log in RUN_DIR/logs).
 
     :param args: ``--view``, ``--view-camera-every``, ``--overwrite``.
-    :param run_id: the run id.
-    :param run_dir: the run directory.
+    :param plan: the run's :class:`~khgrl.deploy.launcher.RunPlan` (run id, directory, actors).
     """
-    return RunView(parse_view(args.view, args.overwrite), run_id, args.view_camera_every, Path(run_dir) / "logs")
+    return RunView(parse_view(args.view, args.overwrite), plan.run_id, args.view_camera_every,
+                   Path(plan.run_dir) / "logs", tuple(plan.cfg.actor_ids()))
 
 
 def rerun_binary() -> str:
@@ -134,13 +134,15 @@ class RunView:
     :param run_id: the run id (the recording id).
     :param camera_every: ``--view-camera-every``.
     :param log_dir: where the sink's log goes (``RUN_DIR/logs``).
+    :param actors: the run's actor ids.
     """
 
     def __init__(self, spec: ViewSpec = ViewSpec(), run_id: str = "", camera_every: int = 10,
-                 log_dir: Path | None = None) -> None:
+                 log_dir: Path | None = None, actors: tuple[str, ...] = ()) -> None:
         if camera_every < 0:
             raise ValueError("--view-camera-every must be >= 0")
         self.spec, self.run_id, self.camera_every, self.log_dir = spec, run_id, camera_every, log_dir
+        self.actors = tuple(actors)
         self.sink: subprocess.Popen | None = None
         self.url = ""
         self.logger: RunLogger | None = None
@@ -193,7 +195,7 @@ class RunView:
         """The environment of the run's children (``$KHGRL_VIEW`` when viewed; offscreen MuJoCo for the camera)."""
         env = dict(os.environ)
         if self.spec.kind != "none":
-            env[VIEW_ENV] = ViewTarget(self.url, self.camera_every).to_env()
+            env[VIEW_ENV] = ViewTarget(self.url, self.camera_every, actors=self.actors).to_env()
             if not env.get("DISPLAY"):
                 env.setdefault("MUJOCO_GL", "egl")
         return env
