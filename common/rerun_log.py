@@ -170,7 +170,8 @@ def blueprint(actors: list[str], camera: bool = True) -> Any:
         side.insert(0, rrb.Spatial2DView(name="camera", origin=f"/actor/{actors[0]}/camera"))
     return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(name="scene", origin="/", contents=scene),
                                         rrb.Vertical(*side), column_shares=[3, 2]),
-                         rrb.TimePanel(timeline="run_step"), collapse_panels=False)
+                         rrb.TimePanel(timeline="run_step"), rrb.BlueprintPanel(state="collapsed"),
+                         rrb.SelectionPanel(state="collapsed"))
 
 
 class RunLogger:

@@ -57,11 +57,12 @@ def add_view_flags(parser: argparse.ArgumentParser) -> None:
                              "(default: %(default)s)")
 
 
-def parse_view(spec: str, overwrite: bool = False) -> ViewSpec:
+def parse_view(spec: str, overwrite: bool = False, run_dir: Path | None = None) -> ViewSpec:
     """Check ``--view SPEC`` (before anything is written); ValueError naming the problem.
 
     :param spec: none, rerun, rerun:web or rerun:FILE.rrd.
     :param overwrite: an existing FILE may be replaced.
+    :param run_dir: the run directory (a FILE in it may be in folders not made yet).
     """
     if spec in ("", "none"):
         return ViewSpec()
@@ -83,7 +84,8 @@ def parse_view(spec: str, overwrite: bool = False) -> ViewSpec:
         raise ValueError(f"--view {spec!r}: the recording file must end in .rrd")
     if path.exists() and not overwrite:
         raise ValueError(f"--view: {path} exists: give --overwrite to replace it, or another file")
-    if not path.resolve().parent.is_dir():
+    inside = run_dir is not None and path.resolve().is_relative_to(Path(run_dir).resolve())
+    if not path.resolve().parent.is_dir() and not inside:
         raise ValueError(f"--view: no directory {path.resolve().parent} for {path.name}")
     return ViewSpec("file", path.resolve())
 
@@ -94,7 +96,7 @@ def run_view(args: argparse.Namespace, plan: Any) -> "RunView":
     :param args: ``--view``, ``--view-camera-every``, ``--overwrite``.
     :param plan: the run's :class:`~khgrl.deploy.launcher.RunPlan` (run id, directory, actors).
     """
-    return RunView(parse_view(args.view, args.overwrite), plan.run_id, args.view_camera_every,
+    return RunView(parse_view(args.view, args.overwrite, plan.run_dir), plan.run_id, args.view_camera_every,
                    Path(plan.run_dir) / "logs", tuple(plan.cfg.actor_ids()))
 
 
@@ -173,6 +175,7 @@ class RunView:
         argv = [rerun_binary(), "--bind", "127.0.0.1", "--port", str(port)]
         if self.spec.kind == "file":
             self.spec.file.unlink(missing_ok=True)  # (--overwrite: checked before)
+            self.spec.file.parent.mkdir(parents=True, exist_ok=True)  # (in the run directory)
             argv += ["--save", str(self.spec.file)]
         else:
             web = free_port()
