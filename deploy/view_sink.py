@@ -27,6 +27,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 from khgrl.common.delivery.transport import free_port
 from khgrl.common.rerun_log import VIEW_ENV, RunLogger, ViewTarget, import_rerun, open_recording
@@ -190,8 +191,8 @@ class RunView:
                                 preexec_fn=_die_with_launcher if self.spec.kind == "file" else None)
         _wait_listening(port, proc, SINK_START_S)
         if self.spec.kind == "web":
-            print(f"khgrl up: Rerun web viewer at http://127.0.0.1:{web}/?url={self.url} (it stays after the run: "
-                  f"kill {proc.pid})", flush=True)
+            print(f"khgrl up: Rerun web viewer at http://127.0.0.1:{web}/?url={quote(self.url, safe='')} (it stays "
+                  f"after the run: kill {proc.pid})", flush=True)
         return proc
 
     def env(self) -> dict[str, str]:

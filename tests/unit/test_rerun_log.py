@@ -49,6 +49,8 @@ def test_view_spec_is_checked_and_an_existing_file_refused(tmp_path: Path) -> No
         parse_view(f"rerun:{out}")
     assert parse_view(f"rerun:{out}", overwrite=True).file == out.resolve()
     assert out.read_bytes() == b"earlier"  # (replaced only when the run starts)
+    inside = tmp_path / "run" / "sub" / "v.rrd"  # in the run directory: its folders are made when the run starts
+    assert parse_view(f"rerun:{inside}", run_dir=tmp_path / "run").file == inside.resolve()
     for bad, why in (("rviz", "expected none"), (f"rerun:{tmp_path / 'x.txt'}", "must end in .rrd"),
                      (f"rerun:{tmp_path / 'no' / 'x.rrd'}", "no directory")):
         with pytest.raises(ValueError, match=why):
