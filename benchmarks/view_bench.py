@@ -2,9 +2,11 @@
 the same seeded run without a view and with ``--view rerun:FILE.rrd`` (every step logged into a recording through
 Rerun's gRPC sink), the two arms alternating ``repeats`` times so that machine noise hits both. Reported per run: the
 actor's control-loop period p50 / p99 / max (its ``summary.json``), the steps, the wall time and the recording's size;
-and the difference of the p99s (the target: within 2 ms).
+and the difference of the p99s (the target: within 2 ms). Before the runs, in this process: the cost of the logging
+calls of one step (:meth:`~khgrl.common.rerun_log.RunLogger.step`, into a file) and of one Fetch camera image
+(MuJoCo's offscreen render at 256 x 256 and its JPEG), what the actor pays per step and per image.
 
-    khgrl bench view --episodes 6 --rate 50 --repeats 2 --out docs/view/bench_view.json
+    khgrl bench view --episodes 6 --rate 50 --repeats 3 --out docs/view/bench_view.json
 """
 
 from __future__ import annotations
@@ -14,8 +16,11 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 __all__ = ["run_view_benchmark"]
 
@@ -45,6 +50,65 @@ def _episodes(run_dir: Path) -> list[str]:
     return [",".join(line.split(",")[:15]) for line in lines]
 
 
+def _ms(samples: list[float]) -> dict:
+    a = np.asarray(samples) * 1e3
+    return {"p50_ms": round(float(np.median(a)), 3), "p99_ms": round(float(np.percentile(a, 99)), 3),
+            "max_ms": round(float(a.max()), 3), "n": int(a.size)}
+
+
+def _step_cost(steps: int = 1500) -> dict:
+    """The logging calls of one step (a 2-D task), paced like a 100 Hz loop."""
+    from khgrl.common.rerun_log import RunLogger, open_recording
+
+    with tempfile.TemporaryDirectory() as tmp:
+        rec = open_recording("bench", save=str(Path(tmp) / "bench.rrd"))
+        log, proj, out = RunLogger(rec, "a0"), np.stack([np.eye(2)] * 300), []
+        log.start(1, {"kmp_mean": np.zeros((300, 2)), "kmp_projector": proj, "via": np.zeros((0, 3))})
+        for i in range(steps):
+            t = i % 300
+            iv = 100 < t < 180
+            row = {"t": t, "robot": np.array([0.1 * t, 0.2]), "desired": np.array([0.1, 0.3]),
+                   "mean": np.array([0.1, 0.25]), "scale": np.array([2.0, 3.0]),
+                   "p_h": np.array([0.5, 0.5]) if iv else np.full(2, np.nan), "intervened": iv}
+            t0 = time.perf_counter()
+            log.step(1, row, proj[t])
+            out.append(time.perf_counter() - t0)
+            time.sleep(0.01)
+        rec.flush()
+        rec.disconnect()
+    return _ms(out)
+
+
+def _camera_cost(images: int = 40, size: int = 256) -> dict | None:
+    """A Fetch camera image: MuJoCo's offscreen render and the JPEG the view logs (None: no offscreen OpenGL)."""
+    if not os.environ.get("DISPLAY"):
+        os.environ.setdefault("MUJOCO_GL", "egl")
+    try:
+        import rerun as rr
+        from khgrl.common.tasks.api import load_task
+        from khgrl.common.tasks.kgrl_env import KGRLEnv
+
+        env = KGRLEnv(load_task("fetch:moved"), seed=0)
+        env.reset(seed=0)
+        t0 = time.perf_counter()
+        env.inner.camera_frame(size)
+        first = time.perf_counter() - t0
+        render, jpeg = [], []
+        for _ in range(images):
+            env.step(np.zeros(env.action_space.shape, np.float32))
+            t0 = time.perf_counter()
+            img = env.inner.camera_frame(size)
+            render.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            rr.Image(img).compress(jpeg_quality=80)
+            jpeg.append(time.perf_counter() - t0)
+        env.close()
+    except Exception as exc:  # noqa: BLE001 - no MuJoCo rendering here: the rest of the benchmark goes on
+        print(f"no camera measurement: {exc!r}")
+        return None
+    return {"size": size, "first_ms": round(first * 1e3, 1), "render": _ms(render), "jpeg": _ms(jpeg)}
+
+
 def _mean(rows: list[dict], view: str, key: str) -> float:
     vals = [r[key] for r in rows if r["view"] == view]
     return round(sum(vals) / len(vals), 3)
@@ -66,6 +130,13 @@ def run_view_benchmark(episodes: int = 6, rate: float = 50.0, repeats: int = 2, 
         raise ValueError("--episodes and --repeats must be >= 1 and --rate > 0")
     work_dir = Path(work).resolve()
     work_dir.mkdir(parents=True, exist_ok=True)
+    step_cost, camera = _step_cost(), _camera_cost()
+    print(f"logging calls of a step: p50 {step_cost['p50_ms']} ms, p99 {step_cost['p99_ms']} ms, max "
+          f"{step_cost['max_ms']} ms", flush=True)
+    if camera is not None:
+        print(f"a Fetch camera image ({camera['size']} px): render p50 {camera['render']['p50_ms']} ms, p99 "
+              f"{camera['render']['p99_ms']} ms (the first {camera['first_ms']} ms), JPEG p50 "
+              f"{camera['jpeg']['p50_ms']} ms", flush=True)
     runs = []
     for i in range(repeats):
         for view in (False, True) if i % 2 == 0 else (True, False):
@@ -88,7 +159,7 @@ def run_view_benchmark(episodes: int = 6, rate: float = 50.0, repeats: int = 2, 
     doc = {"machine": {"host": platform.node(), "cpus": os.cpu_count(), "load_average": os.getloadavg()},
            "settings": {"scenario": "low_cov", "method": "khgrl", "episodes": episodes, "rate_hz": rate,
                         "repeats": repeats, "seed": seed},
-           "runs": runs, "summary": summary}
+           "step_logging": step_cost, "camera_image": camera, "runs": runs, "summary": summary}
     if out:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(doc, indent=2) + "\n")
