@@ -44,6 +44,7 @@ from khgrl.actor.record import CorrectionRecord
 from khgrl.actor.results import EpisodeLog
 from khgrl.actor.telemetry import TensorBoard
 from khgrl.actor.telemetry import summary as actor_summary
+from khgrl.actor.viewer import live_listeners
 from khgrl.actor.weights import PolicyWeights, WeightsReceiver
 from khgrl.common.config.process import ProcessConfig, add_process_flags, resolve_process
 from khgrl.common.config.settings import HUMAN_METHODS
@@ -105,6 +106,8 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
     episodes = EpisodeLog(out_dir, resume)
     if resume:
         scale.restore(out_dir)
+    weights = PolicyWeights(policy, actor, receiver)
+    views = live_listeners(pc.run, actor, env, lambda: weights.version)  # khgrl up --view ($KHGRL_VIEW); else ()
     return ActorParts(env=env, policy=policy, link=link, inbox=inbox, stream=stream,
                       arbiter=CorrectionArbiter(actor, cfg.stream.correction_timeout,
                                                 enabled=cfg.method in HUMAN_METHODS,
@@ -112,12 +115,12 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                                                 allowance=HoldAllowance(cfg.stream.human_hold_s,
                                                                         cfg.stream.human_hold_refill),
                                                 assignments=Assignments(actor, cfg.human_clients)),
-                      weights=PolicyWeights(policy, actor, receiver), scale=scale,
+                      weights=weights, scale=scale,
                       record=CorrectionRecord(out_dir / "corrections.csv", pc.run, actor, append=resume,
                                              dim=env.mapping.model.out_dim),
                       episodes=episodes, tensorboard=TensorBoard(out_dir / "tb" if cfg.tensorboard else None),
                       rejects=rejects, task=task, announcer=announcer, physical=physical or PhysicalHands.off(),
-                      steps=StepRecord(out_dir))
+                      steps=StepRecord(out_dir, listeners=views))
 
 
 def _physical(cfg, env, out_dir: Path) -> PhysicalHands:
@@ -149,6 +152,7 @@ def _summary(loop: ActorLoop, rc: int, wall: float) -> dict:
 
 
 def _close(parts: ActorParts) -> None:
+    parts.steps.close()  # (a live view's last data)
     parts.record.close()
     parts.physical.close()
     parts.weights.receiver.stop()

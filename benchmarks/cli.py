@@ -148,6 +148,15 @@ BENCHMARKS: dict[str, Benchmark] = {
         _flag("--seed", type=int, default=1, help="seed (default: %(default)s)"),
         _flag("--work", default="runs/bench-robot", help="run directories (default: %(default)s)"),
         OUT)),
+    "view": Benchmark("khgrl.benchmarks.view_bench", "run_view_benchmark",
+                      "the actor's control-loop period without a view and with khgrl up --view rerun:FILE.rrd "
+                      "(the passage world, the same seeded run, alternating)", (
+        _flag("--episodes", type=int, default=6, help="episodes per run (default: %(default)s)"),
+        RATE,
+        _flag("--repeats", type=int, default=2, help="pairs of runs (default: %(default)s)"),
+        SEED,
+        _flag("--work", default="runs/bench-view", help="run directories (default: %(default)s)"),
+        OUT)),
     "queries": Benchmark("khgrl.benchmarks.queries", "run_queries_benchmark",
                          "the learner's gradient steps/s while a monitor floods the weights queryable", (
         _flag("--qps", type=float, default=1000.0, help="queries per second of the flood (default: %(default)s)"),

@@ -156,6 +156,13 @@ class StepRecord:
         self.written += 1
         return path
 
+    def close(self) -> None:
+        """The actor stops: listeners with a ``close()`` (a live viewer sending its last data) are closed."""
+        for lis in self.listeners:
+            close = getattr(lis, "close", None)
+            if callable(close):
+                close()
+
 
 def read_steps(actor_dir: Path) -> list[dict[str, np.ndarray]]:
     """The step files of an actor, in episode order, as dicts of arrays (``allow_pickle=False``); raises

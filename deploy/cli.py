@@ -88,6 +88,7 @@ PROCESS_COMMANDS = {
     "experiment": ("khgrl.deploy.experiment", "main", "methods x scenarios x seeds through the real system, resumable"),
     "report": ("khgrl.deploy.report", "main", "per-episode results of runs: figure and markdown table"),
     "stop": ("khgrl.deploy.stop", "main", "stop a run, or press / release its e-stop (--now, --release)"),
+    "view": ("khgrl.deploy.view_cmd", "main", "a finished run in Rerun: an .rrd recording (--out) or the viewer"),
     "ready": ("khgrl.deploy.stop", "ready_main", "the robot is ready: the next episode may start (--confirm-reset)"),
     # by name: the benchmarks drive the deployment tools (benchmarks imports deploy, not the other way round)
     "bench": ("khgrl.benchmarks.cli", "main", "benchmarks that print numbers (khgrl bench --help)"),

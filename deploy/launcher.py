@@ -44,6 +44,7 @@ from khgrl.deploy.progress import ProgressView
 from khgrl.deploy.rundir import RunDirError
 from khgrl.deploy.secure import SecureRun, prepare_secure_run, run_identities
 from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
+from khgrl.deploy.view_sink import RunView, add_view_flags, run_view
 from khgrl.learner.algorithm import check_algorithm
 
 __all__ = ["main", "build_parser", "RunPlan", "plan_run"]
@@ -78,6 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a Zenoh configuration (JSON5) for the router and every process, merged under KhGRL's "
                           "required settings; examples in deploy/zenoh/ (default: $ZENOH_CONFIG if set, else none)")
     add_config_flags(p)
+    add_view_flags(p)  # --view, --view-camera-every (deploy/view_sink.py)
     return p
 
 
@@ -224,10 +226,11 @@ class Run:
     :param plan: the run's plan (configuration files already written)
     :param group: the process group the children are started in
     :param flag: set by SIGINT/SIGTERM
+    :param view: the run's Rerun view (``--view``; it logs the learner's statuses), or None
     """
 
-    def __init__(self, plan: RunPlan, group: ProcessGroup, flag: StopFlag) -> None:
-        self.plan, self.cfg, self.group, self.flag = plan, plan.cfg, group, flag
+    def __init__(self, plan: RunPlan, group: ProcessGroup, flag: StopFlag, view: RunView | None = None) -> None:
+        self.plan, self.cfg, self.group, self.flag, self.view = plan, plan.cfg, group, flag, view or RunView()
         self.keys = Keys(plan.run_id)
         self.inbox = Inbox(maxsize=10_000, overflow="drop_oldest")
         self.rejects = RejectCounter("launcher")
@@ -316,6 +319,7 @@ class Run:
             elif kind == "status":
                 status = decode(Status, payload)
                 view.status(status)
+                self.view.status(status)
                 outcome.actor_alarm(self.out, status, key)
             else:
                 self._control(decode(Control, payload), key)
@@ -360,12 +364,6 @@ class Run:
                     break
 
 
-def _wait_for_router(plan: RunPlan, flag: StopFlag) -> None:
-    """With ``--connect``: fail fast (ConnectionError naming it) if nothing listens there."""
-    if plan.cfg.connect:
-        wait_reachable(plan.endpoint, plan.cfg.connect_timeout, stop=lambda: bool(flag))
-
-
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
@@ -373,7 +371,9 @@ def main(argv: list[str] | None = None) -> int:
     install_stop_handlers(flag)
     try:
         plan = plan_run(args, ["khgrl", "up", *argv])
-        _wait_for_router(plan, flag)
+        view = run_view(args, plan)  # --view: checked before anything is written
+        if plan.cfg.connect:  # fail fast (ConnectionError naming it) if nothing listens there
+            wait_reachable(plan.endpoint, plan.cfg.connect_timeout, stop=lambda: bool(flag))
         prepare_run_dir(plan)
     except (RunDirError, ValueError, FileNotFoundError) as exc:
         print(f"khgrl up: error: {exc}", file=sys.stderr)
@@ -382,8 +382,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"khgrl up: error: {exc}", file=sys.stderr)
         return exit_code(Outcome(error=str(exc)), flag)
     t0 = time.monotonic()
-    with ProcessGroup(plan.run_dir / "logs") as group:
-        out = Run(plan, group, flag).execute()
+    with view, ProcessGroup(plan.run_dir / "logs", env=view.env()) as group:  # (the view outlives the processes)
+        out = Run(plan, group, flag, view).execute()
         wall = time.monotonic() - t0
         write_summary(plan, group, out, wall, bool(flag), ending(out, flag))
         report_failures(group, out)
