@@ -42,6 +42,8 @@ class LiveView:
         camera = getattr(getattr(env, "inner", None), "camera_frame", None)
         self.camera = camera if callable(camera) and target.camera_every > 0 else None
         self._projector: np.ndarray | None = None
+        if self.camera is not None:  # the renderer is made here (a first image takes ~0.3 s), not in the loop's step
+            self._render()
         w = env.world
         self._guard(self.logger.scene, w.demos, (w.low, w.high), tuple(w.view.shapes))
         if target.actors and target.actors[0] == actor:  # one actor sends the layout (it knows of a camera)
@@ -70,14 +72,18 @@ class LiveView:
         if self.camera is not None and t % self.target.camera_every == 0:
             self._image(episode, t)
 
-    def _image(self, episode: int, t: int) -> None:
+    def _render(self) -> np.ndarray | None:
         try:
-            rgb = self.camera(self.target.camera_size)
+            return self.camera(self.target.camera_size)
         except Exception as exc:  # noqa: BLE001 - e.g. no offscreen OpenGL here: the rest of the view goes on
             self.camera = None
             log.warning("Rerun view: no camera images (%r); set MUJOCO_GL=egl or osmesa for offscreen rendering", exc)
-            return
-        self._guard(self.logger.image, episode, t, rgb)
+            return None
+
+    def _image(self, episode: int, t: int) -> None:
+        rgb = self._render()
+        if rgb is not None:
+            self._guard(self.logger.image, episode, t, rgb)
 
     def finish(self, episode: int, arrays: dict[str, np.ndarray], stats: Any) -> None:
         """The episode finished: its band, return, success and the weights version."""

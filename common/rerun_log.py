@@ -217,9 +217,9 @@ class RunLogger:
             self.rec.log(path, rr.Points3D([to3(s.at)], labels=[s.name], radii=[0.01]), static=True)
 
     # ------------------------------------------------------------------ an episode
-    def _time(self, episode: int, step: int | None) -> None:
+    def _time(self, episode: int, step: int | None, run_step: int | None = None) -> None:
         self.rec.set_time("episode", sequence=int(episode))
-        self.rec.set_time("run_step", sequence=int(self.run_step))
+        self.rec.set_time("run_step", sequence=int(self.run_step if run_step is None else run_step))
         if step is None:
             self.rec.disable_timeline("step")
         else:
@@ -233,7 +233,7 @@ class RunLogger:
         """
         rr = self.rr
         self.path = []
-        self._time(episode, 0)
+        self._time(episode, 0, self.run_step + 1)  # at the episode's first step (run_step is unique per step)
         self.rec.log(f"{self.prefix}/kmp/mean", rr.LineStrips3D([to3(scene["kmp_mean"])], colors=[_MEAN]))
         via = np.asarray(scene.get("via", np.zeros((0, 1))))
         if len(via):
