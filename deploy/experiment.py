@@ -355,7 +355,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="khgrl experiment", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="khgrl experiment", description=__doc__.split("\n\n")[0].replace("``", ""),
                                 epilog="Options override the config file; the defaults are the paper's grid.")
     p.add_argument("config", nargs="?", default=None, help="config file (.toml or .json) with ExperimentConfig keys")
     p.add_argument("--out", default=None, help="output directory (default runs/experiment)")

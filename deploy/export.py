@@ -183,7 +183,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     :param sub: the ``add_subparsers()`` object.
     """
     p = sub.add_parser("export", help="a run's transitions as a LeRobot dataset (pip install 'khgrl[lerobot]')",
-                       description=__doc__.split("\n\n")[0])
+                       description=__doc__.split("\n\n")[0].replace("``", ""))
     p.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (its actor-ID/steps/ records)")
     p.add_argument("--lerobot", metavar="OUT", required=True,
                    help="write a LeRobot dataset (v3.0) in folder OUT: one episode per (actor, episode), "
