@@ -48,8 +48,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["APPLICATION_ID", "INSTALL_HINT", "VIEW_ENV", "ViewTarget", "RunLogger", "import_rerun", "to3",
-           "band_half", "band_edges", "open_recording", "blueprint"]
+__all__ = ["APPLICATION_ID", "INSTALL_HINT", "VIEW_ENV", "ViewTarget", "RunLogger", "import_rerun", "has_display",
+           "to3", "band_half", "band_edges", "open_recording", "blueprint"]
 
 APPLICATION_ID = "khgrl"
 INSTALL_HINT = "pip install 'khgrl[view]'"
@@ -89,6 +89,11 @@ class ViewTarget:
             return ViewTarget(**{**data, "actors": tuple(data.get("actors", ()))})
         except (TypeError, ValueError) as exc:
             raise ValueError(f"${VIEW_ENV} is not a view target ({exc}): {raw!r}") from exc
+
+
+def has_display() -> bool:
+    """Whether a native window can open here (``DISPLAY`` or ``WAYLAND_DISPLAY``): Rerun's native viewer needs one."""
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
 def import_rerun() -> Any:

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["StepRecord", "read_steps", "steps_dir", "STEP_FIELDS"]
+__all__ = ["StepRecord", "read_steps", "steps_dir", "actor_dirs", "STEP_FIELDS"]
 
 STEP_FIELDS = ("t", "phase", "robot", "desired", "mean", "scale", "p_h", "intervened", "physical", "clipped",
                "rate_limited", "obs", "action", "reward", "terminated", "truncated")
@@ -58,6 +58,14 @@ _NAME = re.compile(r"^episode-(\d{6,})\.npz$")
 def steps_dir(actor_dir: Path) -> Path:
     """``RUN_DIR/actor-ID/steps``."""
     return Path(actor_dir) / "steps"
+
+
+def actor_dirs(run_dir: Path) -> list[tuple[str, Path]]:
+    """The run's actors, by id: ``[(ID, RUN_DIR/actor-ID), ...]`` sorted by folder name.
+
+    :param run_dir: the run directory.
+    """
+    return [(p.name[len("actor-"):], p) for p in sorted(Path(run_dir).glob("actor-*")) if p.is_dir()]
 
 
 @dataclass

@@ -69,12 +69,12 @@ def _features(columns: dict[str, np.ndarray]) -> dict[str, dict]:
 
 
 def _episodes(run_dir: Path) -> list[tuple[str, dict[str, np.ndarray]]]:
-    from khgrl.common.step_records import read_steps
+    from khgrl.common.step_records import actor_dirs, read_steps
 
     found = []
-    for actor_dir in sorted(p for p in run_dir.glob("actor-*") if p.is_dir()):
+    for actor, actor_dir in actor_dirs(run_dir):
         try:
-            found += [(actor_dir.name[len("actor-"):], rec) for rec in read_steps(actor_dir)]
+            found += [(actor, rec) for rec in read_steps(actor_dir)]
         except (ValueError, OSError) as exc:
             raise ExportError(f"{actor_dir}: unreadable step records: {exc}") from None
     if not found:

@@ -24,8 +24,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from khgrl.common.rerun_log import RunLogger, blueprint, import_rerun, open_recording
-from khgrl.common.step_records import read_steps
+from khgrl.common.rerun_log import RunLogger, blueprint, has_display, import_rerun, open_recording
+from khgrl.common.step_records import actor_dirs, read_steps
 
 __all__ = ["main", "build_parser", "log_run", "episode_results"]
 
@@ -80,10 +80,10 @@ def log_run(run_dir: Path, rec: Any, world: Any) -> dict[str, int]:
     :param world: the run's :class:`~khgrl.common.tasks.world.TaskWorld` (its demonstrations, workspace, shapes).
     """
     counts = {"actors": 0, "episodes": 0, "steps": 0, "learner_rows": 0}
-    actor_dirs = sorted(p for p in run_dir.glob("actor-*") if p.is_dir())
-    rec.send_blueprint(blueprint([p.name[len("actor-"):] for p in actor_dirs], camera=False))
-    for actor_dir in actor_dirs:
-        logger = RunLogger(rec, actor_dir.name[len("actor-"):])
+    actors = actor_dirs(run_dir)
+    rec.send_blueprint(blueprint([actor for actor, _ in actors], camera=False))
+    for actor, actor_dir in actors:
+        logger = RunLogger(rec, actor)
         logger.scene(world.demos, (world.low, world.high), tuple(world.view.shapes))
         results = episode_results(actor_dir)
         for arrays in read_steps(actor_dir):
@@ -131,7 +131,7 @@ def _check(args: argparse.Namespace) -> tuple[Path, Path | None]:
             raise ValueError(f"--out {out}: the recording file must end in .rrd")
         if out.exists() and not args.overwrite:
             raise ValueError(f"--out {out} exists: give --overwrite to replace it, or another file")
-    elif not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    elif not has_display():
         raise ValueError("no display for Rerun's viewer: write a file with --out FILE.rrd (then: rerun FILE.rrd)")
     return run_dir, out
 

@@ -30,7 +30,7 @@ from typing import Any
 from urllib.parse import quote
 
 from khgrl.common.delivery.transport import free_port
-from khgrl.common.rerun_log import VIEW_ENV, RunLogger, ViewTarget, import_rerun, open_recording
+from khgrl.common.rerun_log import VIEW_ENV, RunLogger, ViewTarget, has_display, import_rerun, open_recording
 
 __all__ = ["ViewSpec", "RunView", "add_view_flags", "parse_view", "run_view", "rerun_binary"]
 
@@ -74,7 +74,7 @@ def parse_view(spec: str, overwrite: bool = False, run_dir: Path | None = None) 
     except ImportError as exc:
         raise ValueError(f"--view {spec}: {exc}") from None
     if spec == "rerun":
-        if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        if not has_display():
             raise ValueError("--view rerun spawns Rerun's native viewer, which needs a display: record with "
                              "--view rerun:FILE.rrd or serve the web viewer with --view rerun:web")
         return ViewSpec("spawn")
