@@ -1,9 +1,11 @@
 """Exact limits after every hold, and the e-stop over the wait for a lock-step word (issue 33, defects 4 and 5), with
-real processes and every command the robot's driver gets.
+real processes and every command the robot's driver gets; and the live run is not overwritten (defect 8).
 
 One ``khgrl up`` of the passage world behind a driver that logs each command (``tests/driver_log_task.py``) at 20 Hz
 with ``--rate-limit on --reset-path on``, the scripted human in lock-step in episode 1, and a correction timeout of
-3 s. Simulation mode, so that every kind of hold happens (a robot does not wait for the learner). The test drives:
+3 s. Simulation mode, so that every kind of hold happens (a robot does not wait for the learner). While it runs,
+``khgrl up --overwrite`` on its directory must be refused and ``khgrl ready`` must say that nothing waited. Then the
+test drives:
 
 1. the scripted human SIGSTOPped: the actor waits for its word; then ``khgrl stop --now``. The e-stop must hold the
    robot at once, not after the wait (which goes on after the release, until the actor gives up on the client).
@@ -104,6 +106,10 @@ def limits_run(tmp_path_factory):
     try:
         pids = up.children(90)
         wait_for(lambda: _steps(log_path) > 20, 120, "the actor's first steps")
+        events["overwrite"] = subprocess.run([*UP, "--run-dir", str(up.run_dir), "--overwrite", *ARGS], cwd=REPO,
+                                             env=env, capture_output=True, text=True, timeout=120)
+        events["ready"] = _khgrl("ready", str(up.run_dir))
+        events["intact"] = up.proc.poll() is None and (up.run_dir / "config.json").is_file()
         os.kill(pids["human-scripted"], signal.SIGSTOP)  # 1. the actor waits for the lock-step word
         time.sleep(0.3)
         events["lockstep"] = _estop(up.run_dir, 1.0)
@@ -151,12 +157,26 @@ def test_the_estop_holds_the_robot_while_the_actor_waits_for_a_lock_step_word(li
     command to the hold ~2.5 s; the step at which it was pressed was sent before the release)."""
     s, log = limits_run["summary"]["safety"], limits_run["log"]
     first = s["estop_events"][0]
+    print(f"e-stop while waiting for a lock-step word: held {first['latency_ms']:.1f} ms after the command "
+          f"(period {1e3 / RATE:.0f} ms)")
     assert first["latency_ms"] <= 250.0, s["estop_events"]  # held at once, not after the wait
     held, released = limits_run["events"]["lockstep"]
     (sent,) = [r[1] for r in log if r[0] == "step" and r[2] == first["episode"] and r[3] == first["t"]]
     assert sent > released, (sent, held, released)  # the step the e-stop caught was taken after the release
     caught = [r for r in log if r[0] == "step" and r[2] == first["episode"] and held - 2.0 <= r[1] <= released]
     assert all(r[3] < first["t"] for r in caught), caught
+
+
+def test_a_live_run_is_not_overwritten_and_ready_says_nothing_waited(limits_run):
+    """Defect 8. Before the fix ``khgrl up --overwrite`` deleted the live run's files and started a second run on
+    them, and ``khgrl ready`` printed "ready confirmed" with nothing waiting for it."""
+    again, ready = limits_run["events"]["overwrite"], limits_run["events"]["ready"]
+    assert again.returncode == 2, again.stdout + again.stderr
+    assert "is still running" in again.stderr and "launcher (pid" in again.stderr, again.stderr
+    assert len(again.stderr.strip().splitlines()) == 1, again.stderr
+    assert limits_run["events"]["intact"]  # the run went on, its files in place (it then ended with exit 0)
+    assert ready.returncode == 1 and "nothing was waiting for ready" in ready.stderr, ready.stdout + ready.stderr
+    assert "a0: not waiting for ready" in ready.stdout and "confirmed" not in ready.stdout, ready.stdout
 
 
 def test_every_command_the_driver_gets_is_within_both_limits_after_every_kind_of_hold(limits_run):
