@@ -129,7 +129,7 @@ class Task:
         pause, waiting for the learner or a silent human) with the position last sent: for a driver that needs a
         steady command stream (None: nothing is sent; a position-controlled arm keeps its last target). It may return
         the environment's observation, read while held: the robot's position in it is where the rate limits restart
-        from after the hold (an arm moved by hand is not commanded back); None: the last step's observation.
+        from after the hold (an arm moved by hand is not commanded back); None: from the position last sent.
     :param scripted_human: ``scripted_human(mean) -> P_h or None`` for the step whose KMP mean is ``mean``; a
         function that names any of ``step``, ``phase``, ``position``, ``obs`` as parameters (or takes
         ``**kwargs``) gets those too (:func:`call_scripted_human`).

@@ -332,14 +332,15 @@ class KGRLEnv(gym.Env):
         """The actor holds the robot (the e-stop, a pause, a wait for ready or for the learner, a silent human, a
         stalled loop): give the task's ``hold`` adapter the position last sent, about once a control period (without
         one: nothing is sent; the robot's controller keeps its last target). The robot stands still: the rate limits
-        restart at rest from where it is measured -- the observation the adapter returns, if any
+        restart at rest from where it is measured -- the observation the adapter returns -- or, when it returns none,
+        from the position last sent, which a position-controlled arm reaches while held
         (:mod:`khgrl.common.tasks.motion`). Every kind of hold goes through here."""
-        if self.task.hold is not None:
-            obs = self.task.hold(self.inner, self.desired.copy())
-            if obs is not None:
-                self._inner_obs = measured(self, obs)
-                self.position = self._locate(self._inner_obs, self.desired)
-        self.anchor = np.clip(self.position, self.world.low, self.world.high)
+        obs = None if self.task.hold is None else self.task.hold(self.inner, self.desired.copy())
+        self.anchor = self.desired.copy()
+        if obs is not None:
+            self._inner_obs = measured(self, obs)
+            self.position = self._locate(self._inner_obs, self.desired)
+            self.anchor = np.clip(self.position, self.world.low, self.world.high)
         self.sent_step = np.zeros_like(self.anchor)
         for lim in (self.limiter, self.path_limiter):
             if lim is not None:

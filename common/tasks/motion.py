@@ -5,8 +5,9 @@ the start between episodes.
   learner, a silent human, a stalled control loop) stops the robot: the task's ``hold`` adapter gets the position
   last sent, and when it answers with the environment's observation (the robot measured while held,
   :func:`measured`) that is where the robot is now. After any hold the rate limits restart *at rest* from that
-  measured position, not from the position last sent: the first step is at most one acceleration step, and an arm
-  moved by hand while held is not commanded back.
+  measured position: the first step is at most one acceleration step, and an arm moved by hand while held is not
+  commanded back. Without a measurement they restart from the position last sent (a position-controlled arm gets
+  there while held; the last step's observation is older than that).
 * **The path back to the start** (:func:`reset_path`) goes on from the episode's last step at its velocity and slows
   down within the limits before it turns back along the trail.
 """
