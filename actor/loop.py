@@ -83,7 +83,8 @@ class ActorLoop:
         self.service, self.waits = self.delivery.service, self.delivery.waits
         s = cfg.safety  # the watchdog holds the robot while the loop waits or a holding human is silent
         self.watchdog = Watchdog(parts.env, self.inbound, parts.arbiter, s.human_silence_s, s.deadline_margin,
-                                 self.pacer.period, self.service, self._publish_status, lambda: bool(flag))
+                                 self.pacer.period, self.service, self.rate_limit, self._publish_status,
+                                 lambda: bool(flag))
         self.delivery.on_hold = self.watchdog.holding
 
     def join(self) -> None:
@@ -162,7 +163,9 @@ class ActorLoop:
         self.pacer.step_started()
         action = self._action(obs)
         if not p.arbiter.ready(env.t):
-            self.watchdog.await_word(env.t)
+            self.watchdog.await_word(env.t)  # (held meanwhile by the e-stop or a pause, until released)
+            if self.flag:
+                return obs, False  # stopped while waiting: no step
         p_h, physical = p.physical.correction(self.episode, p.arbiter.current(time.monotonic(), env.t))
         env.set_correction(p_h)  # (a hand on the arm, --physical, wins over a remote client's drag)
         before = env.position.copy()

@@ -3,8 +3,10 @@
 (``khgrl ready RUN_DIR``, or r in a human client's window). The path is paced at ``--rate``, and the e-stop, pauses
 and the watchdog hold it as they hold an episode's steps; it is not a transition (no reward, nothing stored).
 
-The path starts from the position last sent, so a process's first episode has none: the task environment's own
-``reset`` puts the robot at its start then (a real robot's adapter reads where it is).
+The path starts from the position last sent at the velocity of the episode's last step, and slows down within the
+limits before it turns back (:func:`khgrl.common.tasks.motion.reset_path`). A process's first episode has none: the
+task environment's own ``reset`` puts the robot at its start then (a real robot's adapter reads where it is). The
+e-stop pressed on the path, or while the robot waits for ready, holds the task's reset too.
 """
 
 from __future__ import annotations
@@ -42,5 +44,6 @@ def reset_phase(loop: Any, episode: int) -> bool:
                  largest)
     if s.confirm_reset:
         loop.inbound.awaiting_ready = episode
-        loop.rate_limit()  # held (the watchdog says why) until ready, the e-stop released, or stopped
+    if loop.inbound.paused:  # held (the watchdog says why) until ready, the e-stop released, or stopped: the task's
+        loop.rate_limit()  # reset moves a real robot too
     return not loop.flag

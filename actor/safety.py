@@ -13,8 +13,13 @@ The robot is held, and the control loop takes no step, while:
   mid-hold): until it speaks again or ``correction_timeout`` releases its hold (then the policy drives again, through
   the rate limit when it is on).
 
+The e-stop and a pause win everywhere: also while the actor waits for a lock-step client's word (:meth:`await_word`
+holds the robot until they are released, then waits on), and on the path back to the start (:mod:`khgrl.actor.reset`).
+
 A control step that starts more than ``deadline_margin`` periods late (``--rate``) is counted: the robot held its
-last position meanwhile, and the rate limit keeps the next one from jumping.
+last position meanwhile (it is told to hold once more before the step). Every hold goes through the environment's
+``hold()`` (:meth:`~khgrl.common.tasks.kgrl_env.KGRLEnv.hold`), which also restarts the rate limits at rest from the
+robot's measured position: the velocity is zero after any hold, whatever its kind.
 """
 
 from __future__ import annotations
@@ -80,6 +85,7 @@ class Watchdog:
     :param deadline_margin: late steps, in periods (0: off).
     :param period: the control period (s; 0: free-running, no deadlines).
     :param service: the loop's inbox service (``service(block=seconds)``), called while it holds.
+    :param wait: the loop's wait while it is held (the e-stop, a pause): returns when released or stopped.
     :param status: publishes the actor's status (at once when a hold starts or ends).
     :param stopped: whether the actor is to stop.
     """
@@ -91,6 +97,7 @@ class Watchdog:
     deadline_margin: float = 1.0
     period: float = 0.0
     service: Callable[..., None] = lambda block=0.0: None
+    wait: Callable[[], None] = lambda: None
     status: Callable[[], None] = lambda: None
     stopped: Callable[[], bool] = lambda: False
     counts: dict = field(default_factory=lambda: dict.fromkeys(SAFETY_COUNTS, 0))
@@ -170,14 +177,23 @@ class Watchdog:
 
     def await_word(self, step: int) -> None:
         """A lock-step correction client has not yet sent its word for ``step``: the robot holds while the actor
-        waits for it (servicing the inbox), at most the correction timeout; then it carries on without it.
+        waits for it (servicing the inbox), at most the correction timeout; then it carries on without it. The
+        e-stop or a pause that comes meanwhile wins: the robot is held (:attr:`wait`) until released, and the wait
+        for the word goes on after it (the time held does not count).
 
         :param step: the step about to be taken.
         """
         t0 = time.monotonic()
         arb = self.arbiter
         arb.counts["lockstep_waits"] += 1
-        while not self.stopped() and not arb.ready(step):
+        while not self.stopped():
+            if self.inbound.paused:  # (checked before the word: both may come in one service)
+                held = time.monotonic()
+                self.wait()
+                t0 += time.monotonic() - held
+                continue
+            if arb.ready(step):
+                break
             if time.monotonic() - t0 > arb.timeout:
                 arb.give_up(step)
                 break
@@ -191,6 +207,7 @@ class Watchdog:
         if self.period <= 0 or self.deadline_margin <= 0 or lateness <= self.deadline_margin * self.period:
             return
         self.counts["late_steps"] += 1
+        self.env.hold()  # the robot stood still meanwhile: the next step starts at rest from where it is
         self.late_ms_max = max(self.late_ms_max, lateness * 1e3)
         now = time.monotonic()
         if now - self._late_logged >= LATE_LOG_S:  # (at most one line per LATE_LOG_S: a loaded machine is late often)

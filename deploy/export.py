@@ -116,6 +116,7 @@ def export_run(run_dir: str | Path, out: str | Path, *, fps: int | None = None, 
     run_dir, out = Path(run_dir), Path(out)
     if out.exists() and not overwrite:  # before any work
         raise FileExistsError(f"{out} exists: give --overwrite to replace it, or another output folder")
+    _check_replace(run_dir, out)
     if not run_dir.is_dir():
         raise ExportError(f"{run_dir}: no such run directory")
     try:
@@ -135,6 +136,24 @@ def export_run(run_dir: str | Path, out: str | Path, *, fps: int | None = None, 
         write_dataset(out, fps=fps_used, features=_features(episodes[0].columns), episodes=episodes,
                       overwrite=overwrite, sidecar=provenance, on_episode=lambda ep: bar.advance())
     return provenance
+
+
+def _check_replace(run_dir: Path, out: Path) -> None:
+    """``--overwrite`` replaces only a LeRobot dataset that khgrl export wrote: never the source run (nor a folder
+    that holds it), never a folder that holds anything else (:func:`~khgrl.common.lerobot.writer.not_a_dataset`).
+
+    :raises FileExistsError: naming why ``out`` is not replaced.
+    """
+    from khgrl.common.lerobot.writer import not_a_dataset
+
+    if not (out.exists() or out.is_symlink()):
+        return
+    src, dst = run_dir.resolve(), out.resolve()
+    if dst == src or dst in src.parents:
+        raise FileExistsError(f"{out} is (or holds) the run being exported: not replaced; give another output folder")
+    if why := not_a_dataset(out):
+        raise FileExistsError(f"{out} is not a LeRobot dataset that khgrl export wrote ({why}): not replaced; "
+                              f"give another output folder")
 
 
 class _Bar:
@@ -189,7 +208,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
                    help="write a LeRobot dataset (v3.0) in folder OUT: one episode per (actor, episode), "
                         f"observation.state, action, next.reward, next.done, {INTERVENTION} and KhGRL's extras "
                         "(README, 'LeRobot datasets'); written to a temporary folder and renamed (required)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT (default: refuse it)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT if it is a "
+                   "LeRobot dataset that khgrl export wrote, not the run nor any other folder (default: refuse it)")
     p.add_argument("--fps", type=int, default=None,
                    help=f"the dataset's frames per second (default: the run's --rate if > 0, else {DEFAULT_FPS})")
     p.add_argument("--no-progress", action="store_true", help="no progress bar (default: a bar on a terminal)")

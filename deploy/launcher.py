@@ -138,6 +138,8 @@ def _check_run_dir(run_dir: Path, args: argparse.Namespace, checkpoint_dir: str 
     elif found and not args.overwrite:
         raise RunDirError(f"run directory {run_dir} already holds a run ({', '.join(found)}): give --resume to "
                           f"continue it, --overwrite to delete it and start again, or another --run-dir")
+    elif found:
+        rundir.refuse_live(run_dir)  # --overwrite deletes only a run that has ended
 
 
 def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:

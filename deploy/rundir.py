@@ -19,13 +19,15 @@ A resumed run is one run in several parts: ``config.json`` always describes the 
 
 from __future__ import annotations
 
+import fcntl
 import json
+import os
 import secrets
 import shutil
 from pathlib import Path
 
-__all__ = ["RunDirError", "results_in", "has_checkpoint", "clear_run", "archive_part", "previous_runtime",
-           "make_run_id", "write_pids", "resolve_demos", "keep_demos"]
+__all__ = ["RunDirError", "results_in", "has_checkpoint", "clear_run", "live_run", "refuse_live", "archive_part",
+           "previous_runtime", "make_run_id", "write_pids", "resolve_demos", "keep_demos"]
 
 # entries that mark a directory as holding (part of) a run; --overwrite deletes exactly these
 _RESULT_FILES = ("config.json", "config.toml", "summary.json", "pids.json")
@@ -77,6 +79,70 @@ def clear_run(run_dir: Path) -> list[str]:
         else:
             path.unlink()
     return names
+
+
+def live_run(run_dir: Path) -> list[str]:
+    """What of the run in ``run_dir`` is still alive (empty: nothing): its launcher and children of ``pids.json``
+    that still run KhGRL, and actors holding their ``actor-ID/actor.lock`` (processes started by hand too).
+
+    :param run_dir: the run directory
+    """
+    try:
+        pids = json.loads((run_dir / "pids.json").read_text())
+    except (OSError, ValueError):
+        pids = {}
+    pids = pids if isinstance(pids, dict) else {}
+    children = pids.get("children") if isinstance(pids.get("children"), dict) else {}
+    alive = [f"{name} (pid {pid})" for name, pid in [("launcher", pids.get("launcher")), *children.items()]
+             if isinstance(pid, int) and pid != os.getpid() and _runs_khgrl(pid)]
+    return alive + [f"{lock.parent.name} (it holds {lock.parent.name}/{lock.name})"
+                    for lock in sorted(run_dir.glob("actor-*/actor.lock")) if _locked(lock)]
+
+
+def refuse_live(run_dir: Path) -> None:
+    """``--overwrite``: refuse a run directory whose run is still alive (:func:`live_run`).
+
+    :param run_dir: the run directory
+    :raises RunDirError: naming what is alive
+    """
+    if alive := live_run(run_dir):
+        raise RunDirError(f"--overwrite: the run in {run_dir} is still running ({', '.join(alive)}): stop it first "
+                          f"(khgrl stop {run_dir}), or give another --run-dir")
+
+
+def _runs_khgrl(pid: int) -> bool:
+    """Whether process ``pid`` is alive (not a zombie) and, where ``/proc`` says, runs KhGRL (a pid reused since
+    by another program is not the run's)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # another user's process: alive
+    proc = Path(f"/proc/{pid}")
+    try:
+        if (proc / "stat").read_text().rsplit(")", 1)[1].split()[0] == "Z":
+            return False
+        return b"khgrl" in (proc / "cmdline").read_bytes()
+    except (OSError, IndexError):
+        return True  # (no /proc here: alive as far as the signal says)
+
+
+def _locked(path: Path) -> bool:
+    """Whether a process holds the ``flock`` on ``path`` (:mod:`khgrl.common.delivery.restart`)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)  # (closing releases a lock taken here)
+    return False
 
 
 def previous_runtime(run_dir: Path) -> dict:

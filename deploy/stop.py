@@ -12,8 +12,11 @@ launcher publish on ``control/**``), publishes the command on ``control/actor`` 
 second, and waits until each live actor's status confirms it (held by the e-stop, no longer held by it, no longer
 waiting for ready, or gone).
 
-Exit codes: 0 every actor confirmed; 1 no router, no actor alive, or an actor did not confirm within ``--timeout``
-(named); 2 a bad argument (no such run directory).
+``khgrl ready`` is sent only when an actor's status says it waits for ready; the others are named, and when none waits
+it says so and sends nothing (exit 1).
+
+Exit codes: 0 every actor confirmed; 1 no router, no actor alive, nothing waiting for ready, or an actor did not
+confirm within ``--timeout`` (named); 2 a bad argument (no such run directory).
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, decode, en
 __all__ = ["main", "ready_main", "build_parser", "target"]
 
 REPEAT_S = 0.5
+STATUS_WAIT_S = 1.5  # khgrl ready: how long to wait for each actor's status (they come every second)
 
 
 def build_parser(prog: str = "khgrl stop") -> argparse.ArgumentParser:
@@ -123,6 +127,25 @@ def _wait(session, keys: Keys, actors: _Actors, command: str, target_key: str, w
     return left
 
 
+def _waiting_for_ready(actors: _Actors, want: list[str], prog: str) -> list[str]:
+    """``khgrl ready``: the actors of ``want`` that wait for ready (or have not said yet, within
+    :data:`STATUS_WAIT_S`: statuses come every second); says which do not, and when none does."""
+    deadline = time.monotonic() + STATUS_WAIT_S
+    while time.monotonic() < deadline:
+        with actors.lock:
+            if all(a in actors.held for a in want):
+                break
+        time.sleep(0.05)
+    with actors.lock:
+        held = {a: actors.held.get(a) for a in want}
+    waiting = [a for a, h in held.items() if h is None or h.startswith("waiting for ready")]
+    for a in sorted(set(want) - set(waiting)):
+        print(f"{a}: not waiting for ready ({held[a] or 'running'})")
+    if not waiting:
+        print(f"{prog}: nothing was waiting for ready: not sent", file=sys.stderr)
+    return waiting
+
+
 def _payload(command: str, seq: int) -> bytes:
     return encode(Control(command=command), LAUNCHER, seq)
 
@@ -159,6 +182,8 @@ def _send(args: argparse.Namespace, command: str) -> int:
             want = sorted(k.split("/")[-1] for k in alive_now(session, keys.alive("actor", args.actor or "*"), 1.0))
             if not want:
                 print(f"{prog}: error: no actor of run {run} is alive at {connect}", file=sys.stderr)
+                return 1
+            if command == "ready" and not (want := _waiting_for_ready(actors, want, prog)):
                 return 1
             t0 = time.monotonic()
             left = _wait(session, keys, actors, command, keys.control(args.actor or "actor"), want, timeout)

@@ -2,8 +2,8 @@
 
 ``LeRobotDataset.create`` in a temporary folder beside the output, ``add_frame`` per frame, ``save_episode`` per
 episode, ``finalize``; then the folder is renamed into place (an existing output is replaced only with
-``overwrite``, and only once the new one is complete). A failure, Ctrl-C included, removes the temporary folder:
-nothing half-written is left at the output.
+``overwrite``, only if it is a dataset KhGRL wrote (:func:`not_a_dataset`), and only once the new one is complete).
+A failure, Ctrl-C included, removes the temporary folder: nothing half-written is left at the output.
 """
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 from khgrl.common.lerobot.library import lerobot_dataset_class, quiet
 
-__all__ = ["Episode", "write_dataset", "SIDECAR"]
+__all__ = ["Episode", "write_dataset", "not_a_dataset", "SIDECAR"]
 
 SIDECAR = "meta/khgrl.json"  # provenance beside LeRobot's own meta/info.json (which has no field for it)
+DATASET_ENTRIES = frozenset({"meta", "data", "videos", "images"})  # what a LeRobot v3.0 dataset folder holds
 
 
 @dataclass
@@ -41,11 +42,28 @@ class Episode:
         return len(next(iter(self.columns.values())))
 
 
+def not_a_dataset(out: Path) -> str:
+    """Why the existing folder ``out`` is not a LeRobot dataset that KhGRL wrote ("" when it is one: LeRobot's
+    ``meta/info.json`` and KhGRL's ``meta/khgrl.json``, and nothing beside LeRobot's own folders), so that
+    ``--overwrite`` replaces nothing else.
+
+    :param out: an existing path.
+    """
+    if out.is_symlink() or not out.is_dir():
+        return "it is not a folder"
+    missing = [m for m in ("meta/info.json", SIDECAR) if not (out / m).is_file()]
+    if missing:
+        return f"it has no {' and no '.join(missing)}"
+    other = sorted(p.name for p in out.iterdir() if p.name not in DATASET_ENTRIES)
+    return f"it holds {', '.join(other[:5])}{' ...' if len(other) > 5 else ''} besides the dataset" if other else ""
+
+
 def _check_out(out: Path, overwrite: bool) -> None:
     if out.exists() and not overwrite:
         raise FileExistsError(f"{out} exists: give --overwrite to replace it, or another output folder")
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} exists and is not a folder: not replaced")
+    if (out.exists() or out.is_symlink()) and (why := not_a_dataset(out)):
+        raise FileExistsError(f"{out} is not a LeRobot dataset that khgrl export wrote ({why}): not replaced; "
+                              f"give another output folder")
 
 
 def write_dataset(out: str | Path, *, fps: int, features: dict, episodes: Iterable[Episode], overwrite: bool = False,

@@ -125,9 +125,9 @@ class Task:
     :param contact: ``contact(env) -> bool``: the robot touches what it means to now (an object in its closed gripper,
         a surface it presses): ``--physical`` starts no interaction then (to positions, a hand and a held object
         look the same). None: never.
-    :param hold: ``hold(env, p_t)``, called about once a control period while the actor holds the robot (e-stop,
-        pause, waiting for the learner or a silent human) with the position last sent: for a driver that needs a
-        steady command stream (None: nothing is sent; a position-controlled arm keeps its last target).
+    :param hold: ``hold(env, p_t)``, called about once a period while the actor holds the robot, with the position
+        last sent (None: nothing is sent; a position-controlled arm keeps its last target); it may return the
+        observation read while held: the rate limits restart there (else from p_t; :mod:`khgrl.common.tasks.motion`).
     :param scripted_human: ``scripted_human(mean) -> P_h or None`` for the step whose KMP mean is ``mean``; a
         function that names any of ``step``, ``phase``, ``position``, ``obs`` as parameters (or takes
         ``**kwargs``) gets those too (:func:`call_scripted_human`).
@@ -152,7 +152,7 @@ class Task:
     action_cost: float = 10.0
     command: Callable[[Any, np.ndarray], Any] | None = None
     position: Callable[[np.ndarray], np.ndarray] | None = None
-    hold: Callable[[Any, np.ndarray], None] | None = None
+    hold: Callable[[Any, np.ndarray], Any] | None = None
     push: Callable[[Any, np.ndarray | None], None] | None = None
     contact: Callable[[Any], bool] | None = None
     scripted_human: Callable[..., np.ndarray | None] | None = None

@@ -43,8 +43,9 @@ from gymnasium import spaces
 from khgrl.common.kmp.mapping import KGRLMapping
 from khgrl.common.kmp.scale import ScaleModel
 from khgrl.common.tasks.adapted import episode_scene
-from khgrl.common.tasks.api import Task, TaskError, value_bounds
+from khgrl.common.tasks.api import Task, TaskError
 from khgrl.common.tasks.delta import DeltaControl
+from khgrl.common.tasks.motion import measured, reset_path
 from khgrl.common.tasks.safety import RateLimiter
 from khgrl.common.tasks.scene import scene_seed
 from khgrl.common.tasks.world import TaskWorld, build_task_world
@@ -119,6 +120,7 @@ class KGRLEnv(gym.Env):
             if control == "delta" else None
         self.limiter = None if rate_limit is None else RateLimiter.from_demos(self.world.demos, *rate_limit,
                                                                                self.world.low, self.world.high)
+        self.path_limiter: RateLimiter | None = None  # while the path back to the start runs (motion.reset_path)
         self.placement: dict[str, float] = {}
         self.via_points: list = []  # (grid step, position) of this episode's via-points
         self._correction: np.ndarray | None = None
@@ -139,6 +141,7 @@ class KGRLEnv(gym.Env):
         self.t = 0
         self.position = position
         self.desired = position.copy()
+        self.anchor, self.sent_step = position.copy(), np.zeros_like(position)  # the next step starts there, at rest
         self.trail = [position.copy()]
         self._inner_obs = inner_obs
         self._done = False
@@ -289,8 +292,7 @@ class KGRLEnv(gym.Env):
         env_action = desired if self.task.command is None else self.task.command(self.inner, desired)
         inner_obs, r_env, term, trunc, inner_info = self.inner.step(env_action)
         self._inner_obs = inner_obs
-        self.position = self._locate(inner_obs, desired)
-        self.desired = desired
+        self.sent(desired, inner_obs)
         if self.task.scene is not None:
             self.max_violation = max(self.max_violation, violation)
         self.trail.append(self.position.copy())
@@ -306,57 +308,51 @@ class KGRLEnv(gym.Env):
                     else self.mapping.model.step_info.active_rows)
         return self._obs(), r_a + float(r_env), terminated, truncated, info
 
+    def sent(self, p: np.ndarray, inner_obs: np.ndarray) -> None:
+        """``p`` was sent and the task's environment answered ``inner_obs``: the robot's position, the position last
+        sent and its step (what the next step and the path back to the start go on from).
+
+        :param p: the position sent, (O,).
+        :param inner_obs: the task environment's observation after it.
+        """
+        self.position = self._locate(inner_obs, p)
+        self.desired = p
+        self.sent_step, self.anchor = p - self.anchor, p.copy()
+
     def reset_path(self, limits: tuple[float, float], max_steps: int = 10_000):
-        """Between episodes: drive the robot back to the start -- the KMP mean at phase 0 -- along the way it came
-        (its trail in reverse: a path it has been on, not a straight line through what it went around), within
-        ``limits`` (a :class:`~khgrl.common.tasks.safety.RateLimiter`, from rest), stepping the task's environment
-        with each position (no transition, no reward); yields each position sent, until it is at the start.
+        """Between episodes: the path back to the start within ``limits`` (:func:`khgrl.common.tasks.motion.reset_path`:
+        from the last step sent, at its velocity); yields each position sent.
 
         :param limits: ``(max_speed, max_accel)`` in units of the demonstrations' largest step.
         :param max_steps: a bound on the path's length.
         """
-        start = np.asarray(self.world.model.grid_mean[0], dtype=np.float64)
-        lim = RateLimiter.from_demos(self.world.demos, *limits, self.world.low, self.world.high)
-        lim.reset(self.desired)
-        waypoints = [*reversed(self.trail), start]
-        k = 0
-        for _ in range(max_steps):
-            while k < len(waypoints) - 1 and np.max(np.abs(waypoints[k] - lim.last)) <= lim.speed:
-                k += 1  # the next point of the trail not within a step
-            p = lim.limit(waypoints[k])[0]
-            inner_obs = self.inner.step(p if self.task.command is None else self.task.command(self.inner, p))[0]
-            self.position, self.desired = self._locate(inner_obs, p), p
-            yield p
-            if k == len(waypoints) - 1 and np.max(np.abs(p - start)) <= 1e-9 and not np.any(lim.velocity):
-                return
+        return reset_path(self, limits, max_steps)
 
     def hold(self) -> None:
-        """The actor holds the robot (e-stop, pause, a wait for the learner or a silent human): give the task's
-        ``hold`` adapter the position last sent, about once a control period (without one: nothing is sent; the
-        robot's controller keeps its last target)."""
-        if self.task.hold is not None:
-            self.task.hold(self.inner, self.desired.copy())
+        """The actor holds the robot (the e-stop, a pause, a wait for ready or for the learner, a silent human, a
+        stalled loop): give the task's ``hold`` adapter the position last sent, about once a control period (without
+        one: nothing is sent; the robot's controller keeps its last target). The robot stands still: the rate limits
+        restart at rest from where it is measured -- the observation the adapter returns -- or, when it returns none,
+        from the position last sent, which a position-controlled arm reaches while held
+        (:mod:`khgrl.common.tasks.motion`). Every kind of hold goes through here."""
+        obs = None if self.task.hold is None else self.task.hold(self.inner, self.desired.copy())
+        self.anchor = self.desired.copy()
+        if obs is not None:
+            self._inner_obs = measured(self, obs)
+            self.position = self._locate(self._inner_obs, self.desired)
+            self.anchor = np.clip(self.position, self.world.low, self.world.high)
+        self.sent_step = np.zeros_like(self.anchor)
+        for lim in (self.limiter, self.path_limiter):
+            if lim is not None:
+                lim.reset(self.anchor)
 
     # --------------------------------------------------------------- descriptor and drawing
     def descriptor(self, spec: str = ""):
-        """This run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (what the actor announces)."""
-        from khgrl.common.wire.descriptor import TaskDescriptor
+        """This run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (what the actor announces;
+        :func:`khgrl.common.tasks.env_descriptor.descriptor`)."""
+        from khgrl.common.tasks.env_descriptor import descriptor
 
-        w, ob = self.world, self.observation_space
-        big = 1e30
-        reward_bound, obs_bound = value_bounds(self.task, (w.low, w.high), (ob.low, ob.high))
-        return TaskDescriptor(
-            name=self.task.name[:64] or "task", spec=(spec or self.task.name)[:200], out_dim=w.out_dim,
-            obs_dim=int(ob.shape[0]), obs_low=tuple(np.clip(ob.low.astype(float), -big, big).tolist()),
-            obs_high=tuple(np.clip(ob.high.astype(float), -big, big).tolist()), horizon=self.horizon,
-            workspace_low=tuple(w.low.tolist()), workspace_high=tuple(w.high.tolist()),
-            G=tuple(tuple(r) for r in w.G.tolist()), c=tuple(w.c.tolist()),
-            default_scale=tuple(w.default_scale.tolist()), learn_scale=bool(self.task.learn_scale),
-            axis_names=tuple(w.view.names), view_axes=tuple(w.view.axes),
-            view_third=-1 if w.view.third is None else int(w.view.third),
-            shapes=tuple(_shape_dict(s) for s in w.view.shapes), mean=np.asarray(w.model.grid_mean, np.float64),
-            demos=np.asarray(w.demos, np.float64), projector=np.asarray(w.model.grid_projector, np.float64),
-            reward_bound=reward_bound, obs_bound=obs_bound)
+        return descriptor(self, spec)
 
     def render(self):
         """An RGB image of the task views (:class:`~khgrl.common.tasks.render.TaskRenderer`), or None without a mode."""
@@ -372,12 +368,3 @@ class KGRLEnv(gym.Env):
     def close(self) -> None:
         self.inner.close()
 
-
-def _shape_dict(s) -> dict:
-    d = {"kind": s.kind, "name": s.name}
-    for k in ("low", "high", "center", "at"):
-        if hasattr(s, k):
-            d[k] = tuple(float(v) for v in np.asarray(getattr(s, k), dtype=np.float64).reshape(-1))
-    if s.kind == "sphere":
-        d["radius"] = float(s.radius)
-    return d

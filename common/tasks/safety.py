@@ -55,13 +55,15 @@ class RateLimiter:
         d = largest_step(demos)
         return cls(speed * d, accel * d, low, high)
 
-    def reset(self, position: np.ndarray) -> None:
-        """A new episode starts with the robot at rest at ``position``.
+    def reset(self, position: np.ndarray, velocity: np.ndarray | None = None) -> None:
+        """Start again from ``position``: at rest (a new episode, or after any hold), or moving at ``velocity`` (the
+        path back to the start, which goes on from the episode's last step and slows down within the limits).
 
         :param position: where the robot is, (O,).
+        :param velocity: its last step, (O,) (None: at rest).
         """
         self.last = np.clip(np.asarray(position, np.float64), self.low, self.high)
-        self.velocity = np.zeros_like(self.last)
+        self.velocity = np.zeros_like(self.last) if velocity is None else np.asarray(velocity, np.float64).copy()
 
     def limit(self, desired: np.ndarray) -> tuple[np.ndarray, bool]:
         """The position to send for the one asked for: (P_sent, whether it differs from ``desired``).

@@ -127,3 +127,31 @@ def test_export_reads_back_with_lerobots_loader(run: tuple[Path, str], tmp_path:
                             cwd=REPO, env=_env(), capture_output=True, text=True, timeout=120)
     assert forced.returncode == 0, forced.stderr
     assert load_with_library(out).fps == 20 and not list(tmp_path.glob(".export.*"))  # no temporary folder left
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(420)
+def test_export_overwrite_replaces_only_a_dataset_it_wrote(run: tuple[Path, str], tmp_path: Path) -> None:
+    """Issue 33, defect 8. Before the fix ``--overwrite`` deleted whatever OUT was: the source run, the folder of
+    runs that holds it (``--lerobot runs --overwrite``), the LeRobot demonstrations the run was trained on, a dataset
+    folder holding a file of the user's."""
+    run_dir, _ = run
+    before = _tree(run_dir.parent)
+    out = tmp_path / "mine"
+    assert _export(run_dir, out).returncode == 0
+    (out / "notes.txt").write_text("mine")
+    for target, why in ((run_dir, "is (or holds) the run"), (run_dir.parent, "is (or holds) the run"),
+                        (run_dir.parent / "demos", "no meta/khgrl.json"), (out, "holds notes.txt")):
+        refused = _export(run_dir, target, "--overwrite")
+        assert refused.returncode == 2 and why in refused.stderr and "not replaced" in refused.stderr, refused.stderr
+        assert len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+    assert _tree(run_dir.parent) == before and (out / "notes.txt").read_text() == "mine"
+
+
+def _export(run_dir: Path, out: Path, *flags: str) -> subprocess.CompletedProcess:
+    return subprocess.run([*CLI, "export", str(run_dir), "--lerobot", str(out), *flags], cwd=REPO, env=_env(),
+                          capture_output=True, text=True, timeout=120)
+
+
+def _tree(path: Path) -> dict:
+    return {str(p.relative_to(path)): p.stat().st_size for p in sorted(path.rglob("*")) if p.is_file()}

@@ -94,3 +94,50 @@ def test_the_reset_path_returns_to_the_start_within_the_limits():
     steps = np.abs(np.diff(np.vstack([last, *path]), axis=0))
     assert len(path) > 10 and np.max(steps) <= 2.0 * largest_step(env.world.demos) + 1e-12
     assert np.allclose(path[-1], start) and np.allclose(env.position, start, atol=1e-3)  # the robot went there
+
+
+def _held_task(moved: np.ndarray | None):
+    """passage:low_cov with a hold adapter that logs what it is sent and returns ``moved`` (a hand moved the robot
+    there while held; None: returns nothing)."""
+    from dataclasses import replace
+
+    sent: list[np.ndarray] = []
+
+    def hold(env, p):
+        sent.append(p)
+        if moved is None:
+            return None
+        env.robot = moved.copy()
+        return moved.copy()
+
+    return replace(load_task("passage:low_cov"), hold=hold), sent
+
+
+@pytest.mark.parametrize("moved", [None, np.array([0.3, 0.6])], ids=["still", "moved-by-hand"])
+def test_after_a_hold_the_limits_restart_at_rest_from_the_measured_position(moved):
+    task, sent = _held_task(moved)
+    env = KGRLEnv(task, seed=0, rate_limit=(2.0, 0.5))
+    d = largest_step(env.world.demos)
+    env.reset()
+    env.set_correction(np.array(env.world.high))  # at full speed towards a far corner
+    for _ in range(10):
+        last = env.step(np.zeros(2))[4]["desired"]
+    assert np.max(np.abs(env.limiter.velocity)) == pytest.approx(2.0 * d)
+    env.hold()
+    assert np.array_equal(sent[-1], last)  # the adapter gets the position last sent
+    first = env.step(np.zeros(2))[4]["desired"]
+    start = last if moved is None else moved  # (no measurement: from the position last sent)
+    assert np.max(np.abs(first - start)) <= 0.5 * d + 1e-12  # from standstill where the robot is: one accel step
+
+
+def test_the_reset_path_goes_on_from_the_last_steps_velocity_within_the_limits():
+    env = KGRLEnv(load_task("passage:low_cov"), seed=0, rate_limit=(2.0, 0.5))
+    d = largest_step(env.world.demos)
+    env.reset()
+    env.set_correction(np.array(env.world.high))
+    sent = [env.desired.copy()]
+    for _ in range(20):
+        sent.append(env.step(np.zeros(2))[4]["desired"])
+    sent += list(env.reset_path((2.0, 0.5)))  # it turns back: first it slows down
+    steps = np.diff(np.array(sent), axis=0)
+    assert np.max(np.abs(steps)) <= 2.0 * d + 1e-12 and np.max(np.abs(np.diff(steps, axis=0))) <= 0.5 * d + 1e-12
