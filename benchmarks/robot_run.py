@@ -68,14 +68,13 @@ class _Watch:
 def _drive(session, keys, watch: _Watch, procs, learner_args: list[str], actor, down: float) -> dict:
     """Say ready, press the e-stop, kill and restart the learner, until the actor exits; what happened when."""
     from khgrl.common.delivery.declare import put
-    from khgrl.common.wire.messages import Control
-    from khgrl.common.wire.protocol import LAUNCHER, encode
+    from khgrl.common.wire.control import LAUNCHER, control_payload
 
     seq, events, readied = 0, {}, set()
 
     def send(command: str) -> None:
         nonlocal seq
-        put(session, keys.control("actor"), encode(Control(command=command), LAUNCHER, seq), congestion="block")
+        put(session, keys.control("actor"), control_payload(command, LAUNCHER, seq), congestion="block")
         seq += 1
 
     while actor.poll() is None:
@@ -131,6 +130,7 @@ def run_robot_benchmark(rate: float = 10.0, episodes: int = 4, down: float = 3.0
         ep = procs.router()
         learner_args = ["--run", run, "--connect", ep, "--run-dir", str(run_dir), "--id", "learner", *both]
         procs.start("learner", "learner", *learner_args)
+        procs.supervise(run, ep, run_dir)  # (robot mode: the actor moves only while supervised)
         keys = Keys(run)
         with open_client(ep, timeout=30) as session:
             subs = [session.declare_subscriber(keys.frame("a0"), watch.on_frame),

@@ -124,10 +124,13 @@ class _Actors:
 def _wait(session, keys: Keys, actors: _Actors, command: str, target_key: str, want: list[str],
           timeout: float, seq: int = 0) -> list[str]:
     """Publish ``command`` every :data:`REPEAT_S` until each actor in ``want`` confirms; the ones that did not."""
-    deadline, left = time.monotonic() + timeout, list(want)
+    deadline, left, sent = time.monotonic() + timeout, list(want), seq > 0  # (seq > 0: the first went out already)
     while left and time.monotonic() < deadline:
-        put(session, target_key, _payload(command, seq), congestion="block", priority="interactive_high", express=True)
-        seq += 1
+        if not sent:
+            put(session, target_key, _payload(command, seq), congestion="block", priority="interactive_high",
+                express=True)
+            seq += 1
+        sent = False
         end = min(deadline, time.monotonic() + REPEAT_S)
         while left and time.monotonic() < end:
             time.sleep(0.05)
