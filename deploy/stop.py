@@ -151,11 +151,12 @@ class _Supervisor:
         self.said: str | None = None
 
     def on_control(self, sample) -> None:
-        import msgpack
+        from khgrl.common.wire.messages import Control
+        from khgrl.common.wire.protocol import ProtocolError, decode
 
         try:
-            command = msgpack.unpackb(sample.payload.to_bytes(), raw=False).get("command")
-        except Exception:  # noqa: BLE001 - not ours to judge: the actors check every message
+            command = decode(Control, sample.payload.to_bytes()).command
+        except ProtocolError:
             return
         if command in (HEARTBEAT, HEARTBEAT_ESTOP):
             self.said = command

@@ -2,7 +2,8 @@
 
 Senders build message instances and call :func:`encode`; receivers call :func:`decode` with the class they
 expect and get an instance back, or a :class:`ProtocolError` that says why the payload was refused (schema
-version, kind, size, types, dtypes, shapes, finiteness). Nothing outside this module touches msgpack.
+version, kind, size, types, dtypes, shapes, finiteness). Nothing outside this module touches msgpack (but
+:mod:`khgrl.common.wire.control`, the numpy-free encoding of a ``control`` message).
 
 Every payload is a msgpack map: the envelope ``v`` (schema version, the integer 1), ``kind``, ``sender``,
 ``seq``, ``ts``, then the fields of the kind. A decoded message carries its envelope in ``.envelope``.
