@@ -244,6 +244,7 @@ def test_learner_logs_who_stopped_it(tmp_path, caplog):
 
 
 def test_the_estop_is_latched_until_the_launchers_release_and_ready_only_counts_when_asked(tmp_path):
+    """Any client's e-stop holds (assigned or not); only the launcher releases it; ready only when asked."""
     inbound, parts, _ = _inbound(tmp_path)
     human = K.human_request("kb")
     inbound.handle("human_request", human, encode(Control(command="ready"), "kb", 0), 0.0, episode=1)
@@ -262,6 +263,8 @@ def test_the_estop_is_latched_until_the_launchers_release_and_ready_only_counts_
     assert inbound.paused and inbound.held_reason.startswith("waiting for ready before episode 2")
     inbound.handle("human_request", human, encode(Control(command="ready"), "kb", 5), 0.0, episode=1)
     assert inbound.awaiting_ready is None and not inbound.paused
-    parts.arbiter.assignments = Assignments("a0", "other=a0")  # kb is not assigned to this actor
-    inbound.handle("human_request", human, encode(Control(command="estop"), "kb", 6), 0.0, episode=1)
-    assert inbound.estop is None and parts.rejects.by_kind() == {"control": 2}
+    parts.arbiter.assignments = Assignments("a0", "other=a0")  # kb is not assigned to this actor: its pause is
+    inbound.handle("human_request", human, encode(Control(command="pause"), "kb", 6), 0.0, episode=1)
+    assert not inbound.paused and parts.rejects.by_kind() == {"control": 2}  # refused, but its e-stop holds (issue 33)
+    inbound.handle("human_request", human, encode(Control(command="estop"), "kb", 7), 0.0, episode=1)
+    assert inbound.held_reason == "e-stop by human client kb" and parts.rejects.by_kind() == {"control": 2}
