@@ -50,7 +50,8 @@ class SafetySettings:
     supervision: str = _opt("auto", "hold the robot (the e-stop, latched) unless it hears its supervisor's heartbeat "
                                     "(khgrl up, or khgrl supervise RUN_DIR): auto (on in robot mode), on or off",
                             RATE_LIMITS, roles=(ACTOR,))
-    heartbeat_s: float = _opt(0.1, "with supervision: the supervisor's heartbeat period (s)", roles=(ACTOR,))
+    heartbeat_s: float = _opt(0.1, "with supervision: the heartbeat period of khgrl up (and of khgrl supervise "
+                                   "RUN_DIR) (s)", roles=())
     supervision_timeout: float = _opt(0.4, "with supervision: seconds without a heartbeat after which the actor "
                                            "latches the e-stop (held within one control period more; released "
                                            "only by khgrl stop --release)", roles=(ACTOR,))
