@@ -124,12 +124,11 @@ class Inbound:
     def restore(self, state: dict | None, where: str) -> None:
         """Before the first command: the run's e-stop state from disk (:mod:`~khgrl.common.delivery.estop_state`).
 
-        :param state: the state read (None: none), a pressed one latches the e-stop.
+        :param state: the state read (None: none), a pressed one latches the e-stop (its latency: from now).
         :param where: the file's path (for the log and the status).
         """
         if state is not None and state.get("pressed"):
-            self.press_estop(f"the run's e-stop state ({where}: pressed by {state.get('by')})",
-                             float(state.get("time") or time.time()), 0)
+            self.press_estop(f"the run's e-stop state ({where}: pressed by {state.get('by')})", time.time(), 0)
 
     @property
     def held_reason(self) -> str:

@@ -1,7 +1,7 @@
 """A robot-style run in real time (``khgrl bench robot``; README, "On a real robot"): gym-hil's Panda (a MuJoCo arm
 under operational-space control) stepped at wall-clock rate (``--rate``, default its own 10 Hz) in ``--mode robot``
 with the safety layer on (rate limits at the arm's speed, the reset path, ``--confirm-reset``), physical corrections
-(the scripted physical human pushes in episode 2), and three faults while it runs:
+(the scripted physical human pushes in episode 2), and these faults:
 
 * before each episode the actor holds until this benchmark says ``ready`` (as a person would);
 * in episode 2, the e-stop is pressed at step ``ESTOP_AT`` and released a second later;
@@ -9,17 +9,17 @@ with the safety layer on (rate limits at the arm's speed, the reset path, ``--co
 * in episode 4, the link is lost: the router is SIGSTOPped at step ``LOSS_AT`` for 1.5 s; the actor, supervised by
   ``khgrl supervise``, holds once the heartbeat is ``supervision_timeout`` old, and stays held after the router is
   back until the release 2 s later;
-* in episode 5, the e-stop is pressed at step ``RESTART_AT``, the actor SIGKILLed and restarted with ``--resume``:
-  it reads the run's e-stop state and takes no step until the release 3 s after its first heartbeat.
+* after the last episode, the e-stop is pressed with no actor alive and the actor restarted with ``--resume`` for
+  one more episode: it reads the run's e-stop state and takes no step until the release 3 s after its first heartbeat
+  (the SIGKILLed actor restarted under the e-stop: tests/integration/test_supervision.py).
 
 A router, a learner, ``khgrl supervise`` and the actor are separate processes (as on a robot, a GPU box and the
 operator's machine); this process watches every frame and the actor's status over Zenoh. Reported: the actor's loop
-period (p50 / p99 / max against the target; the restarted part's), every e-stop's delay from its command (the
-watchdog's: from the timeout) to the held robot (the actor's log, both parts), how long the robot was held and why
-(the restarted part), what the robot did while the learner was down (frames, the longest gap between them), the
-steps from the link's loss to the hold and after the router came back, the restarted actor's steps under the
-e-stop, the detection of the pushes, the reset paths, and every transition in the resumed learner's checkpoint exactly
-once.
+period (p50 / p99 / max against the target), every e-stop's delay from its command (the watchdog's: from the
+timeout) to the held robot, how long the robot was held and why, what the robot did while the learner was down
+(frames, the longest gap between them), the steps from the link's loss to the hold and after the router came back,
+the restarted actor's frames under the e-stop, the detection of the pushes, the reset paths, and every transition in
+the resumed learner's checkpoint exactly once.
 
     khgrl bench robot --out docs/robot_run/robot_run.json
 """
@@ -35,9 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["run_robot_benchmark", "ESTOP_AT", "KILL_AT", "LOSS_AT", "RESTART_AT"]
+__all__ = ["run_robot_benchmark", "ESTOP_AT", "KILL_AT", "LOSS_AT"]
 
-ESTOP_AT, KILL_AT, LOSS_AT, RESTART_AT = 20, 15, 10, 10  # steps of episodes 2, 3, 4 and 5
+ESTOP_AT, KILL_AT, LOSS_AT = 20, 15, 10  # steps of episodes 2, 3 and 4
 HELD = re.compile(r"e-stop by (.*): robot held at episode (\d+) step (\d+), ([\d.]+) ms after the command")
 
 
@@ -115,8 +115,6 @@ class _Driver:
                 ev["back"] = time.monotonic()
             if episode == 4 and t >= LOSS_AT and "loss" not in ev:
                 self.link_loss()
-            if episode == 5 and t >= RESTART_AT and "restart" not in ev:
-                actor = self.restart(actor)
         ev["readied"] = sorted(self.readied)
         return actor
 
@@ -136,17 +134,18 @@ class _Driver:
         ev["loss_held"] = self.watch.held
         self.send("release")
 
-    def restart(self, actor):
-        """The e-stop, the actor SIGKILLed and restarted with ``--resume``: its frames before the release."""
+    def restart(self, episodes: int):
+        """The run done, the e-stop pressed with no actor alive, the actor restarted with ``--resume`` for one more
+        episode: its frames before the release (3 s after its first heartbeat); the new actor process."""
         ev = self.events
         ev["restart"] = time.monotonic()
-        self.send("estop")
+        self.send("estop")  # (the supervisor keeps it: RUN_DIR/estop.json and its heartbeat)
         time.sleep(0.5)
-        actor.kill()
-        actor.wait(10)
-        log = Path(self.actor_args[self.actor_args.index("--run-dir") + 1]) / "actor-a0" / "actor.log"
+        args = list(self.actor_args)
+        args[args.index("--episodes") + 1] = str(episodes + 1)
+        log = Path(args[args.index("--run-dir") + 1]) / "actor-a0" / "actor.log"
         beats = log.read_text().count("supervised: first heartbeat")
-        actor = self.procs.start("actor-restarted", "actor", *self.actor_args, "--resume")
+        actor = self.procs.start("actor-restarted", "actor", *args, "--resume")
         deadline = time.monotonic() + 120
         while log.read_text().count("supervised: first heartbeat") <= beats and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -154,18 +153,17 @@ class _Driver:
         time.sleep(3.0)
         ev["restart_frames_before_release"] = len(self.watch.frames) - n
         ev["restart_held"] = self.watch.held
-        self.readied.discard(5)  # (the restarted actor asks again)
         self.send("release")
         return actor
 
 
-def run_robot_benchmark(rate: float = 10.0, episodes: int = 5, down: float = 3.0, seed: int = 1,
+def run_robot_benchmark(rate: float = 10.0, episodes: int = 4, down: float = 3.0, seed: int = 1,
                         work: str = "runs/bench-robot", out: str | None = None) -> dict:
     """The robot-style run (module docstring).
 
     :param rate: the control rate (Hz; gym-hil's Panda runs at 10)
-    :param episodes: episodes (>= 5: the e-stop in episode 2, the learner's kill in 3, the link's loss in 4, the
-        actor's restart under the e-stop in 5)
+    :param episodes: episodes (>= 4: the e-stop in episode 2, the learner's kill in 3, the link's loss in 4; then
+        one more after the restart under the e-stop)
     :param down: seconds the learner stays dead
     :param seed: seed of the run
     :param work: run directory
@@ -177,9 +175,9 @@ def run_robot_benchmark(rate: float = 10.0, episodes: int = 5, down: float = 3.0
     from khgrl.common.delivery.transport import open_client
     from khgrl.common.wire.protocol import Keys
 
-    if episodes < 5:
-        raise ValueError("--episodes must be >= 5 (the e-stop is in episode 2, the learner's kill in 3, the link's "
-                         "loss in 4, the actor's restart under the e-stop in 5)")
+    if episodes < 4:
+        raise ValueError("--episodes must be >= 4 (the e-stop is in episode 2, the learner's kill in 3, the link's "
+                         "loss in 4)")
     work_dir = Path(work).resolve()
     run = run_id("robot")
     run_dir = work_dir / run
@@ -201,6 +199,8 @@ def run_robot_benchmark(rate: float = 10.0, episodes: int = 5, down: float = 3.0
                           "--confirm-reset", "--max-speed", "1"]
             driver = _Driver(session, keys, watch, procs, learner_args, actor_args, down)
             actor = driver.run(procs.start("actor", "actor", *actor_args))
+            summary = json.loads((run_dir / "actor-a0" / "summary.json").read_text())  # (the restart writes its own)
+            actor = driver.run(driver.restart(episodes))
             events = driver.events
             for s in subs:
                 s.undeclare()
@@ -208,15 +208,15 @@ def run_robot_benchmark(rate: float = 10.0, episodes: int = 5, down: float = 3.0
         driver.learner.stop(60, signal.SIGINT)  # the resumed learner: its final checkpoint
     finally:
         procs.close()
-    return _report(run_dir, watch, events, code, rate, down, detection, provenance_check, out)
+    return _report(run_dir, summary, watch, events, code, rate, down, detection, provenance_check, out)
 
 
-def _report(run_dir: Path, watch: _Watch, events: dict, code, rate: float, down: float, detection,
+def _report(run_dir: Path, s: dict, watch: _Watch, events: dict, code, rate: float, down: float, detection,
             provenance_check, out: str | None) -> dict:
-    """The numbers of the run, printed and (``out``) written as JSON."""
+    """The numbers of the run (``s``: the actor's summary of the episodes before the restart), printed and (``out``)
+    written as JSON."""
     import csv
 
-    s = json.loads((run_dir / "actor-a0" / "summary.json").read_text())
     with open(run_dir / "actor-a0" / "physical.csv", newline="") as fh:
         phys = detection(list(csv.DictReader(fh)))
     times = np.array([f[0] for f in watch.frames])
@@ -225,7 +225,7 @@ def _report(run_dir: Path, watch: _Watch, events: dict, code, rate: float, down:
     acct = provenance_check(run_dir)
     held = HELD.findall((run_dir / "actor-a0" / "actor.log").read_text())  # (both parts of the actor)
     res = {"rate_hz": rate, "actor_exit": code, "loop_period_ms": s["loop_period_ms"],
-           "estop_latency_ms": [float(h[3]) for h in held if not h[0].startswith("the watchdog")],
+           "estop_latency_ms": [float(h[3]) for h in held if not h[0].startswith(("the watchdog", "the run's"))],
            "watchdog_latency_ms": [float(h[3]) for h in held if h[0].startswith("the watchdog")],
            "link_loss": {k: events.get(f"loss_{k}") for k in ("steps", "steps_after_back", "held")},
            "restart_under_estop": {"frames_before_release": events.get("restart_frames_before_release"),
@@ -248,7 +248,7 @@ def _report(run_dir: Path, watch: _Watch, events: dict, code, rate: float, down:
     print(f"link lost (router SIGSTOP 1.5 s): {loss['steps']} steps to the hold, the watchdog held "
           f"{res['watchdog_latency_ms']} ms after the {1e3 * 0.4:.0f} ms timeout; {loss['steps_after_back']} steps "
           f"after the router came back ({loss['held']!r})")
-    print(f"actor SIGKILLed under the e-stop and restarted: {res['restart_under_estop']['frames_before_release']} "
+    print(f"actor restarted under the e-stop: {res['restart_under_estop']['frames_before_release']} "
           f"frames before the release ({res['restart_under_estop']['held']!r})")
     print(f"pushes: {res['physical']}; reset paths {res['reset_paths']}")
     print(f"{res['transitions']} transitions: {res['lost']} lost, {res['duplicated']} duplicated")
