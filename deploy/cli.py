@@ -7,8 +7,6 @@ import json
 import sys
 from pathlib import Path
 
-from khgrl.common.process import die_with_parent
-
 __all__ = ["main", "build_parser"]
 
 
@@ -179,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
 
         module, func, _ = PROCESS_COMMANDS[argv[0]]
         if argv[0] in SUPERVISED:
+            from khgrl.common.process import die_with_parent  # (not for khgrl stop --now: a quick start)
+
             die_with_parent()
         return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
     parser = build_parser()
