@@ -1,7 +1,8 @@
 """The run's supervisor (README, "On a real robot"; :mod:`khgrl.actor.supervision`): a heartbeat on
 ``control/actor`` every ``heartbeat_s`` carrying the run's e-stop state, which it keeps -- in memory and in
-``RUN_DIR/estop.json`` -- from every press and release it hears (``khgrl stop --now`` / ``--release``, a human-input
-client's e-stop) and from that file (``khgrl stop RUN_DIR --now`` writes it first). In robot mode an actor moves only
+``RUN_DIR/estop.json`` -- from every press and release it hears for every actor (``khgrl stop --now`` / ``--release``
+on ``control/actor`` or ``control/all``, a human-input client's e-stop; not ``khgrl stop --actor ID``'s, that actor's
+alone) and from that file (``khgrl stop RUN_DIR --now`` writes it first). In robot mode an actor moves only
 while it hears one.
 
 ``khgrl up`` supervises its own run (:class:`Heartbeat`, in robot mode). For processes started by hand (across
@@ -54,8 +55,9 @@ class Heartbeat:
         self.by = str(state.get("by")) if state else ""
         self.sent = 0
         self._stop = threading.Event()
-        self._subs = [subscribe(session, keys.control("**"), self._on_control, remote_only=True),
-                      subscribe(session, keys.human_request("*"), self._on_control)]
+        # the run's presses and releases: every actor's keys (one actor's, control/<id>, is that actor's alone)
+        self._subs = [subscribe(session, keys.control(t), self._on_control, remote_only=True) for t in ("actor", "all")]
+        self._subs.append(subscribe(session, keys.human_request("*"), self._on_control))
         self._thread = threading.Thread(target=self._run, name="heartbeat", daemon=True)
 
     def __enter__(self) -> Heartbeat:

@@ -8,7 +8,9 @@ hold it gets (tests/driver_log_task.py), and a human-input client (``h9``, assig
 2. ``khgrl stop --now``, the actor SIGKILLed and restarted with ``--resume``: 0 commands until the release. Before:
    the latch lived in the killed process; the new one moved about 4 s later (defect 2).
 3. 20 presses of ``khgrl stop --now``: from the command's start (the keystroke) to the driver's first ``hold``, p50
-   and p99. Before: 0.3-0.9 s, the command's start-up (defect 7; the bound asserted is loose, the figures printed).
+   and p99 (printed), and to its message on the router: at most twice the leanest press's (a session and a put),
+   measured alternately in the same run. Before: numpy, the settings and a liveliness query came first -- 0.3-0.9 s
+   to held (defect 7).
 4. The router SIGSTOPped, then SIGKILLed and restarted: the robot is held within one period + the supervision timeout
    (0.05 + 0.4 s) and gets 0 commands after it, also once the router is back, until the operator's release. Before:
    the actor went on commanding the robot (264-398 commands) (defect 1).
@@ -37,6 +39,13 @@ KHGRL = Path(sys.executable).with_name("khgrl")  # the console script a person t
 STOP = [str(KHGRL), "stop"] if KHGRL.is_file() else [sys.executable, "-m", "khgrl.deploy.cli", "stop"]
 ACTOR = ["--task", "driver_log_task:make_task", "--mode", "robot", "--rate", str(RATE), "--episodes", "1000",
          "--learning-starts", "64", "--max-lead", "100000", "--human-clients", "h0=a0"]
+LEAN = """
+import sys
+from khgrl.common.delivery.transport import open_client
+from khgrl.common.wire.control import control_payload
+with open_client(sys.argv[1], timeout=10) as s:
+    s.put(sys.argv[2], control_payload("estop", "launcher", 0))
+"""
 HUMAN = """
 import sys, time
 from khgrl.common.delivery.transport import open_client
@@ -123,17 +132,53 @@ def _restart_latched(rig: Rig) -> None:
     rig.release()
 
 
-def _presses(rig: Rig, n: int = 20) -> list[float]:
-    """Keystroke (the command's start) to the driver's first hold, ms, for ``n`` presses."""
-    out = []
-    for _ in range(n):
-        t0 = time.time()
-        press = rig.stop("--now")
-        assert press.returncode == 0, press.stdout + press.stderr
-        held = min(rig.calls("hold", t0))
-        assert not rig.calls("command", held + 1e-3), "a command after the hold"
-        out.append((held - t0) * 1e3)
-        rig.release()
+class _Presses:
+    """Every ``estop`` on ``control/**`` (this test's own session): when it arrived, on which key."""
+
+    def __init__(self, rig: Rig) -> None:
+        from khgrl.common.delivery.transport import open_client
+
+        self.got: list[tuple[float, str]] = []
+        self.session = open_client(rig.ep, timeout=10)
+        self.sub = self.session.declare_subscriber(f"khgrl/{rig.run}/control/**", self._on)
+
+    def _on(self, sample) -> None:
+        from khgrl.common.wire.messages import Control
+        from khgrl.common.wire.protocol import decode
+
+        if decode(Control, sample.payload.to_bytes()).command == "estop":
+            self.got.append((time.time(), str(sample.key_expr)))
+
+    def first(self, key: str, after: float) -> float:
+        return wait_for(lambda: min((t for t, k in self.got if k == key and t > after), default=None), 10, key)
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+def _presses(rig: Rig, n: int = 20) -> dict[str, list[float]]:
+    """``n`` presses of ``khgrl stop --now``, ms from the command's start (the keystroke) to the driver's first hold
+    (``held``) and to the message on the router (``sent``), and, alternating with them, the leanest press possible
+    (:data:`LEAN`: a session, one put, on a key no actor follows) from its start to its message (``lean``)."""
+    out: dict[str, list[float]] = {"held": [], "sent": [], "lean": []}
+    watch, key = _Presses(rig), f"khgrl/{rig.run}/control/actor"
+    try:
+        for _ in range(n):
+            t0 = time.time()
+            subprocess.run([sys.executable, "-c", LEAN, rig.ep, f"khgrl/{rig.run}/control/nobody"], env=rig.g.env,
+                           check=True, timeout=60, cwd=REPO)
+            out["lean"].append((watch.first(f"khgrl/{rig.run}/control/nobody", t0) - t0) * 1e3)
+            t0 = time.time()
+            press = rig.stop("--now")
+            assert press.returncode == 0, press.stdout + press.stderr
+            held = min(rig.calls("hold", t0))
+            assert not rig.calls("command", held + 1e-3), "a command after the hold"
+            out["held"].append((held - t0) * 1e3)
+            out["sent"].append((watch.first(key, t0) - t0) * 1e3)
+            rig.release()
+    finally:
+        watch.close()
     return out
 
 
@@ -189,8 +234,11 @@ def test_robot_held_without_supervision_and_the_estop_state_outlives_actors(tmp_
         finally:
             human.kill()
             human.wait(10)
-    print(f"keystroke -> held over {len(ms)} presses: p50 {np.percentile(ms, 50):.1f} ms, p99 "
-          f"{np.percentile(ms, 99):.1f} ms, max {max(ms):.1f} ms")
+    for what, v in ms.items():
+        print(f"{what}: over {len(v)} presses p50 {np.percentile(v, 50):.1f} ms, p99 {np.percentile(v, 99):.1f} ms, "
+              f"max {max(v):.1f} ms")
     print(f"router SIGSTOP -> held {stopped * 1e3:.0f} ms, SIGKILL -> held {killed * 1e3:.0f} ms (period "
           f"{1e3 / RATE:.0f} ms + timeout {TIMEOUT * 1e3:.0f} ms); commands after: 0")
-    assert np.percentile(ms, 50) <= 400.0, ms  # (the target, 150 ms, is the figure on an idle machine: docs)
+    # khgrl stop --now's message goes out about as soon as the leanest press's (before: numpy, the settings and a
+    # liveliness query first: 0.3-0.9 s); the absolute figures depend on the machine's load (docs/robot_run)
+    assert np.median(ms["sent"]) <= 2.0 * np.median(ms["lean"]), ms
