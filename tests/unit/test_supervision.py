@@ -80,3 +80,17 @@ def test_human_estop_repeated_until_every_recent_actor_confirms(monkeypatch):
     press.on_status(status("a1", "e-stop by the watchdog (no heartbeat from the supervisor for 0.41 s)"))
     press.tick()
     assert press.since is None and press.confirmed_after is not None and len(sent) == 3
+
+
+def test_khgrl_stop_loads_nothing_heavy_before_its_message():
+    """``khgrl stop --now``'s path to its first message (the ``khgrl`` command, ``khgrl stop``, the session) loads no
+    numpy, no settings module and no wire-protocol module (defect 7: keystroke to held). Before: the command imported
+    the passage scenarios (numpy) and ``khgrl stop`` the protocol and the settings before it connected."""
+    import subprocess
+    import sys
+
+    heavy = ("numpy", "khgrl.common.config.settings", "khgrl.common.wire.protocol", "khgrl.common.wire.messages")
+    code = ("import sys, khgrl.deploy.cli, khgrl.deploy.stop, khgrl.common.delivery.transport, "
+            f"khgrl.common.delivery.declare; print([m for m in {heavy!r} if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
