@@ -24,11 +24,13 @@ from typing import Any
 
 from khgrl.actor.human_limits import HumanPauses
 from khgrl.actor.safety import EStop
+from khgrl.actor.supervision import Supervision, heartbeat_refusal
 from khgrl.common.delivery.actor_guard import ActorGuard
 from khgrl.common.delivery.senders import HUMAN_COMMANDS, read_for_actor
 from khgrl.common.delivery.trust import WeightsGate, learner_of
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.checks import ProtocolError
+from khgrl.common.wire.control import HEARTBEAT_ESTOP, HEARTBEATS
 from khgrl.common.wire.messages import Ack, Control, Dims
 from khgrl.common.wire.protocol import attribute_control
 
@@ -54,14 +56,18 @@ class Inbound:
     :param guard: the actor's :class:`~khgrl.common.delivery.actor_guard.ActorGuard` (default: one with the gate's
         key, the run's).
     :param pause_s: seconds a human-input client's pause lasts unless renewed (0: until resumed).
+    :param supervision: the supervisor's heartbeats (:mod:`khgrl.actor.supervision`; default: not required).
     """
 
     def __init__(self, parts: Any, flag: StopFlag, dims: Dims, gate: WeightsGate | None = None,
-                 guard: ActorGuard | None = None, pause_s: float = 60.0) -> None:
+                 guard: ActorGuard | None = None, pause_s: float = 60.0,
+                 supervision: Supervision | None = None) -> None:
         self.p, self.flag, self.dims = parts, flag, dims
+        self.supervision = supervision or Supervision(False, 1.0)
         self.learners: set[str] = set()
         self.launcher_paused = False  # control/actor or control/all pause (the launcher's: no expiry)
         self.estop: EStop | None = None  # the e-stop, pressed (latched until the launcher's release)
+        self.episode = 0  # the actor's episode (as of the last message handled)
         self.awaiting_ready: int | None = None  # the episode that waits for a person's ready (--confirm-reset)
         self.human_pauses = HumanPauses(pause_s)
         self._new_learners = (float(MAX_LEARNERS), time.monotonic())  # token bucket: (tokens, when)
@@ -98,16 +104,39 @@ class Inbound:
 
     @property
     def paused(self) -> bool:
-        """Whether the actor is held: the e-stop, or a pause by the launcher or by a human-input client whose pause
-        has not expired."""
-        return self.estop is not None or self.awaiting_ready is not None or self.launcher_paused \
-            or self.human_pauses.active(time.monotonic())
+        """Whether the actor is held: the e-stop (latched here when the supervision is lost), no heartbeat yet (with
+        supervision), or a pause by the launcher or by a human-input client whose pause has not expired."""
+        self.check_supervision()
+        return self.estop is not None or self.supervision.waiting or self.awaiting_ready is not None \
+            or self.launcher_paused or self.human_pauses.active(time.monotonic())
+
+    def check_supervision(self) -> None:
+        """With supervision: latch the e-stop once the last heartbeat is older than the timeout (its ``sent``: when
+        the timeout ran out, so the latency is the detection's)."""
+        now = time.monotonic()
+        silence = self.supervision.silence(now)
+        if silence is None or self.estop is not None:
+            return
+        late = silence - self.supervision.timeout
+        self.press_estop(f"the watchdog (no heartbeat from the supervisor for {silence:.2f} s)", time.time() - late,
+                         self.episode)
+
+    def restore(self, state: dict | None, where: str) -> None:
+        """Before the first command: the run's e-stop state from disk (:mod:`~khgrl.common.delivery.estop_state`).
+
+        :param state: the state read (None: none), a pressed one latches the e-stop (its latency: from now).
+        :param where: the file's path (for the log and the status).
+        """
+        if state is not None and state.get("pressed"):
+            self.press_estop(f"the run's e-stop state ({where}: pressed by {state.get('by')})", time.time(), 0)
 
     @property
     def held_reason(self) -> str:
         """Why the actor is held by a command ("" when it is not): the e-stop first."""
         if self.estop is not None:
             return f"e-stop by {self.estop.by}"
+        if self.supervision.waiting:
+            return "waiting for the supervisor's heartbeat (khgrl up, or khgrl supervise RUN_DIR)"
         if self.launcher_paused:
             return "paused by the launcher"
         if self.human_pauses.active(time.monotonic()):
@@ -136,7 +165,9 @@ class Inbound:
         """
         if self.estop is None:
             self.estop = EStop(by=by, sent=sent, episode=episode, t=int(self.p.env.t))
-        log.warning("e-stop pressed by %s: the robot holds until `khgrl stop --release`", by)
+            log.warning("e-stop pressed by %s: the robot holds until `khgrl stop --release`", by)
+        else:
+            log.warning("e-stop pressed by %s (held already: e-stop by %s)", by, self.estop.by)
 
     def handle(self, kind: str, key: str, payload, arrival: float, episode: int) -> None:
         """One inbox item.
@@ -147,6 +178,7 @@ class Inbound:
         :param arrival: when it arrived (monotonic s).
         :param episode: the actor's current episode.
         """
+        self.episode = episode
         if kind == "alive":
             self.on_alive(key, payload)
             return
@@ -167,7 +199,7 @@ class Inbound:
 
     def _on_human_request(self, msg: Control, key: str, arrival: float, episode: int) -> None:
         client = msg.envelope.sender
-        if not self.p.arbiter.assignments.allows(client):
+        if msg.command != "estop" and not self.p.arbiter.assignments.allows(client):  # (any client's e-stop holds)
             self.p.rejects.reject("control", key, ProtocolError(
                 f"{msg.command} from human-input client {client!r}, not assigned to actor {self.p.arbiter.actor}"))
             return
@@ -243,7 +275,23 @@ class Inbound:
         for k, why in ignored.items():
             self.guard.ignore(k, why, ours_alive=bool(self.learners))
 
+    def _on_heartbeat(self, msg: Control, key: str, episode: int) -> None:
+        """The supervisor's heartbeat: supervised; ``heartbeat-estop`` latches the e-stop (the run's state)."""
+        if why := heartbeat_refusal(msg.envelope.sender):
+            self.p.rejects.reject("control", key, ProtocolError(why))
+            return
+        now = time.monotonic()
+        if self.supervision.beats == 0:
+            log.info("supervised: first heartbeat from %s (e-stop %s)", msg.envelope.sender,
+                     "pressed" if msg.command == HEARTBEAT_ESTOP else "released")
+        self.supervision.beat(now)
+        if msg.command == HEARTBEAT_ESTOP and self.estop is None and not self.supervision.stale_press(now):
+            self.press_estop("the run's e-stop state (the supervisor's heartbeat)", msg.envelope.ts, episode)
+
     def _on_control(self, msg: Control, key: str, episode: int) -> None:
+        if msg.command in HEARTBEATS:
+            self._on_heartbeat(msg, key, episode)
+            return
         attribute_control(msg, key, log)
         if msg.command == "estop":
             self.press_estop(msg.envelope.sender, msg.envelope.ts, episode)
@@ -253,6 +301,7 @@ class Inbound:
             if self.estop is not None:
                 log.warning("e-stop released by %s", msg.envelope.sender)
             self.estop = None
+            self.supervision.released_at = time.monotonic()
         elif msg.command == "stop":
             self.flag.set("stop command")
         elif msg.command == "pause":

@@ -1,6 +1,7 @@
 """Between two episodes (README, "On a real robot"): the robot returns to the start along a rate-limited path
 (``--reset-path``; on in robot mode), then, with ``--confirm-reset``, it is held until a person says it is ready
-(``khgrl ready RUN_DIR``, or r in a human client's window). The path is paced at ``--rate``, and the e-stop, pauses
+(``khgrl ready RUN_DIR``, or r in a human client's window); the reset itself waits while the actor is held (the
+e-stop, no supervisor yet: :mod:`khgrl.actor.supervision`). The path is paced at ``--rate``, and the e-stop, pauses
 and the watchdog hold it as they hold an episode's steps; it is not a transition (no reward, nothing stored).
 
 The path starts from the position last sent at the velocity of the episode's last step, and slows down within the
@@ -44,6 +45,6 @@ def reset_phase(loop: Any, episode: int) -> bool:
                  largest)
     if s.confirm_reset:
         loop.inbound.awaiting_ready = episode
-    if loop.inbound.paused:  # held (the watchdog says why) until ready, the e-stop released, or stopped: the task's
-        loop.rate_limit()  # reset moves a real robot too
+    if loop.inbound.paused:  # no reset (a real robot's moves to its start) under the e-stop or without supervision
+        loop.rate_limit()  # held (the watchdog says why) until ready, the e-stop released, or stopped
     return not loop.flag

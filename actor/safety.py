@@ -3,7 +3,8 @@
 
 The robot is held, and the control loop takes no step, while:
 
-* the **e-stop** is pressed (``khgrl stop --now``, or the e-stop key of a human-input client): latched until the
+* the **e-stop** is pressed (``khgrl stop --now``, the e-stop key of a human-input client, the run's e-stop state
+  at the start, or the supervision lost in robot mode: :mod:`khgrl.actor.supervision`): latched until the
   launcher releases it (``khgrl stop --release``); the delay from the command's timestamp to the hold is recorded
   (the sender's clock: exact on one machine, as good as the clocks' sync across machines);
 * a ``pause`` holds the actor (the launcher's, or a human-input client's);
@@ -39,13 +40,14 @@ SAFETY_COUNTS = ("estops", "late_steps", "human_silence_holds", "learner_holds",
 
 
 def hold_kind(reason: str) -> str:
-    """The kind of a hold's reason: ``estop``, ``pause``, ``ready``, ``learner`` or ``human`` (``summary.json``'s
-    ``safety.held_s`` keys).
+    """The kind of a hold's reason: ``estop``, ``pause``, ``ready``, ``learner``, ``human`` or ``supervisor``
+    (``summary.json``'s ``safety.held_s`` keys).
 
     :param reason: the reason the status shows.
     """
     for prefix, kind in (("e-stop", "estop"), ("paused", "pause"), ("waiting for ready", "ready"),
-                         ("waiting for the learner", "learner"), ("human client", "human")):
+                         ("waiting for the learner", "learner"), ("human client", "human"),
+                         ("waiting for the supervisor", "supervisor")):
         if reason.startswith(prefix):
             return kind
     return "other"

@@ -141,9 +141,11 @@ BENCHMARKS: dict[str, Benchmark] = {
         SEED, OUT)),
     "robot": Benchmark("khgrl.benchmarks.robot_run", "run_robot_benchmark",
                        "a robot-style run in real time: gym-hil's Panda at 10 Hz in robot mode with the safety layer, "
-                       "confirmed resets, an e-stop, physical pushes and a learner SIGKILL + resume", (
+                       "confirmed resets, an e-stop, physical pushes, a learner SIGKILL + resume, the link lost and "
+                       "the actor restarted under the e-stop", (
         _flag("--rate", type=float, default=10.0, help="the control rate in Hz (default: %(default)s)"),
-        _flag("--episodes", type=int, default=4, help="episodes, at least 3 (default: %(default)s)"),
+        _flag("--episodes", type=int, default=4, help="episodes, at least 4; one more after the restart under the "
+                                                       "e-stop (default: %(default)s)"),
         _flag("--down", type=float, default=3.0, help="seconds the learner stays dead (default: %(default)s)"),
         _flag("--seed", type=int, default=1, help="seed (default: %(default)s)"),
         _flag("--work", default="runs/bench-robot", help="run directories (default: %(default)s)"),

@@ -87,6 +87,7 @@ def run_flood_benchmark(messages: int = 100_000, rate: float = 50.0, quiet_s: fl
     try:
         ep = procs.router()
         procs.learner("learner", run, ep, work_dir / run, "--learning-starts", "64", "--mode", "robot")
+        procs.supervise(run, ep, work_dir / run)  # (robot mode: the actor moves only while supervised)
         rt = ["--actor-rt-priority", str(rt_priority)] if rt_priority else []
         actor = procs.actor("actor", run, ep, work_dir / run, "--episodes", "1000", "--rate", str(rate), "--mode",
                             "robot", "--seed", str(seed), *rt)

@@ -84,6 +84,7 @@ def run_queries_benchmark(qps: float = 1000.0, seconds: float = 15.0, rounds: in
     try:
         ep = procs.router()
         procs.learner("learner", run, ep, work_dir / run, "--learning-starts", "64", "--mode", "robot")
+        procs.supervise(run, ep, work_dir / run)  # (robot mode: the actor moves only while supervised)
         actor = procs.actor("actor", run, ep, work_dir / run, "--episodes", "1000", "--rate", "50", "--mode",
                             "robot", "--seed", str(seed))
         keys = Keys(run)

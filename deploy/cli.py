@@ -7,9 +7,6 @@ import json
 import sys
 from pathlib import Path
 
-from khgrl.common.process import die_with_parent
-from khgrl.common.tasks.passage.scenarios import SCENARIOS
-
 __all__ = ["main", "build_parser"]
 
 
@@ -88,6 +85,8 @@ PROCESS_COMMANDS = {
     "experiment": ("khgrl.deploy.experiment", "main", "methods x scenarios x seeds through the real system, resumable"),
     "report": ("khgrl.deploy.report", "main", "per-episode results of runs: figure and markdown table"),
     "stop": ("khgrl.deploy.stop", "main", "stop a run, or press / release its e-stop (--now, --release)"),
+    "supervise": ("khgrl.deploy.supervise", "main",
+                  "supervise a run's actors: the heartbeat without which a robot holds (processes started by hand)"),
     "view": ("khgrl.deploy.view_cmd", "main", "a finished run in Rerun: an .rrd recording (--out) or the viewer"),
     "ready": ("khgrl.deploy.stop", "ready_main", "the robot is ready: the next episode may start (--confirm-reset)"),
     # by name: the benchmarks drive the deployment tools (benchmarks imports deploy, not the other way round)
@@ -98,6 +97,8 @@ SUPERVISED = ("router", "learner", "actor", "human")
 
 
 def _add_demos(sub) -> None:
+    from khgrl.common.tasks.passage.scenarios import SCENARIOS  # (numpy: not for khgrl stop --now's quick start)
+
     demos = sub.add_parser("demos", help="demonstration files").add_subparsers(dest="action", required=True,
                                                                                 metavar="ACTION")
     p = demos.add_parser("make", help="generate the seeded demonstrations of a passage-world scenario")
@@ -113,6 +114,8 @@ def _add_demos(sub) -> None:
 
 
 def _add_kmp(sub) -> None:
+    from khgrl.common.tasks.passage.scenarios import SCENARIOS
+
     kmp = sub.add_parser("kmp", help="LC-NS-KMP models").add_subparsers(dest="action", required=True, metavar="ACTION")
     p = kmp.add_parser("fit", help="fit GMM/GMR + LC-NS-KMP to a demonstration file and plot it")
     p.add_argument("demos", help="demonstrations (.npz with array 'demos' (M,N,O), or .csv 'demo,step,y0,...', or a "
@@ -174,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
 
         module, func, _ = PROCESS_COMMANDS[argv[0]]
         if argv[0] in SUPERVISED:
+            from khgrl.common.process import die_with_parent  # (not for khgrl stop --now: a quick start)
+
             die_with_parent()
         return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
     parser = build_parser()

@@ -11,8 +11,8 @@ TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mo
 ``--zenoh-config FILE`` gives every process a Zenoh configuration file.
 
 ``RUN_DIR/run.key`` gets a new secret first (0600; kept on ``--resume``): the learner signs acks and weights with it,
-actors check them (:mod:`khgrl.common.delivery.run_key`). An actor's alarm in its status (another process publishes
-as it, two learners) ends the run with that line as its error (:mod:`khgrl.deploy.outcome`).
+actors check them (:mod:`khgrl.common.delivery.run_key`). An actor's alarm in its status ends the run with that line
+as its error (:mod:`khgrl.deploy.outcome`). In robot mode it supervises (:mod:`khgrl.deploy.supervise`).
 
 Exit codes: 0 the actors finished; 1 a process failed, an actor's alarm, the router was unreachable, ``--timeout``
 or a stop command from elsewhere; 2 a bad configuration or run directory; 128 + signal number on SIGINT/SIGTERM.
@@ -36,13 +36,15 @@ from khgrl.common.delivery.task_link import TASK_FILE, save_task
 from khgrl.common.delivery.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
 from khgrl.common.delivery.zenoh_config import config_file
 from khgrl.common.process import StopFlag, install_stop_handlers
+from khgrl.common.wire.control import HEARTBEATS, control_payload
 from khgrl.common.wire.messages import Control, EpisodeReport, Status
-from khgrl.common.wire.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, RejectCounter, decode
 from khgrl.deploy import outcome, rundir
 from khgrl.deploy.outcome import Outcome, ending, exit_code, final_line, report_failures, write_summary
 from khgrl.deploy.progress import ProgressView
 from khgrl.deploy.rundir import RunDirError
 from khgrl.deploy.secure import SecureRun, prepare_secure_run, run_identities
+from khgrl.deploy.supervise import run_supervisor
 from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 from khgrl.deploy.view_sink import RunView, add_view_flags, run_view
 from khgrl.learner.algorithm import check_algorithm
@@ -148,8 +150,7 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     :param args: parsed ``khgrl up`` arguments
     :param argv: the command line, recorded in config.json
     :raises RunDirError: the run directory cannot be used as asked
-    :raises ValueError: a bad setting
-    """
+    :raises ValueError: a bad setting"""
     cfg = _resolve_config(args)
     if cfg.demos:
         cfg = dataclasses.replace(cfg, demos=rundir.resolve_demos(cfg.demos))
@@ -175,8 +176,7 @@ def check_task(cfg: RunConfig):
     returns its descriptor.
 
     :param cfg: the run's settings
-    :raises TaskError: naming what is wrong with the task
-    """
+    :raises TaskError: naming what is wrong with the task"""
     from khgrl.common.tasks.api import TaskError, load_task
     from khgrl.common.tasks.kgrl_env import KGRLEnv
 
@@ -191,8 +191,7 @@ def check_task(cfg: RunConfig):
 def prepare_run_dir(plan: RunPlan) -> None:
     """Clear (``--overwrite``) or archive the part before (``--resume``), then write the configuration files.
 
-    :param plan: the run's plan
-    """
+    :param plan: the run's plan"""
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
     part = 1
     if plan.overwrite:
@@ -293,10 +292,11 @@ class Run:
                 subscribe(session, self.keys.status("actor", "*"), self.inbox.callback("status")),
                 # only other sessions' commands: this launcher's own stop never counts as one from elsewhere
                 subscribe(session, self.keys.control("**"), self.inbox.callback("control"), remote_only=True)]
-        try:
-            with ProgressView(self.cfg.actor_ids(), self.cfg.episodes, self.plan.progress) as view:
-                self._watch(view)
-            self._stop_children(session)
+        try:  # (in robot mode the actors move only while they hear this launcher's heartbeat)
+            with run_supervisor(session, self.keys, self.cfg, self.plan.run_dir):
+                with ProgressView(self.cfg.actor_ids(), self.cfg.episodes, self.plan.progress) as view:
+                    self._watch(view)
+                self._stop_children(session)
         finally:
             undeclare_all(*subs)
 
@@ -329,10 +329,11 @@ class Run:
             self.rejects.reject(kind, key, exc)
 
     def _control(self, msg: Control, key: str) -> None:
-        """A control command from another session (whatever its ``sender`` says): a stop ends the run as stopped
-        from elsewhere (exit 1); any command is reported."""
-        print(f"khgrl up: control {msg.command!r} on {key} from another session (sender {msg.envelope.sender!r})",
-              file=sys.stderr, flush=True)
+        """A control command from another session (any ``sender``): reported (not another supervisor's heartbeats); a
+        stop ends the run as stopped from elsewhere (exit 1)."""
+        if msg.command not in HEARTBEATS:
+            print(f"khgrl up: control {msg.command!r} on {key} from another session (sender "
+                  f"{msg.envelope.sender!r})", file=sys.stderr, flush=True)
         if msg.command == "stop" and not self.out.stopped_by:
             self.out.stopped_by = f"a stop command from {msg.envelope.sender!r} on {key}"
             print(f"khgrl up: stopped by {self.out.stopped_by}", file=sys.stderr, flush=True)
@@ -346,10 +347,10 @@ class Run:
         return bool(self.out.failed) or all(p.poll() == 0 for p in self.actors)
 
     def _stop_children(self, session) -> None:
-        """Actors first, then everything else: ``control/actor stop`` until the actors exited (each publishes its
-        last batch and waits a moment for the learner to checkpoint it) or :data:`ACTOR_STOP_GRACE_S`, then
-        ``control/all stop`` until every process but the router exited or the grace is over (then :meth:`execute`
-        signals them). Each command is repeated each second (a process still starting subscribes late)."""
+        """Actors first, then everything else: ``control/actor stop`` until the actors exited (each publishes its last
+        batch and waits a moment for the learner to checkpoint it) or :data:`ACTOR_STOP_GRACE_S`, then ``control/all
+        stop`` until every process but the router exited or the grace is over (then :meth:`execute` signals them).
+        Each command is repeated each second (a process still starting subscribes late)."""
         abrupt = bool(self.out.failed) or bool(self.flag)
         grace = min(self.cfg.stop_timeout, FAILURE_GRACE_S + ACTOR_STOP_GRACE_S) if abrupt else self.cfg.stop_timeout
         deadline = time.monotonic() + grace
@@ -359,7 +360,7 @@ class Run:
         seq = 0
         for procs, target, until in phases:
             while True:
-                put(session, self.keys.control(target), encode(Control(command="stop"), "launcher", seq))
+                put(session, self.keys.control(target), control_payload("stop", LAUNCHER, seq))
                 seq += 1
                 left = until - time.monotonic()
                 if self.group.wait_all(max(0.0, min(1.0, left)), procs) or left <= 0:

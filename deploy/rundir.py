@@ -30,7 +30,7 @@ __all__ = ["RunDirError", "results_in", "has_checkpoint", "clear_run", "live_run
            "previous_runtime", "make_run_id", "write_pids", "resolve_demos", "keep_demos"]
 
 # entries that mark a directory as holding (part of) a run; --overwrite deletes exactly these
-_RESULT_FILES = ("config.json", "config.toml", "summary.json", "pids.json")
+_RESULT_FILES = ("config.json", "config.toml", "summary.json", "pids.json", "estop.json")  # (--resume keeps estop.json)
 _RESULT_DIRS = ("learner", "logs", "certs")
 _RESULT_GLOBS = ("actor-*", "config-part*", "summary-part*", "human-*")
 

@@ -15,23 +15,31 @@ waiting for ready, or gone).
 ``khgrl ready`` is sent only when an actor's status says it waits for ready; the others are named, and when none waits
 it says so and sends nothing (exit 1).
 
-Exit codes: 0 every actor confirmed; 1 no router, no actor alive, nothing waiting for ready, or an actor did not
-confirm within ``--timeout`` (named); 2 a bad argument (no such run directory).
+The e-stop is the run's one state (:mod:`khgrl.deploy.supervise`): ``--now`` and ``--release`` with RUN_DIR (and no
+``--actor``) first write it to ``RUN_DIR/estop.json``, where an actor that starts or restarts reads it before its first
+command, and the run's supervisor keeps what it hears. ``--now`` with no actor alive still presses it: confirmed by
+that file or by the supervisor's heartbeat. The path to the first ``--now`` message is lean (no numpy, nothing but
+Zenoh and msgpack loaded before it goes out): keystroke to held in README, "On a real robot".
+
+Exit codes: 0 every actor confirmed (the e-stop: or the run's state recorded while no actor is alive); 1 no router, no
+actor alive, nothing waiting for ready, or an actor did not confirm within ``--timeout`` (named); 2 a bad argument (no
+such run directory).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import threading
 import time
 from pathlib import Path
 
-from khgrl.common.config.settings import read_run_file
 from khgrl.common.delivery.declare import alive_now, put, subscribe
+from khgrl.common.delivery.estop_state import write_state
 from khgrl.common.delivery.transport import open_client, undeclare_all
-from khgrl.common.wire.messages import Control, Status
-from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, decode, encode
+from khgrl.common.wire.control import HEARTBEAT, HEARTBEAT_ESTOP, LAUNCHER, control_payload
+from khgrl.common.wire.keys import Keys
 
 __all__ = ["main", "ready_main", "build_parser", "target"]
 
@@ -71,8 +79,12 @@ def target(args: argparse.Namespace) -> tuple[str, str, str | None]:
     """
     run, connect, conf = args.run, args.connect, args.zenoh_config
     if args.run_dir:
-        cfg, runtime = read_run_file(Path(args.run_dir) / "config.json")  # (FileNotFoundError names it)
-        run, connect = run or runtime.get("run") or cfg.run, connect or runtime.get("endpoint")
+        path = Path(args.run_dir) / "config.json"  # (read as JSON: no settings module, a quick --now)
+        if not path.is_file():
+            raise FileNotFoundError(f"run configuration {path} does not exist")
+        data = json.loads(path.read_text())
+        runtime = data.get("runtime") or {}
+        run, connect = run or runtime.get("run") or data.get("run"), connect or runtime.get("endpoint")
         secure = Path(args.run_dir) / "certs" / "zenoh" / "launcher.json5"
         conf = conf or (str(secure) if runtime.get("secure") and secure.is_file() else None)
     if not run or not connect:
@@ -102,6 +114,9 @@ class _Actors:
         self.lock = threading.Lock()
 
     def on_status(self, sample) -> None:
+        from khgrl.common.wire.messages import Status
+        from khgrl.common.wire.protocol import ProtocolError, decode
+
         try:
             msg = decode(Status, sample.payload.to_bytes())
         except ProtocolError:
@@ -112,12 +127,15 @@ class _Actors:
 
 
 def _wait(session, keys: Keys, actors: _Actors, command: str, target_key: str, want: list[str],
-          timeout: float) -> list[str]:
+          timeout: float, seq: int = 0) -> list[str]:
     """Publish ``command`` every :data:`REPEAT_S` until each actor in ``want`` confirms; the ones that did not."""
-    deadline, seq, left = time.monotonic() + timeout, 0, list(want)
+    deadline, left, sent = time.monotonic() + timeout, list(want), seq > 0  # (seq > 0: the first went out already)
     while left and time.monotonic() < deadline:
-        put(session, target_key, _payload(command, seq), congestion="block", priority="interactive_high", express=True)
-        seq += 1
+        if not sent:
+            put(session, target_key, _payload(command, seq), congestion="block", priority="interactive_high",
+                express=True)
+            seq += 1
+        sent = False
         end = min(deadline, time.monotonic() + REPEAT_S)
         while left and time.monotonic() < end:
             time.sleep(0.05)
@@ -147,7 +165,62 @@ def _waiting_for_ready(actors: _Actors, want: list[str], prog: str) -> list[str]
 
 
 def _payload(command: str, seq: int) -> bytes:
-    return encode(Control(command=command), LAUNCHER, seq)
+    return control_payload(command, LAUNCHER, seq)
+
+
+class _Supervisor:
+    """The run's supervisor's latest heartbeat (``heartbeat`` or ``heartbeat-estop``; None: none heard)."""
+
+    def __init__(self) -> None:
+        self.said: str | None = None
+
+    def on_control(self, sample) -> None:
+        from khgrl.common.wire.messages import Control
+        from khgrl.common.wire.protocol import ProtocolError, decode
+
+        try:
+            command = decode(Control, sample.payload.to_bytes()).command
+        except ProtocolError:
+            return
+        if command in (HEARTBEAT, HEARTBEAT_ESTOP):
+            self.said = command
+
+
+def _record(args: argparse.Namespace, command: str, prog: str) -> Path | None:
+    """``--now`` / ``--release`` with RUN_DIR (every actor): the run's e-stop state on disk first; its path."""
+    if command not in ("estop", "release") or not args.run_dir or args.actor:
+        return None
+    try:
+        return write_state(args.run_dir, command == "estop", f"{LAUNCHER} (khgrl stop)")
+    except OSError as exc:
+        print(f"{prog}: warning: the e-stop state not written in {args.run_dir}: {exc}", file=sys.stderr, flush=True)
+        return None
+
+
+def _no_actor(session, keys: Keys, command: str, recorded: Path | None, run: str, connect: str, prog: str) -> int:
+    """No actor alive: an e-stop press or release is still the run's state -- confirmed by the file just written or
+    by the supervisor's heartbeat (asked for :data:`REPEAT_S` * 3); the exit code."""
+    if command in ("estop", "release"):
+        sup = _Supervisor()
+        sub = subscribe(session, keys.control("actor"), sup.on_control)
+        try:
+            want = HEARTBEAT_ESTOP if command == "estop" else HEARTBEAT
+            for seq in range(1, 4):
+                put(session, keys.control("actor"), _payload(command, seq), congestion="block",
+                    priority="interactive_high", express=True)
+                end = time.monotonic() + REPEAT_S
+                while sup.said != want and time.monotonic() < end:
+                    time.sleep(0.02)
+        finally:
+            undeclare_all(sub)
+        by = [w for w, ok in ((str(recorded), recorded is not None), ("the run's supervisor", sup.said == want)) if ok]
+        if by:
+            state = "pressed: an actor that starts holds" if command == "estop" else "released"
+            print(f"{prog}: no actor of run {run} is alive at {connect}; the e-stop is {state} (kept in "
+                  f"{' and by '.join(by)})")
+            return 0
+    print(f"{prog}: error: no actor of run {run} is alive at {connect}", file=sys.stderr)
+    return 1
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -170,23 +243,29 @@ def _send(args: argparse.Namespace, command: str) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    recorded = _record(args, command, prog)
     try:
         session = open_client(connect, timeout=5.0, zenoh_config=conf)
     except ConnectionError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 1
     with session:
+        t0, target_key, seq = time.monotonic(), keys.control(args.actor or "actor"), 0
+        if command == "estop":  # at once, before anything else is asked or loaded
+            put(session, target_key, _payload(command, 0), congestion="block", priority="interactive_high",
+                express=True)
+            seq = 1
         actors = _Actors()
         sub = subscribe(session, keys.status("actor", "*"), actors.on_status)
         try:
             want = sorted(k.split("/")[-1] for k in alive_now(session, keys.alive("actor", args.actor or "*"), 1.0))
             if not want:
-                print(f"{prog}: error: no actor of run {run} is alive at {connect}", file=sys.stderr)
-                return 1
-            if command == "ready" and not (want := _waiting_for_ready(actors, want, prog)):
-                return 1
-            t0 = time.monotonic()
-            left = _wait(session, keys, actors, command, keys.control(args.actor or "actor"), want, timeout)
+                return _no_actor(session, keys, command, recorded, run, connect, prog)
+            if command == "ready":
+                if not (want := _waiting_for_ready(actors, want, prog)):
+                    return 1
+                t0 = time.monotonic()
+            left = _wait(session, keys, actors, command, target_key, want, timeout, seq)
         finally:
             undeclare_all(sub)
     done = {"estop": "held by the e-stop", "release": "released", "stop": "stopped", "ready": "ready"}[command]

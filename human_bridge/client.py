@@ -26,6 +26,7 @@ from khgrl.common.delivery.transport import Inbox, open_client, undeclare_all
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import Control, Correction, EpisodeReport, Frame, HumanInfo, Message, Scale, Status
 from khgrl.common.wire.protocol import Keys, ProtocolError, RejectCounter, attribute_control, decode, encode
+from khgrl.human_bridge.estop import EStopPress
 
 __all__ = ["CorrectionPublisher", "HumanClient", "connected", "read", "KINDS", "fetch_task"]
 
@@ -116,6 +117,8 @@ class HumanClient:
         self._decls = [subscribe(session, topics[k], self.inbox.callback(k)) for k in kinds]
         self._decls += [subscribe(session, keys.control(t), self.controls.callback("control"))
                         for t in ("human", "all")]
+        self.estop = EStopPress(lambda: self._request("estop"))  # repeated until the actors' statuses confirm it
+        self._decls.append(subscribe(session, keys.status("actor", "*"), self.estop.on_status))
         self._decls.append(token(session, keys.alive("human", client)))
         self._status = publisher(session, keys.status("human", client), congestion="drop")
         self._decls.append(self._status)
@@ -146,7 +149,9 @@ class HumanClient:
                 self.flag.set("stop command")
 
     def publish_status(self, force: bool = False) -> None:
-        """``status/human/<id>`` about once a second (:class:`HumanInfo`: frames, corrections, rejects)."""
+        """``status/human/<id>`` about once a second (:class:`HumanInfo`: frames, corrections, rejects); and the e-stop
+        press again while the actors have not confirmed it (:class:`~khgrl.human_bridge.estop.EStopPress`)."""
+        self.estop.tick()
         now = time.monotonic()
         if not force and now - self._t_status < STATUS_EVERY_S:
             return
@@ -156,12 +161,18 @@ class HumanClient:
         self._status_seq += 1
 
     def control_actors(self, command: str) -> None:
-        """Ask the actors to ``pause`` or ``resume``, or press the e-stop (``estop``: every actor this client is
-        assigned to holds its robot until the launcher releases it, ``khgrl stop --release``), on this client's own
-        ``human/<id>/request``."""
+        """Ask the actors to ``pause`` or ``resume`` or say ``ready``, or press the e-stop (``estop``: every actor
+        holds its robot until the operator releases it, ``khgrl stop --release``; repeated until confirmed), on this
+        client's own ``human/<id>/request``."""
         if command not in HUMAN_COMMANDS:
             raise ValueError(f"a human-input client may only pause or resume the actors or press the e-stop, not "
                              f"{command!r}")
+        if command == "estop":
+            self.estop.press()
+        else:
+            self._request(command)
+
+    def _request(self, command: str) -> None:
         put(self.session, self.keys.human_request(self.client),
             encode(Control(command=command), self.client, self._control_seq), congestion="block",
             priority="interactive_high", express=True)

@@ -131,6 +131,12 @@ class ProcGroup(ProcessGroup):
         return self.start("actor", python_main("khgrl.actor.main") + [
             "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
 
+    def supervise(self, run: str, endpoint: str, run_dir: str | Path | None = None) -> Proc:
+        """``khgrl supervise``: the heartbeat without which an actor in robot mode holds (keeping the e-stop state in
+        ``run_dir``)."""
+        return self.start("supervise", python_main("khgrl.deploy.supervise") + [
+            "--run", run, "--connect", endpoint, "--state-dir", str(Path(run_dir or self.base / "run"))])
+
     def human(self, run: str, endpoint: str, *extra: str) -> Proc:
         return self.start("human", python_main("khgrl.human_bridge.main") + [*extra[:1], "--run", run,
                                                                             "--connect", endpoint, *extra[1:]])

@@ -60,6 +60,12 @@ class BenchProcs:
         return self.start(name, "actor", "--run", run, "--connect", ep, "--run-dir", str(run_dir), "--id", "a0",
                           *extra)
 
+    def supervise(self, run: str, ep: str, run_dir: Path) -> Proc:
+        """``khgrl supervise``: the heartbeat without which an actor in robot mode holds (the e-stop state kept in
+        ``run_dir``)."""
+        Path(run_dir).mkdir(parents=True, exist_ok=True)
+        return self.start("supervise", "supervise", "--run", run, "--connect", ep, "--state-dir", str(run_dir))
+
     def close(self) -> None:
         """Stop what still runs (SIGINT, then SIGKILL) and close the logs."""
         self.group.stop_all(grace=10.0, kill_after=5.0)

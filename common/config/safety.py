@@ -10,6 +10,9 @@ what stands between the desired position P_t and the robot (README, "On a real r
 * **Watchdog**: a live human-input client that holds the robot and goes silent for ``human_silence_s`` freezes it at
   its last P_t until the client speaks again or ``correction_timeout`` releases it; a control step that starts more
   than ``deadline_margin`` periods late is counted and reported (the robot held its last P_t meanwhile).
+* **Supervision** (``supervision``; on in robot mode): the actor moves the robot only while it hears its supervisor
+  (``khgrl up``, or ``khgrl supervise RUN_DIR`` for processes started by hand) every ``heartbeat_s``; after
+  ``supervision_timeout`` without a heartbeat it latches the e-stop (:mod:`khgrl.actor.supervision`).
 """
 
 from __future__ import annotations
@@ -44,6 +47,21 @@ class SafetySettings:
     deadline_margin: float = _opt(1.0, "with --rate: a control step that starts more than this many periods after its "
                                        "deadline is counted as late and reported (the robot held meanwhile)",
                                   roles=(ACTOR,))
+    supervision: str = _opt("auto", "hold the robot (the e-stop, latched) unless it hears its supervisor's heartbeat "
+                                    "(khgrl up, or khgrl supervise RUN_DIR): auto (on in robot mode), on or off",
+                            RATE_LIMITS, roles=(ACTOR,))
+    heartbeat_s: float = _opt(0.1, "with supervision: the heartbeat period of khgrl up (and of khgrl supervise "
+                                   "RUN_DIR) (s)", roles=())
+    supervision_timeout: float = _opt(0.4, "with supervision: seconds without a heartbeat after which the actor "
+                                           "latches the e-stop (held within one control period more; released "
+                                           "only by khgrl stop --release)", roles=(ACTOR,))
+
+    def supervised(self, mode: str) -> bool:
+        """Whether the actor needs its supervisor's heartbeat in ``mode`` (``simulation`` or ``robot``).
+
+        :param mode: the run's mode.
+        """
+        return self.supervision == "on" or (self.supervision == "auto" and mode == "robot")
 
     def limits(self, mode: str) -> tuple[float, float] | None:
         """``(max_speed, max_accel)`` when the rate limit is on in ``mode`` (``simulation`` or ``robot``), else None.
@@ -66,6 +84,9 @@ class SafetySettings:
             raise ValueError("safety.max_speed must be > 0 and safety.max_accel >= 0")
         if self.human_silence_s < 0 or self.deadline_margin < 0:
             raise ValueError("safety.human_silence_s and safety.deadline_margin must be >= 0")
+        if not 0 < self.heartbeat_s < self.supervision_timeout:
+            raise ValueError(f"safety.heartbeat_s ({self.heartbeat_s:g} s) must be > 0 and shorter than "
+                             f"safety.supervision_timeout ({self.supervision_timeout:g} s)")
         if self.human_silence_s >= correction_timeout > 0:
             raise ValueError(f"safety.human_silence_s ({self.human_silence_s:g} s) must be shorter than "
                              f"correction_timeout ({correction_timeout:g} s), which releases a silent client")

@@ -13,13 +13,13 @@ from collections import Counter
 from typing import Any
 
 import numpy as np
+from khgrl.common.wire.keys import MAX_ID_LEN
 
 __all__ = ["ProtocolError", "RejectCounter", "pack_array", "unpack_array", "typ", "ident", "vec", "opt",
            "MAX_ID_LEN"]
 
 log = logging.getLogger("khgrl.protocol")
 
-MAX_ID_LEN = 64
 _DTYPES = {"<f4": np.float32, "<f8": np.float64, "|u1": np.uint8, "<i8": np.int64}
 
 

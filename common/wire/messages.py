@@ -19,7 +19,8 @@ __all__ = ["Dims", "ANY_DIMS", "Message", "TaskInfo", "Transitions", "Ack", "Wei
            "EpisodeReport", "Status", "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS"]
 
 MAX_BATCH = 4096  # transitions per batch message
-COMMANDS = ("pause", "resume", "stop", "checkpoint", "estop", "release", "ready")  # e-stop; a person's ready
+# e-stop; a person's ready; the supervisor's heartbeat (khgrl.common.wire.control: e-stop released / pressed)
+COMMANDS = ("pause", "resume", "stop", "checkpoint", "estop", "release", "ready", "heartbeat", "heartbeat-estop")
 
 
 @dataclass(frozen=True)

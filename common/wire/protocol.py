@@ -2,7 +2,8 @@
 
 Senders build message instances and call :func:`encode`; receivers call :func:`decode` with the class they
 expect and get an instance back, or a :class:`ProtocolError` that says why the payload was refused (schema
-version, kind, size, types, dtypes, shapes, finiteness). Nothing outside this module touches msgpack.
+version, kind, size, types, dtypes, shapes, finiteness). Nothing outside this module touches msgpack (but
+:mod:`khgrl.common.wire.control`, the numpy-free encoding of a ``control`` message).
 
 Every payload is a msgpack map: the envelope ``v`` (schema version, the integer 1), ``kind``, ``sender``,
 ``seq``, ``ts``, then the fields of the kind. A decoded message carries its envelope in ``.envelope``.
@@ -18,7 +19,9 @@ from typing import Any, Callable, TypeVar
 
 import msgpack
 import numpy as np
-from khgrl.common.wire.checks import MAX_ID_LEN, ProtocolError, RejectCounter, ident, pack_array, typ, unpack_array
+from khgrl.common.wire.checks import ProtocolError, RejectCounter, ident, pack_array, typ, unpack_array
+from khgrl.common.wire.control import LAUNCHER
+from khgrl.common.wire.keys import Keys
 from khgrl.common.wire.messages import (
     ANY_DIMS,
     Ack,
@@ -47,75 +50,6 @@ KINDS: dict[str, type[Message]] = {
     cls.KIND: cls
     for cls in (Transitions, Ack, Weights, Correction, Frame, Scale, EpisodeReport, Status, Control, TaskInfo)
 }
-
-
-class Keys:
-    """Key expressions of one run: everything lives under ``khgrl/<run>/``."""
-
-    def __init__(self, run: str) -> None:
-        if not run or any(c in run for c in "/*$?# ") or len(run) > MAX_ID_LEN:
-            raise ValueError(f"run id must be a non-empty key chunk without / * $ ? # or space, got {run!r}")
-        self.run = run
-        self.root = f"khgrl/{run}"
-
-    def transitions(self, actor: str = "*") -> str:
-        return f"{self.root}/actor/{actor}/transitions"
-
-    def frame(self, actor: str = "*") -> str:
-        return f"{self.root}/actor/{actor}/frame"
-
-    def scale(self, actor: str = "*") -> str:
-        return f"{self.root}/actor/{actor}/scale"
-
-    def episode(self, actor: str = "*") -> str:
-        return f"{self.root}/actor/{actor}/episode"
-
-    def ack(self, actor: str = "*") -> str:
-        return f"{self.root}/learner/ack/{actor}"
-
-    @property
-    def weights(self) -> str:
-        return f"{self.root}/learner/weights"
-
-    def correction(self, client: str = "*") -> str:
-        return f"{self.root}/human/{client}/correction"
-
-    def status(self, role: str = "*", ident: str = "*") -> str:
-        return f"{self.root}/status/{role}/{ident}"
-
-    def control(self, target: str = "*") -> str:
-        return f"{self.root}/control/{target}"
-
-    def task(self, role: str = "*", ident: str = "*") -> str:
-        return f"{self.root}/task/{role}/{ident}"
-
-    def alive(self, role: str = "*", ident: str = "*") -> str:
-        """A liveliness token ``alive/<role>/<id>`` (the learner's carries its epoch: :meth:`learner_alive`)."""
-        return f"{self.root}/alive/{role}/{ident}"
-
-    def learner_alive(self, ident: str = "*", epoch: str = "*") -> str:
-        """The learner's liveliness token ``alive/learner/<id>/<epoch>``: which incarnation is alive."""
-        return f"{self.root}/alive/learner/{ident}/{epoch}"
-
-    @property
-    def learners_alive(self) -> str:
-        """Every learner's liveliness token, with or without the epoch chunk (subscribe or query this)."""
-        return f"{self.root}/alive/learner/**"
-
-    def request(self, actor: str = "*") -> str:
-        """An actor's requests to the learner (a ``control`` message; only ``checkpoint`` is accepted)."""
-        return f"{self.root}/actor/{actor}/request"
-
-    def human_request(self, client: str = "*") -> str:
-        """A human-input client's requests to the actors (a ``control`` message; only ``pause`` and ``resume``)."""
-        return f"{self.root}/human/{client}/request"
-
-    @staticmethod
-    def chunk(key: str, index: int) -> str:
-        """One chunk of a key: ``chunk("khgrl/r/actor/a0/frame", 3) == "a0"``."""
-        return str(key).split("/")[index]
-
-    last_chunk = chunk  # (older name)
 
 
 @dataclass(frozen=True)
@@ -242,7 +176,6 @@ def with_base_seq(payload: bytes, base_seq: int, mac: Callable[[dict], bytes] | 
     return msgpack.packb(msg, use_bin_type=True)
 
 
-LAUNCHER = "launcher"  # the sender id of the launcher's control messages
 
 
 def attribute_control(msg: Control, key: str, logger: logging.Logger) -> None:

@@ -67,6 +67,8 @@ def test_robot_mode_actors_never_wait_and_nothing_is_lost(tmp_path):
     with ProcGroup(tmp_path) as g:
         ep = g.router()
         learner = g.learner(run, ep, "--learning-starts", "16", "--checkpoint-every", "0", "--mode", "robot")
+        run_dir.mkdir(parents=True, exist_ok=True)
+        g.supervise(run, ep, run_dir)  # (robot mode: the actors move only while supervised)
         actors = [g.actor(run, ep, *FAST, "--episodes", "2", "--rate", "0", "--mode", "robot", "--window", "4",
                           "--id", f"a{i}", "--seed", str(i)) for i in range(3)]
         for a in actors:

@@ -125,7 +125,7 @@ class Seen:
 # ----------------------------------------------------------------------------------------- helpers
 def _write_run(run_dir: Path, run: str, endpoint: str) -> Path:
     """``RUN_DIR/config.json`` and the learner's task file, as ``khgrl up`` writes them; returns config.json."""
-    from khgrl.common.config.settings import RunConfig, StreamSettings, TQCSettings, write_run_config
+    from khgrl.common.config.settings import RunConfig, SafetySettings, StreamSettings, TQCSettings, write_run_config
     from khgrl.common.delivery.task_link import TASK_FILE, save_task
     from khgrl.deploy.launcher import check_task
 
@@ -133,7 +133,10 @@ def _write_run(run_dir: Path, run: str, endpoint: str) -> Path:
                     actors=len(ACTORS), human="scripted", human_episodes=(1,), connect=endpoint, rate=RATE,
                     tensorboard=False,
                     tqc=TQCSettings(learning_starts=400, net_arch=(64, 64), batch_size=64),
-                    stream=StreamSettings(mode="robot", checkpoint_every=800)).validate()
+                    stream=StreamSettings(mode="robot", checkpoint_every=800),
+                    # delivery across partitions is this test's: supervision, which holds the robot on a partition, is
+                    # tests/integration/test_supervision.py's
+                    safety=SafetySettings(supervision="off")).validate()
     path = write_run_config(run_dir, cfg, {"run": run, "endpoint": endpoint, "actor_ids": list(ACTORS),
                                            "argv": ["tests/integration/test_netns.py"], "resumed": False, "part": 1})
     save_task(run_dir / "learner" / TASK_FILE, check_task(cfg))

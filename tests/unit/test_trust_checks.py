@@ -244,6 +244,7 @@ def test_learner_logs_who_stopped_it(tmp_path, caplog):
 
 
 def test_the_estop_is_latched_until_the_launchers_release_and_ready_only_counts_when_asked(tmp_path):
+    """Any client's e-stop holds (assigned or not); only the launcher releases it; ready only when asked."""
     inbound, parts, _ = _inbound(tmp_path)
     human = K.human_request("kb")
     inbound.handle("human_request", human, encode(Control(command="ready"), "kb", 0), 0.0, episode=1)
@@ -262,6 +263,43 @@ def test_the_estop_is_latched_until_the_launchers_release_and_ready_only_counts_
     assert inbound.paused and inbound.held_reason.startswith("waiting for ready before episode 2")
     inbound.handle("human_request", human, encode(Control(command="ready"), "kb", 5), 0.0, episode=1)
     assert inbound.awaiting_ready is None and not inbound.paused
-    parts.arbiter.assignments = Assignments("a0", "other=a0")  # kb is not assigned to this actor
-    inbound.handle("human_request", human, encode(Control(command="estop"), "kb", 6), 0.0, episode=1)
-    assert inbound.estop is None and parts.rejects.by_kind() == {"control": 2}
+    parts.arbiter.assignments = Assignments("a0", "other=a0")  # kb is not assigned to this actor: its pause is
+    inbound.handle("human_request", human, encode(Control(command="pause"), "kb", 6), 0.0, episode=1)
+    assert not inbound.paused and parts.rejects.by_kind() == {"control": 2}  # refused, but its e-stop holds (issue 33)
+    inbound.handle("human_request", human, encode(Control(command="estop"), "kb", 7), 0.0, episode=1)
+    assert inbound.held_reason == "e-stop by human client kb" and parts.rejects.by_kind() == {"control": 2}
+
+
+def test_supervision_heartbeats_the_estop_state_and_its_loss(tmp_path, monkeypatch):
+    """Robot mode (issue 33): no step before a heartbeat; one from a sender other than the launcher is refused; a
+    ``heartbeat-estop`` latches the e-stop, except just after a release; a silence beyond the timeout latches it, and
+    the next heartbeat does not release it; the run's e-stop state on disk latches it before the first step."""
+    from khgrl.actor.supervision import Supervision
+
+    inbound, parts, _ = _inbound(tmp_path)
+    inbound.supervision = Supervision(True, 0.4)
+    now = [100.0]
+    monkeypatch.setattr("khgrl.actor.inbound.time.monotonic", lambda: now[0])
+
+    def beat(command: str, sender: str = "launcher", seq: int = 0) -> None:
+        inbound.handle("control", K.control("actor"), encode(Control(command=command), sender, seq), 0.0, episode=1)
+
+    assert inbound.paused and inbound.held_reason.startswith("waiting for the supervisor's heartbeat")
+    beat("heartbeat", "intruder")
+    assert inbound.supervision.waiting and parts.rejects.by_kind() == {"control": 1}
+    beat("heartbeat")
+    assert not inbound.paused
+    beat("heartbeat-estop", seq=1)
+    assert inbound.held_reason == "e-stop by the run's e-stop state (the supervisor's heartbeat)"
+    beat("release", seq=2)
+    beat("heartbeat-estop", seq=3)  # sent before the supervisor heard the release
+    assert not inbound.paused
+    now[0] += 0.41
+    assert inbound.paused and inbound.held_reason.startswith("e-stop by the watchdog (no heartbeat from the supervisor")
+    beat("heartbeat", seq=4)
+    assert inbound.paused  # coming back does not release it
+    beat("release", seq=5)
+    assert not inbound.paused
+    fresh, _, _ = _inbound(tmp_path)
+    fresh.restore({"pressed": True, "by": "launcher"}, "RUN_DIR/estop.json")
+    assert fresh.held_reason.startswith("e-stop by the run's e-stop state (RUN_DIR/estop.json: pressed by launcher")
