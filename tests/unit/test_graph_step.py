@@ -1,0 +1,118 @@
+"""The learner's gradient-step function (learner/step.py, what a CUDA graph captures) is the library's algorithm:
+from the same minibatches and the same noise, 50 steps of it leave the same parameters, optimiser states and
+entropy coefficient as SB3's / sb3-contrib's own ``train()`` -- for TQC, SAC and SAC-LN (HIL-SERL's SAC, whose
+reference step is SB3's ``SAC.train`` with its LayerNorm policy), in float64 on the CPU. Also: the step's minibatch
+rows (``StreamReplayBuffer.sample_into``) are the numbers ``sample`` gives, from the same random draws; and the
+CUDA-graph learner's bookkeeping, run eagerly on the CPU (learner/cuda_graph.py), trains as ``train()`` does."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+from unittest import mock
+
+import numpy as np
+import pytest
+import torch
+from khgrl.common.config.settings import TQCSettings
+from khgrl.learner.algorithm import algorithm_class
+from khgrl.learner.step import Minibatch, SB3Step
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+
+OBS, ACT, BATCH, STEPS = 6, 2, 32, 50
+SETTINGS = TQCSettings(learning_starts=0, net_arch=(32, 32), batch_size=BATCH, buffer_size=500)
+TASK = SimpleNamespace(out_dim=ACT, obs_low=[-5.0] * OBS, obs_high=[5.0] * OBS)
+
+
+def _model(algo: str, seed: int = 5):
+    """The learner's model of ``algo`` in float64 (networks and entropy coefficient)."""
+    from stable_baselines3.common.logger import configure
+
+    model = algorithm_class(algo).build(TASK, SETTINGS, seed, "cpu").model
+    model.set_logger(configure(None, []))
+    model.policy.double()
+    model.log_ent_coef.data = model.log_ent_coef.data.double()
+    return model
+
+
+def _batches(seed: int = 11) -> list[ReplayBufferSamples]:
+    g = torch.Generator().manual_seed(seed)
+    out = []
+    for _ in range(STEPS):
+        obs, nxt = torch.randn(BATCH, OBS, generator=g, dtype=torch.float64), torch.randn(
+            BATCH, OBS, generator=g, dtype=torch.float64)
+        act = torch.rand(BATCH, ACT, generator=g, dtype=torch.float64) * 2 - 1
+        done = (torch.rand(BATCH, 1, generator=g) < 0.1).double()
+        out.append(ReplayBufferSamples(obs, act, nxt, done, torch.randn(BATCH, 1, generator=g, dtype=torch.float64)))
+    return out
+
+
+def _state(model) -> dict[str, torch.Tensor]:
+    """Everything a step changes: networks, target networks, entropy coefficient, the optimisers' moments."""
+    out = {f"policy.{k}": v for k, v in model.policy.state_dict().items()}
+    out["log_ent_coef"] = model.log_ent_coef.detach()
+    for name in ("actor", "critic"):
+        opt = getattr(model, name).optimizer
+        for i, p in enumerate(opt.param_groups[0]["params"]):
+            out[f"{name}.exp_avg.{i}"] = opt.state[p]["exp_avg"]
+            out[f"{name}.exp_avg_sq.{i}"] = opt.state[p]["exp_avg_sq"]
+    return out
+
+
+@pytest.mark.parametrize("algo", ["tqc", "sac", "sac_ln"])
+def test_step_function_leaves_the_libraries_parameters(algo):
+    """Failed before the step function followed the library statement for statement (e.g. with the entropy
+    coefficient taken after its Adam step, or the target's entropy term left out: differences of 1e-3 and more)."""
+    batches = _batches()
+    identity = mock.patch("stable_baselines3.common.policies.preprocess_obs", lambda obs, *a, **k: obs)
+    with identity:  # (SB3 casts Box observations to float32; float64 throughout here, on both sides)
+        theirs = _model(algo)
+        it = iter(batches)
+        theirs.replay_buffer.sample = lambda *a, **k: next(it)
+        torch.manual_seed(123)
+        theirs.train(gradient_steps=STEPS, batch_size=BATCH)
+
+        ours = _model(algo)
+        step = SB3Step(ours)
+        torch.manual_seed(123)
+        scalars = torch.stack([step(Minibatch(*b[:5]), polyak=k % ours.target_update_interval == 0)
+                               for k, b in enumerate(batches)])
+    a, b = _state(theirs), _state(ours)
+    assert a.keys() == b.keys()
+    worst = max((a[k] - b[k]).abs().max().item() for k in a)
+    assert worst <= 1e-8, worst
+    fresh = _model(algo).policy.state_dict()
+    moved = max((a[f"policy.{k}"] - v).abs().max().item() for k, v in fresh.items())
+    assert moved > 1e-3  # (the steps did train)
+    logged = theirs.logger.name_to_value
+    mean = scalars.mean(dim=0)
+    assert abs(mean[1].item() - logged["train/actor_loss"]) <= 1e-8
+    assert abs(mean[2].item() - logged["train/critic_loss"]) <= 1e-8
+    assert abs(mean[3].item() - logged["train/ent_coef_loss"]) <= 1e-8
+
+
+def test_sample_into_gives_samples_numbers_from_the_same_draws():
+    """``sample_into`` writes what ``sample`` returns and leaves numpy's generator where ``sample`` does, for
+    uniform and RLPD sampling and within a ``sample_limit``."""
+    for fraction in (0.0, 0.5):
+        algo = algorithm_class("tqc").build(TASK, SETTINGS, 1, "cpu")
+        rb = algo.buffer
+        rb.prior_fraction = fraction
+        rng = np.random.default_rng(0)
+        n = 300
+        algo.store(rng.normal(size=(n, OBS)).astype(np.float32), rng.normal(size=(n, OBS)).astype(np.float32),
+                   rng.uniform(-1, 1, (n, ACT)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+                   (rng.random(n) < 0.1).astype(np.float32), (rng.random(n) < 0.5).astype(np.float32),
+                   intervened=(rng.random(n) < 0.2).astype(np.uint8), clipped=np.zeros(n, np.uint8), actor=0,
+                   first_step=0)
+        for limit in (None, 120):
+            rb.sample_limit = limit
+            np.random.seed(4)
+            s = rb.sample(BATCH)
+            after = np.random.random()
+            rows = np.empty((BATCH, rb.minibatch_width()), np.float32)
+            np.random.seed(4)
+            rb.sample_into(rows)
+            assert np.random.random() == after
+            got = Minibatch.split(torch.from_numpy(rows), OBS, ACT)
+            for x, y in zip(got, s[:5]):
+                assert torch.equal(x, y)
