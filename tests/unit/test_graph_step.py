@@ -116,3 +116,50 @@ def test_sample_into_gives_samples_numbers_from_the_same_draws():
             got = Minibatch.split(torch.from_numpy(rows), OBS, ACT)
             for x, y in zip(got, s[:5]):
                 assert torch.equal(x, y)
+
+
+def _filled(algo: str, cuda_graph_trainer: bool):
+    """The learner's ``algo`` (float32, CPU) with 300 stored transitions; with ``cuda_graph_trainer``, trained by
+    the CUDA-graph learner's iteration run eagerly."""
+    from khgrl.learner.cuda_graph import GraphedTrainer
+    from stable_baselines3.common.logger import configure
+
+    algo_ = algorithm_class(algo).build(TASK, SETTINGS, 5, "cpu")
+    algo_.model.set_logger(configure(None, []))
+    rng = np.random.default_rng(0)
+    n = 300
+    algo_.store(rng.normal(size=(n, OBS)).astype(np.float32), rng.normal(size=(n, OBS)).astype(np.float32),
+                rng.uniform(-1, 1, (n, ACT)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+                (rng.random(n) < 0.1).astype(np.float32), np.zeros(n, np.float32),
+                intervened=np.zeros(n, np.uint8), clipped=np.zeros(n, np.uint8), actor=0, first_step=0)
+    if cuda_graph_trainer:
+        algo_.graphed = GraphedTrainer(algo_.model, graph=False)
+    return algo_
+
+
+@pytest.mark.parametrize("algo", ["tqc", "sac_ln"])
+def test_graph_learners_iteration_trains_as_train_does(algo):
+    """The CUDA-graph learner's iteration (minibatches drawn as rows, the scalars kept until the iteration ends),
+    eager on the CPU: the same minibatches, parameters and logged losses as SB3's ``train()`` through the learner's
+    interface (float32: within rounding), within a ``sample_limit``; and its in-place snapshot restores exactly.
+    Failed before ``sample_into`` drew ``_get_samples``' environment index (the draws then drifted)."""
+    theirs, ours = _filled(algo, False), _filled(algo, True)
+    for a in (theirs, ours):
+        np.random.seed(2)
+        torch.manual_seed(2)
+        for it in range(3):
+            a.train(8, timestep=200 + 8 * it, sample_limit=200 + 8 * it)
+    a, b = theirs.model.policy.state_dict(), ours.model.policy.state_dict()
+    assert max((a[k] - b[k]).abs().max().item() for k in a) < 1e-5
+    la, lb = theirs.model.logger.name_to_value, ours.model.logger.name_to_value
+    for key in ("train/actor_loss", "train/critic_loss", "train/ent_coef_loss", "train/ent_coef"):
+        assert abs(la[key] - lb[key]) <= 1e-5 * max(1.0, abs(la[key])), key
+    assert ours.model._n_updates == theirs.model._n_updates == 24
+    before = {k: v.clone() for k, v in b.items()}
+    snap = ours.snapshot()
+    assert snap.get("graphed")  # (preallocated, in place)
+    ours.train(8, timestep=300, sample_limit=None)
+    assert any(not torch.equal(before[k], v) for k, v in ours.model.policy.state_dict().items())
+    ours.restore(snap)
+    assert all(torch.equal(before[k], v) for k, v in ours.model.policy.state_dict().items())
+    assert ours.model._n_updates == 24 and ours.fault() is None
