@@ -97,6 +97,7 @@ class GraphedTrainer:
         self.lrs: tuple[float, ...] = ()
         self.eager_steps = 0
         self.captures = 0
+        self.side: Any = None  # the warm-up steps' stream
         self._snap: list[Any] | None = None
         if self.graph:
             set_capturable(model, True)
@@ -157,7 +158,9 @@ class GraphedTrainer:
         import torch
 
         if self.eager_steps < WARMUP:  # eager, on a side stream (torch's capture recipe)
-            side = torch.cuda.Stream(self.device)
+            if self.side is None:
+                self.side = torch.cuda.Stream(self.device)
+            side = self.side
             side.wait_stream(torch.cuda.current_stream(self.device))
             with torch.cuda.stream(side):
                 self.static.copy_(rows)
@@ -178,7 +181,7 @@ class GraphedTrainer:
 
         torch.cuda.synchronize(self.device)
         graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
+        with torch.cuda.graph(graph, capture_error_mode="thread_local"):  # (the ingest thread runs on meanwhile)
             out = self.step(Minibatch.split(self.static, self.obs_dim, self.act_dim), polyak)
         self.captures += 1
         return graph, out
