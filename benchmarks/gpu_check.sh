@@ -17,11 +17,11 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/khgrl-site${PYTHONPATH:+:$PYTHONPATH}
 cd /tmp || exit 1  # (not a checkout's root: its khgrl/ folder would shadow the installed package)
 { date -u; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; nproc; } > "$OUT/gpu.txt" 2>&1
-timeout 90 python3 -m khgrl.benchmarks.gpu_check --device cuda --out "$OUT/gpu_check.json" > "$OUT/gpu_check.log" 2>&1
+timeout 60 python3 -m khgrl.benchmarks.gpu_check --device cuda --out "$OUT/gpu_check.json" > "$OUT/gpu_check.log" 2>&1
 echo "gpu_check rc=$?"; tail -c 1500 "$OUT/gpu_check.log"
-timeout 130 python3 -m khgrl.deploy.cli bench learner --devices cpu cuda --seconds 4 \
+timeout 90 python3 -m khgrl.deploy.cli bench learner --devices cpu cuda --seconds 3 \
     --out "$OUT/bench_learner.json" > "$OUT/bench_learner.log" 2>&1
 echo "bench learner rc=$?"; grep -v "^wrote" "$OUT/bench_learner.log" | tail -c 2500
-timeout 150 python3 -m khgrl.deploy.cli bench scale --actors 1 8 14 --rates 0 --modes simulation --seconds 15 \
+timeout 150 python3 -m khgrl.deploy.cli bench scale --actors 1 8 14 --rates 0 --modes simulation --seconds 10 \
     --device cuda --work /tmp/khgrl-scale --out "$OUT/bench_scale.json" > "$OUT/bench_scale.log" 2>&1
 echo "bench scale rc=$?"; tail -c 2500 "$OUT/bench_scale.log"
