@@ -9,8 +9,10 @@ An iteration of G gradient steps (the run's ``gradient_steps``):
 2. each step copies its minibatch into the static input rows on the device and replays the captured graph of
    :class:`~khgrl.learner.step.SB3Step` -- the library's gradient step (actor, entropy coefficient and critics,
    each with capturable Adam, and the Polyak update), all on the device -- and keeps its training scalars there;
-3. once per iteration the host waits: the G steps' scalars come back in one copy and go to SB3's logger as SB3's
-   ``train()`` records them (``train/actor_loss`` ...: the means over the iteration).
+3. once per iteration the host waits: the G steps' scalars, and whether every parameter is finite (one reduction
+   over all of them on the device), come back in one copy; the scalars go to SB3's logger as SB3's ``train()``
+   records them (``train/actor_loss`` ...: the means over the iteration), the flag to the trainer's fault check
+   (:attr:`GraphedTrainer.finite`: no second sync unless something is not finite).
 
 The graph is captured after :data:`WARMUP` eager steps (which initialise the optimisers' state and the CUDA
 libraries' workspaces) and again whenever the learning rates change (SB3's schedule; the run's is constant).
@@ -99,6 +101,8 @@ class GraphedTrainer:
         self.captures = 0
         self.side: Any = None  # the warm-up steps' stream
         self._snap: list[Any] | None = None
+        self._live_cache: list[Any] | None = None
+        self.finite: bool | None = None  # every parameter finite after the last iteration (None: not known)
         if self.graph:
             set_capturable(model, True)
 
@@ -118,12 +122,16 @@ class GraphedTrainer:
         if lrs != self.lrs:  # (captured with the old rates: capture again)
             self.graphs.clear()
             self.lrs = lrs
+        self.finite = None
         rows = self._rows(gradient_steps)
         scalars = torch.empty((gradient_steps, len(SCALARS)), device=self.device, dtype=self.static.dtype)
         with no_distribution_checks() if self.graph else _nothing():
             for k in range(gradient_steps):
                 scalars[k] = self._one(rows[k], k % m.target_update_interval == 0)
-        values = scalars.double().cpu().numpy()  # the iteration's one host sync
+        params = self.parameters()
+        finite = torch.isfinite(torch.cat([t.reshape(-1) for t in params])).all().reshape(1)
+        back = torch.cat([scalars.reshape(-1).double(), finite.double()]).cpu().numpy()  # the iteration's one sync
+        values, self.finite = back[:-1].reshape(gradient_steps, len(SCALARS)), bool(back[-1])
         m._n_updates += gradient_steps
         mean = dict(zip(SCALARS, values.mean(axis=0).tolist()))
         m.logger.record("train/n_updates", m._n_updates, exclude="tensorboard")
@@ -189,12 +197,23 @@ class GraphedTrainer:
     def invalidate(self) -> None:
         """Forget the captured graphs (the optimisers' state tensors were replaced: captured again when next due)."""
         self.graphs.clear()
-        self._snap = None
+        self._snap = self._live_cache = self.finite = None
+
+    def parameters(self) -> list[Any]:
+        """The floating-point tensors :meth:`~khgrl.learner.sb3_offpolicy.SB3OffPolicy.fault` checks: the policy's
+        (networks, target networks) and the entropy coefficient."""
+        m = self.model
+        out = [t.detach() for t in m.policy.state_dict(keep_vars=True).values() if t.is_floating_point()]
+        if getattr(m, "log_ent_coef", None) is not None:
+            out.append(m.log_ent_coef.detach())
+        return out
 
     # ------------------------------------------------------------------------------------ rollback in place
     def _live(self) -> list[Any] | None:
         """The tensors an iteration changes (networks, target networks, entropy coefficient, optimiser state), or
-        None before the optimisers have state."""
+        None before the optimisers have state (kept until :meth:`invalidate`: the same tensors all along)."""
+        if self._live_cache is not None:
+            return self._live_cache
         m = self.model
         live = [t for t in m.policy.state_dict(keep_vars=True).values()]
         if getattr(m, "log_ent_coef", None) is not None:
@@ -206,7 +225,8 @@ class GraphedTrainer:
                     if not state:
                         return None
                     live.extend(v for v in state.values() if hasattr(v, "copy_"))
-        return [t.detach() for t in live]
+        self._live_cache = [t.detach() for t in live]
+        return self._live_cache
 
     def snapshot(self) -> dict[str, Any] | None:
         """The iteration's state copied into preallocated tensors on the device (one batched copy); None where
@@ -234,6 +254,7 @@ class GraphedTrainer:
         with torch.no_grad():
             torch._foreach_copy_(live, self._snap)
         self.model._n_updates = snapshot["n_updates"]
+        self.finite = None
 
 
 @contextmanager

@@ -272,6 +272,8 @@ class SB3OffPolicy:
         for key in LOSSES:
             if key in values and not np.isfinite(values[key]):
                 return f"{key.rpartition('/')[2]} {values[key]}"
+        if self.graphed is not None and self.graphed.finite:  # (checked on the device with the iteration's losses)
+            return None
         tensors = [(k, v) for k, v in m.policy.state_dict().items() if v.is_floating_point()]
         ent = getattr(m, "log_ent_coef", None)
         if ent is not None:
@@ -284,7 +286,16 @@ class SB3OffPolicy:
     def policy_weights(self) -> dict[str, np.ndarray]:
         """The policy's ``actor`` network as CPU float32 arrays."""
         sd = self.model.policy.actor.state_dict()
-        return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
+        if self.graphed is None:
+            return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
+        import torch  # (on a GPU: one copy to the host, not one per tensor)
+
+        flat = torch.cat([v.detach().reshape(-1).float() for v in sd.values()]).cpu().numpy()
+        out, at = {}, 0
+        for k, v in sd.items():
+            out[k] = flat[at:at + v.numel()].reshape(tuple(v.shape)).copy()
+            at += v.numel()
+        return out
 
     def save(self, directory: Path, *, buffer: bool | StreamReplayBuffer = True) -> list[Path]:
         """``model.zip`` (SB3's ``save``) and (``buffer``) ``replay_buffer.pkl`` (``save_replay_buffer``; a

@@ -94,8 +94,11 @@ class SB3Step:
         m.actor.optimizer.zero_grad()
         actor_loss.backward()
         m.actor.optimizer.step()
-        if polyak:
-            polyak_update(m.critic.parameters(), m.critic_target.parameters(), m.tau)
+        if polyak:  # (SB3's polyak_update, its two operations on all tensors at once: the same numbers)
+            with th.no_grad():
+                targets = list(m.critic_target.parameters())
+                th._foreach_mul_(targets, 1 - m.tau)
+                th._foreach_add_(targets, list(m.critic.parameters()), alpha=m.tau)
             polyak_update(m.batch_norm_stats, m.batch_norm_stats_target, 1.0)
         return th.stack([ent_coef.detach().reshape(()).to(log_prob.dtype), actor_loss.detach(), critic_loss.detach(),
                          ent_coef_loss.detach()])
