@@ -3,9 +3,10 @@
 
 An iteration of G gradient steps (the run's ``gradient_steps``):
 
-1. G minibatches are drawn on the host as SB3's buffer draws them (:meth:`~khgrl.learner.replay.StreamReplayBuffer.
-   sample_into`, the same random numbers) into one pinned ``(G, B, W)`` array and copied to the device in one
-   copy that does not block the host;
+1. each step's minibatch is drawn on the host as SB3's buffer draws it (:meth:`~khgrl.learner.replay.
+   StreamReplayBuffer.sample_into`, the same random numbers) into its rows of one pinned ``(G, B, W)`` array and
+   copied to the device without blocking the host -- while the device still runs the step before: the host's
+   sampling hides behind the device's work;
 2. each step copies its minibatch into the static input rows on the device and replays the captured graph of
    :class:`~khgrl.learner.step.SB3Step` -- the library's gradient step (actor, entropy coefficient and critics,
    each with capturable Adam, and the Polyak update), all on the device -- and keeps its training scalars there;
@@ -123,11 +124,11 @@ class GraphedTrainer:
             self.graphs.clear()
             self.lrs = lrs
         self.finite = None
-        rows = self._rows(gradient_steps)
+        self._buffers(gradient_steps)
         scalars = torch.empty((gradient_steps, len(SCALARS)), device=self.device, dtype=self.static.dtype)
         with no_distribution_checks() if self.graph else _nothing():
             for k in range(gradient_steps):
-                scalars[k] = self._one(rows[k], k % m.target_update_interval == 0)
+                scalars[k] = self._one(self._draw(k), k % m.target_update_interval == 0)
         params = self.parameters()
         finite = torch.isfinite(torch.cat([t.reshape(-1) for t in params])).all().reshape(1)
         back = torch.cat([scalars.reshape(-1).double(), finite.double()]).cpu().numpy()  # the iteration's one sync
@@ -141,8 +142,8 @@ class GraphedTrainer:
             m.logger.record("train/ent_coef_loss", mean["ent_coef_loss"])
         return values
 
-    def _rows(self, n: int) -> Any:
-        """``n`` minibatches drawn into the pinned host rows and copied (not blocking) to the device."""
+    def _buffers(self, n: int) -> None:
+        """The pinned host rows and their device copy for ``n`` minibatches (made when ``n`` changes)."""
         import torch
 
         if self.host is None or len(self.host) != n:
@@ -150,13 +151,15 @@ class GraphedTrainer:
             self.host = torch.empty((n, self.batch_size, self.width), dtype=torch.float32, pin_memory=pin)
             self.host_np = self.host.numpy()
             self.staged = torch.empty((n, self.batch_size, self.width), device=self.device)
-        rb = self.model.replay_buffer
-        for k in range(n):
-            rb.sample_into(self.host_np[k])
+
+    def _draw(self, k: int) -> Any:
+        """Step ``k``'s minibatch drawn into its pinned host rows and copied (not blocking) to the device. (Its rows
+        are rewritten only in the next iteration, after that iteration's sync: the copy has long finished.)"""
+        self.model.replay_buffer.sample_into(self.host_np[k])
         if self.device.type != "cuda":
-            return self.host
-        self.staged.copy_(self.host, non_blocking=True)
-        return self.staged
+            return self.host[k]
+        self.staged[k].copy_(self.host[k], non_blocking=True)
+        return self.staged[k]
 
     def _one(self, rows: Any, polyak: bool) -> Any:
         """One step on ``rows``: the captured graph replayed, or (warming up, or without graphs) the step function."""
