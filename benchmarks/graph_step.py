@@ -50,15 +50,15 @@ def learner_iteration(obs_dim: int, act_dim: int, device: str, size: int, seed: 
     return steps
 
 
-def raw_graph_learner(obs_dim: int, act_dim: int, size: int, seed: int, batch: int = 256) -> Callable[[int], None]:
-    """:class:`~khgrl.benchmarks.learner_step.RawTQC` on cuda, its step (minibatch drawn on the device from a
-    replay held there, capturable Adam) captured once as a CUDA graph; returns a callable replaying it ``n``
-    times (the caller synchronises)."""
+def raw_graph_learner(raw_class: type, obs_dim: int, act_dim: int, size: int, seed: int,
+                      batch: int = 256) -> Callable[[int], None]:
+    """A raw-torch step (``raw_class``: :class:`~khgrl.benchmarks.learner_step.RawTQC`) on cuda, its step
+    (minibatch drawn on the device from a replay held there, capturable Adam) captured once as a CUDA graph;
+    returns a callable replaying it ``n`` times (the caller synchronises)."""
     import torch
-    from khgrl.benchmarks.learner_step import RawTQC
 
     torch.manual_seed(seed)
-    raw = RawTQC(obs_dim, act_dim, device="cuda")
+    raw = raw_class(obs_dim, act_dim, device="cuda")
     for opt in (raw.opt_actor, raw.opt_critic, raw.opt_alpha):
         for group in opt.param_groups:
             group["capturable"] = True

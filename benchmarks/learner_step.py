@@ -160,7 +160,7 @@ def _sides(obs_dim: int, act_dim: int, device: str, seed: int, ensembles: tuple[
 
     sides = {"stepfn_tqc": learner_iteration(obs_dim, act_dim, device, 20_000, seed, graph=False)}
     if device == "cuda":
-        sides["raw_graph"] = raw_graph_learner(obs_dim, act_dim, 20_000, seed)
+        sides["raw_graph"] = raw_graph_learner(RawTQC, obs_dim, act_dim, 20_000, seed)
         for algo, sampling in (("tqc", "uniform"), ("sac", "uniform"), ("sac_ln", "uniform"), ("sac_ln", "rlpd")):
             name = f"graph_{algo}" + ("_rlpd" if sampling == "rlpd" else "")
             sides[name] = learner_iteration(obs_dim, act_dim, device, 20_000, seed, algo, sampling)
