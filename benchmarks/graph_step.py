@@ -16,12 +16,14 @@ __all__ = ["learner_iteration", "raw_graph_learner"]
 
 
 def learner_iteration(obs_dim: int, act_dim: int, device: str, size: int, seed: int, algo: str = "tqc",
-                      sampling: str = "uniform", graph: bool = True) -> Callable[[int], None]:
+                      sampling: str = "uniform", graph: bool = True,
+                      compile_loss: bool = False) -> Callable[[int], None]:
     """The learner's algorithm (``algo``, ``sampling``) with a filled buffer (``size`` random transitions, every
     tenth intervened), trained through :class:`~khgrl.learner.cuda_graph.GraphedTrainer`; returns a callable doing
     ``n`` gradient steps as one learner iteration (snapshot, train, fault check).
 
     :param graph: CUDA graphs (cuda only); False: the same iteration with the step function called eagerly
+    :param compile_loss: (cpu) TQC's loss compiled (``--compile-loss``)
     """
     from khgrl.common.config.settings import TQCSettings
     from khgrl.learner.cuda_graph import GraphedTrainer
@@ -29,7 +31,8 @@ def learner_iteration(obs_dim: int, act_dim: int, device: str, size: int, seed: 
     from stable_baselines3.common.logger import configure
 
     task = SimpleNamespace(out_dim=act_dim, obs_low=[-10.0] * obs_dim, obs_high=[10.0] * obs_dim)  # spaces only
-    settings = TQCSettings(device=device, learning_starts=0, sampling=sampling, cuda_graph=graph)
+    settings = TQCSettings(device=device, learning_starts=0, sampling=sampling, cuda_graph=graph,
+                           compile_loss=compile_loss)
     learner = build_algorithm(settings, seed, task, algo)
     learner.model.set_logger(configure(None, []))
     if learner.graphed is None:

@@ -159,6 +159,9 @@ def _sides(obs_dim: int, act_dim: int, device: str, seed: int, ensembles: tuple[
     from khgrl.benchmarks.graph_step import learner_iteration, raw_graph_learner
 
     sides = {"stepfn_tqc": learner_iteration(obs_dim, act_dim, device, 20_000, seed, graph=False)}
+    if device == "cpu":  # (--compile-loss: the CPU only)
+        sides["stepfn_tqc_compiled"] = learner_iteration(obs_dim, act_dim, device, 20_000, seed, graph=False,
+                                                         compile_loss=True)
     if device == "cuda":
         sides["raw_graph"] = raw_graph_learner(RawTQC, obs_dim, act_dim, 20_000, seed)
         for algo, sampling in (("tqc", "uniform"), ("sac", "uniform"), ("sac_ln", "uniform"), ("sac_ln", "rlpd")):
@@ -249,6 +252,10 @@ def _print_graphed(device: str, rate: dict, row: dict) -> None:
     print(f"{device}: learner TQC iteration with the step function, eager: {rate['stepfn_tqc']:.1f} steps/s "
           f"({rate['stepfn_tqc'] / rate['sb3_tqc']:.2f}x SB3's train())")
     row["stepfn_over_sb3"] = round(rate["stepfn_tqc"] / rate["sb3_tqc"], 3)
+    if "stepfn_tqc_compiled" in rate:
+        row["compiled_over_sb3"] = round(rate["stepfn_tqc_compiled"] / rate["sb3_tqc"], 3)
+        print(f"{device}: learner TQC iteration with its loss compiled (--compile-loss, opt-in): "
+              f"{rate['stepfn_tqc_compiled']:.1f} steps/s ({row['compiled_over_sb3']:.2f}x SB3's train())")
     if "graph_tqc" not in rate:
         return
     row["graph_over_eager"] = round(rate["graph_tqc"] / rate["sb3_tqc"], 3)

@@ -79,12 +79,13 @@ class GraphedTrainer:
 
     :param model: the SB3 model (its replay buffer a :class:`~khgrl.learner.replay.StreamReplayBuffer`)
     :param graph: capture CUDA graphs (needs the model on a CUDA device); False: the same iteration, eager
+    :param compile_loss: eager only: TQC's loss compiled (:class:`~khgrl.learner.step.SB3Step`)
     """
 
-    def __init__(self, model: Any, graph: bool = True) -> None:
+    def __init__(self, model: Any, graph: bool = True, compile_loss: bool = False) -> None:
         import torch
 
-        self.model, self.step = model, SB3Step(model)
+        self.model, self.step = model, SB3Step(model, compile_loss=compile_loss and not graph)
         self.device = torch.device(model.device)
         self.graph = bool(graph)
         if self.graph and self.device.type != "cuda":

@@ -65,21 +65,23 @@ class SB3OffPolicy:
     :param model: the SB3 model, its replay buffer a :class:`StreamReplayBuffer`
     :param cuda_graph: train with each gradient step one CUDA graph (:mod:`khgrl.learner.cuda_graph`; the model on
         a CUDA device); False: SB3's own ``train()``
+    :param compile_loss: without CUDA graphs, train with the step function and TQC's loss compiled
+        (``--compile-loss``, opt-in: it rounds differently from SB3's ``train()``)
     """
 
     name: ClassVar[str] = ""
 
-    def __init__(self, model: Any, cuda_graph: bool = False) -> None:
+    def __init__(self, model: Any, cuda_graph: bool = False, compile_loss: bool = False) -> None:
         if not isinstance(model.replay_buffer, StreamReplayBuffer):
             raise TypeError(f"the learner's {self.name} model needs a StreamReplayBuffer")
         self.model = model
         self.gradient_steps = int(model.gradient_steps)
         self.batch_size = int(model.batch_size)
-        self.graphed = None  # the CUDA-graph trainer, where one trains
-        if cuda_graph:
+        self.graphed = None  # the CUDA-graph trainer (or, --compile-loss, its eager iteration), where one trains
+        if cuda_graph or compile_loss:
             from khgrl.learner.cuda_graph import GraphedTrainer
 
-            self.graphed = GraphedTrainer(model)
+            self.graphed = GraphedTrainer(model, graph=cuda_graph, compile_loss=compile_loss)
 
     @staticmethod
     def graphs_on(settings: TQCSettings, device: str) -> bool:
@@ -89,6 +91,15 @@ class SB3OffPolicy:
         :param device: the torch device
         """
         return bool(getattr(settings, "cuda_graph", False)) and str(device).startswith("cuda")
+
+    @staticmethod
+    def compiled_on(settings: TQCSettings, device: str) -> bool:
+        """Whether the learner trains with TQC's loss compiled: ``compile_loss`` set and the device the CPU.
+
+        :param settings: the run's learner settings
+        :param device: the torch device
+        """
+        return bool(getattr(settings, "compile_loss", False)) and str(device) == "cpu"
 
     # ------------------------------------------------------------------------------------ what a subclass says
     @classmethod
@@ -129,7 +140,7 @@ class SB3OffPolicy:
         if fraction > 0:  # (uniform: no buffer kwargs at all, the model SB3 builds without them)
             kwargs["replay_buffer_kwargs"] = {"prior_fraction": fraction}
         model = cls.sb3_class()(cls.policy_class(), env, **kwargs, replay_buffer_class=StreamReplayBuffer)
-        return cls(model, cuda_graph=cls.graphs_on(settings, device))
+        return cls(model, cuda_graph=cls.graphs_on(settings, device), compile_loss=cls.compiled_on(settings, device))
 
     @classmethod
     def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str, *,
@@ -146,7 +157,7 @@ class SB3OffPolicy:
             raise ValueError(f"{directory}: the replay buffer is a {type(model.replay_buffer).__name__}, not a "
                              "StreamReplayBuffer")
         model.replay_buffer.prior_fraction = model.replay_buffer.check_fraction(prior_fraction(settings.sampling))
-        return cls(model, cuda_graph=cls.graphs_on(settings, device))
+        return cls(model, cuda_graph=cls.graphs_on(settings, device), compile_loss=cls.compiled_on(settings, device))
 
     @classmethod
     def actor_policy(cls, observation_space: Any, action_space: Any, settings: TQCSettings) -> SB3ActorPolicy:

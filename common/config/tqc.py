@@ -39,6 +39,9 @@ class TQCSettings:
     cuda_graph: bool = _opt(True, "on a CUDA device, each gradient step is one CUDA graph replayed (the library's "
                                   "step, captured; --no-cuda-graph: SB3's own train()); no effect on the CPU",
                             roles=_LR)
+    compile_loss: bool = _opt(False, "on the CPU, TQC's quantile Huber loss compiled by torch.compile (a C++ "
+                                     "compiler needed; about a minute at the first step; faster steps that round "
+                                     "differently from SB3's train(), so seeded runs differ: opt-in)", roles=_LR)
 
     def sb3_kwargs(self, seed: int) -> dict[str, Any]:
         """Keyword arguments of ``sb3_contrib.TQC("MlpPolicy", env, **kwargs)``."""

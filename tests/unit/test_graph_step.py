@@ -173,3 +173,27 @@ def test_graph_learners_iteration_trains_as_train_does(algo):
     ours.restore(snap)
     assert all(torch.equal(before[k], v) for k, v in ours.model.policy.state_dict().items())
     assert ours.model._n_updates == 24 and ours.fault() is None
+
+
+def test_compiled_loss_trains_within_rounding_of_train():
+    """``--compile-loss`` (the CPU, opt-in): TQC's quantile Huber loss compiled by torch.compile; an iteration leaves
+    the parameters SB3's ``train()`` leaves to within float32 rounding (it does not round the same: opt-in). Fails
+    if the compiled loss is not the library's (or not used: the model trains with SB3's own function then)."""
+    from sb3_contrib.common.utils import quantile_huber_loss
+
+    settings = TQCSettings(learning_starts=0, net_arch=(32, 32), batch_size=BATCH, buffer_size=500, compile_loss=True)
+    theirs = _filled("tqc", False)
+    ours = algorithm_class("tqc").build(TASK, settings, 5, "cpu")
+    ours.model.set_logger(theirs.model.logger)
+    theirs_rb, ours_rb = theirs.buffer, ours.buffer
+    for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
+        getattr(ours_rb, name)[:] = getattr(theirs_rb, name)
+    ours_rb.pos, ours_rb.full = theirs_rb.pos, theirs_rb.full
+    assert ours.graphed is not None and ours.graphed.step.huber is not quantile_huber_loss
+    for a in (theirs, ours):
+        np.random.seed(2)
+        torch.manual_seed(2)
+        a.train(8, timestep=300, sample_limit=None)
+    a, b = theirs.model.policy.state_dict(), ours.model.policy.state_dict()
+    worst = max((a[k] - b[k]).abs().max().item() for k in a)
+    assert 0 <= worst < 1e-4, worst
