@@ -113,6 +113,8 @@ BENCHMARKS: dict[str, Benchmark] = {
         _flag("--seconds", type=float, default=60.0, help="length of each case (default: %(default)s)"),
         SEED,
         _flag("--work", default="runs/bench-scale", help="run directories (default: %(default)s)"),
+        _flag("--device", default="auto", choices=["auto", "cpu", "cuda"],
+              help="the learner's --device (default: %(default)s)"),
         OUT)),
     "ingest": Benchmark("khgrl.benchmarks.ingest_many", "run_ingest_benchmark",
                         "S sender processes into one learner: transitions/s acknowledged", (

@@ -152,9 +152,22 @@ def _raw_learner(obs_dim: int, act_dim: int, device: str, size: int, seed: int, 
 
 
 def _sides(obs_dim: int, act_dim: int, device: str, seed: int, ensembles: tuple[int, ...]) -> dict:
-    """The learners timed against each other: the learner's TQC, SAC and SAC-LN (uniform and RLPD sampling),
-    raw-torch TQC, and raw-torch SAC with each ensemble size."""
-    sides = {"sb3_tqc": _sb3_learner(obs_dim, act_dim, device, 20_000, seed),
+    """The learners timed against each other: the learner's TQC, SAC and SAC-LN (uniform and RLPD sampling) with
+    SB3's ``train()``, and each as the learner's iteration with the step function (:mod:`khgrl.benchmarks.
+    graph_step`: on cuda one CUDA graph per step, ``graph_*``; on every device called eagerly, ``stepfn_tqc``),
+    raw-torch TQC (on cuda also as a bare CUDA graph, ``raw_graph``), and raw-torch SAC with each ensemble size."""
+    from khgrl.benchmarks.graph_step import learner_iteration, raw_graph_learner
+
+    sides = {"stepfn_tqc": learner_iteration(obs_dim, act_dim, device, 20_000, seed, graph=False)}
+    if device == "cpu":  # (--compile-loss: the CPU only)
+        sides["stepfn_tqc_compiled"] = learner_iteration(obs_dim, act_dim, device, 20_000, seed, graph=False,
+                                                         compile_loss=True)
+    if device == "cuda":
+        sides["raw_graph"] = raw_graph_learner(RawTQC, obs_dim, act_dim, 20_000, seed)
+        for algo, sampling in (("tqc", "uniform"), ("sac", "uniform"), ("sac_ln", "uniform"), ("sac_ln", "rlpd")):
+            name = f"graph_{algo}" + ("_rlpd" if sampling == "rlpd" else "")
+            sides[name] = learner_iteration(obs_dim, act_dim, device, 20_000, seed, algo, sampling)
+    sides |= {"sb3_tqc": _sb3_learner(obs_dim, act_dim, device, 20_000, seed),
              "raw_torch": _raw_learner(obs_dim, act_dim, device, 20_000, seed),
              "sb3_sac": _sb3_learner(obs_dim, act_dim, device, 20_000, seed, "sac"),
              "sb3_sac_ln": _sb3_learner(obs_dim, act_dim, device, 20_000, seed, "sac_ln"),
@@ -213,6 +226,7 @@ def run_learner_benchmark(devices: tuple[str, ...] = ("cpu",), seconds: float = 
         rate = {k: n / dt for k, (n, dt) in counts.items()}
         results["devices"][device] = {**{f"{k}_steps_per_s": round(v, 1) for k, v in rate.items()},
                                       "sb3_over_raw": round(rate["sb3_tqc"] / rate["raw_torch"], 3)}
+        _print_graphed(device, rate, results["devices"][device])
         print(f"{device}: learner TQC {rate['sb3_tqc']:.1f} gradient steps/s, raw torch {rate['raw_torch']:.1f} "
               f"steps/s: ratio {rate['sb3_tqc'] / rate['raw_torch']:.2f}; learner SAC {rate['sb3_sac']:.1f} steps/s")
         print(f"{device}: learner SAC-LN (HIL-SERL's) {rate['sb3_sac_ln']:.1f} steps/s uniform, "
@@ -231,6 +245,25 @@ def run_learner_benchmark(devices: tuple[str, ...] = ("cpu",), seconds: float = 
         Path(out).write_text(json.dumps(results, indent=2))
         print(f"wrote {out}")
     return results
+
+
+def _print_graphed(device: str, rate: dict, row: dict) -> None:
+    """The step function's lines: eager (every device) and graphed (cuda), against SB3's ``train()``."""
+    print(f"{device}: learner TQC iteration with the step function, eager: {rate['stepfn_tqc']:.1f} steps/s "
+          f"({rate['stepfn_tqc'] / rate['sb3_tqc']:.2f}x SB3's train())")
+    row["stepfn_over_sb3"] = round(rate["stepfn_tqc"] / rate["sb3_tqc"], 3)
+    if "stepfn_tqc_compiled" in rate:
+        row["compiled_over_sb3"] = round(rate["stepfn_tqc_compiled"] / rate["sb3_tqc"], 3)
+        print(f"{device}: learner TQC iteration with its loss compiled (--compile-loss, opt-in): "
+              f"{rate['stepfn_tqc_compiled']:.1f} steps/s ({row['compiled_over_sb3']:.2f}x SB3's train())")
+    if "graph_tqc" not in rate:
+        return
+    row["graph_over_eager"] = round(rate["graph_tqc"] / rate["sb3_tqc"], 3)
+    row["graph_over_bare_graph"] = round(rate["graph_tqc"] / rate["raw_graph"], 3)
+    print(f"{device}: learner TQC, one CUDA graph per step: {rate['graph_tqc']:.1f} steps/s = "
+          f"{row['graph_over_eager']:.2f}x eager SB3, {row['graph_over_bare_graph']:.2f}x a bare graph of the raw "
+          f"step ({rate['raw_graph']:.1f}); graphed SAC {rate['graph_sac']:.1f}, SAC-LN {rate['graph_sac_ln']:.1f}, "
+          f"SAC-LN with RLPD sampling {rate['graph_sac_ln_rlpd']:.1f} steps/s")
 
 
 def _load() -> list[float]:

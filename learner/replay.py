@@ -134,21 +134,52 @@ class StreamReplayBuffer(ReplayBuffer):
         :param env: SB3's VecNormalize (unused by the learner)
         """
         with self.lock:
-            limited = not (self.full or self.sample_limit is None or self.optimize_memory_usage)
-            upper = max(1, min(self.pos, self.sample_limit)) if limited else None
-            prior = self.prior_index(upper) if self.prior_fraction > 0 else None
-            n_prior = int(round(batch_size * self.prior_fraction)) if prior is not None and len(prior) else 0
-            self.sampled_prior += n_prior
-            self.sampled_online += batch_size - n_prior
-            if n_prior == 0:  # SB3's uniform sampling, its random draws exactly
-                if not limited:
-                    return super().sample(batch_size, env=env)
-                return self._get_samples(np.random.randint(0, upper, size=batch_size), env=env)
-            if upper is None:  # (SB3's bound: the whole buffer once full, else the stored slots)
-                upper = self.buffer_size if self.full else self.pos
-            online = np.random.randint(0, upper, size=batch_size - n_prior)
-            chosen = prior[np.random.randint(0, len(prior), size=n_prior)]
-            return self._get_samples(np.concatenate([online, chosen]), env=env)
+            inds = self._draw(batch_size)
+            if inds is None:
+                return super().sample(batch_size, env=env)
+            return self._get_samples(inds, env=env)
+
+    def sample_into(self, out: np.ndarray) -> None:
+        """A minibatch as :meth:`sample` draws it (the same random numbers, in the same order), written as rows of
+        ``out`` (shape ``(batch_size, width)``): observation, action, next observation, done-and-not-timeout,
+        reward, side by side (:meth:`minibatch_width`) -- the numbers SB3's ``_get_samples`` puts into its
+        five tensors, with no tensor made (the CUDA-graph learner copies ``out``, pinned, to the device at once).
+
+        :param out: float32 rows to fill
+        """
+        batch_size = len(out)
+        with self.lock:
+            inds = self._draw(batch_size)
+            if inds is None:  # (SB3's own uniform draw: ReplayBuffer.sample's bound)
+                inds = np.random.randint(0, self.buffer_size if self.full else self.pos, size=batch_size)
+            env_indices = np.random.randint(0, high=self.n_envs, size=(batch_size,))  # (_get_samples' draw)
+            o, a = self.obs_shape[0], self.action_dim
+            out[:, :o] = self.observations[inds, env_indices]
+            out[:, o:o + a] = self.actions[inds, env_indices]
+            out[:, o + a:2 * o + a] = self.next_observations[inds, env_indices]
+            out[:, -2] = self.dones[inds, env_indices] * (1 - self.timeouts[inds, env_indices])
+            out[:, -1] = self.rewards[inds, env_indices]
+
+    def minibatch_width(self) -> int:
+        """Columns of a :meth:`sample_into` row: observation, action, next observation, done, reward."""
+        return 2 * int(self.obs_shape[0]) + int(self.action_dim) + 2
+
+    def _draw(self, batch_size: int) -> np.ndarray | None:
+        """The slots of a minibatch (the caller holds ``lock``), drawn as :meth:`sample` says; None: draw SB3's
+        ``ReplayBuffer.sample`` itself (uniform over the whole stored buffer)."""
+        limited = not (self.full or self.sample_limit is None or self.optimize_memory_usage)
+        upper = max(1, min(self.pos, self.sample_limit)) if limited else None
+        prior = self.prior_index(upper) if self.prior_fraction > 0 else None
+        n_prior = int(round(batch_size * self.prior_fraction)) if prior is not None and len(prior) else 0
+        self.sampled_prior += n_prior
+        self.sampled_online += batch_size - n_prior
+        if n_prior == 0:  # SB3's uniform sampling, its random draws exactly
+            return None if not limited else np.random.randint(0, upper, size=batch_size)
+        if upper is None:  # (SB3's bound: the whole buffer once full, else the stored slots)
+            upper = self.buffer_size if self.full else self.pos
+        online = np.random.randint(0, upper, size=batch_size - n_prior)
+        chosen = prior[np.random.randint(0, len(prior), size=n_prior)]
+        return np.concatenate([online, chosen])
 
     def prior_index(self, upper: int | None = None) -> np.ndarray:
         """The prior slots (``intervened`` = 1) among the stored ones, ascending: built with ``np.flatnonzero`` when

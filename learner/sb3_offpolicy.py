@@ -63,16 +63,43 @@ class SB3OffPolicy:
     :meth:`policy_class`, and :meth:`sb3_kwargs` where the run's settings map differently).
 
     :param model: the SB3 model, its replay buffer a :class:`StreamReplayBuffer`
+    :param cuda_graph: train with each gradient step one CUDA graph (:mod:`khgrl.learner.cuda_graph`; the model on
+        a CUDA device); False: SB3's own ``train()``
+    :param compile_loss: without CUDA graphs, train with the step function and TQC's loss compiled
+        (``--compile-loss``, opt-in: it rounds differently from SB3's ``train()``)
     """
 
     name: ClassVar[str] = ""
 
-    def __init__(self, model: Any) -> None:
+    def __init__(self, model: Any, cuda_graph: bool = False, compile_loss: bool = False) -> None:
         if not isinstance(model.replay_buffer, StreamReplayBuffer):
             raise TypeError(f"the learner's {self.name} model needs a StreamReplayBuffer")
         self.model = model
         self.gradient_steps = int(model.gradient_steps)
         self.batch_size = int(model.batch_size)
+        self.graphed = None  # the CUDA-graph trainer (or, --compile-loss, its eager iteration), where one trains
+        if cuda_graph or compile_loss:
+            from khgrl.learner.cuda_graph import GraphedTrainer
+
+            self.graphed = GraphedTrainer(model, graph=cuda_graph, compile_loss=compile_loss)
+
+    @staticmethod
+    def graphs_on(settings: TQCSettings, device: str) -> bool:
+        """Whether the learner trains with CUDA graphs: ``cuda_graph`` set and the device a CUDA one.
+
+        :param settings: the run's learner settings
+        :param device: the torch device
+        """
+        return bool(getattr(settings, "cuda_graph", False)) and str(device).startswith("cuda")
+
+    @staticmethod
+    def compiled_on(settings: TQCSettings, device: str) -> bool:
+        """Whether the learner trains with TQC's loss compiled: ``compile_loss`` set and the device the CPU.
+
+        :param settings: the run's learner settings
+        :param device: the torch device
+        """
+        return bool(getattr(settings, "compile_loss", False)) and str(device) == "cpu"
 
     # ------------------------------------------------------------------------------------ what a subclass says
     @classmethod
@@ -112,7 +139,8 @@ class SB3OffPolicy:
         fraction = prior_fraction(settings.sampling)
         if fraction > 0:  # (uniform: no buffer kwargs at all, the model SB3 builds without them)
             kwargs["replay_buffer_kwargs"] = {"prior_fraction": fraction}
-        return cls(cls.sb3_class()(cls.policy_class(), env, **kwargs, replay_buffer_class=StreamReplayBuffer))
+        model = cls.sb3_class()(cls.policy_class(), env, **kwargs, replay_buffer_class=StreamReplayBuffer)
+        return cls(model, cuda_graph=cls.graphs_on(settings, device), compile_loss=cls.compiled_on(settings, device))
 
     @classmethod
     def load(cls, directory: Path, task: Any, settings: TQCSettings, device: str, *,
@@ -129,7 +157,7 @@ class SB3OffPolicy:
             raise ValueError(f"{directory}: the replay buffer is a {type(model.replay_buffer).__name__}, not a "
                              "StreamReplayBuffer")
         model.replay_buffer.prior_fraction = model.replay_buffer.check_fraction(prior_fraction(settings.sampling))
-        return cls(model)
+        return cls(model, cuda_graph=cls.graphs_on(settings, device), compile_loss=cls.compiled_on(settings, device))
 
     @classmethod
     def actor_policy(cls, observation_space: Any, action_space: Any, settings: TQCSettings) -> SB3ActorPolicy:
@@ -195,21 +223,27 @@ class SB3OffPolicy:
         self.model.num_timesteps = timestep
         self.buffer.sample_limit = sample_limit
         try:
-            self.model.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
+            if self.graphed is not None:
+                self.graphed.train(gradient_steps)
+            else:
+                self.model.train(gradient_steps=gradient_steps, batch_size=self.batch_size)
         finally:
             self.buffer.sample_limit = None
 
     def _optimizers(self) -> list[Any]:
         """The optimisers a training iteration steps: the actor's, the critics' and the entropy coefficient's."""
-        m = self.model
-        found = (m.actor.optimizer, m.critic.optimizer, getattr(m, "ent_coef_optimizer", None))
-        return [opt for opt in found if opt is not None]
+        from khgrl.learner.cuda_graph import optimizers
+
+        return optimizers(self.model)
 
     def snapshot(self) -> dict[str, Any]:
         """The policy's ``state_dict`` (actor, critics, target critics), the optimisers' states, the entropy
-        coefficient and SB3's update counter, copied (see :meth:`LearnerAlgorithm.snapshot`)."""
+        coefficient and SB3's update counter, copied (see :meth:`LearnerAlgorithm.snapshot`); with CUDA graphs,
+        into preallocated device tensors once the optimisers have state (:meth:`GraphedTrainer.snapshot`)."""
         import copy
 
+        if self.graphed is not None and (fast := self.graphed.snapshot()) is not None:
+            return fast
         m = self.model
         ent = getattr(m, "log_ent_coef", None)
         return {"policy": {k: v.detach().clone() for k, v in m.policy.state_dict().items()},
@@ -224,6 +258,9 @@ class SB3OffPolicy:
         """
         import torch
 
+        if snapshot.get("graphed"):
+            self.graphed.restore(snapshot)
+            return
         m = self.model
         m.policy.load_state_dict(snapshot["policy"])
         for opt, state in zip(self._optimizers(), snapshot["optimizers"]):
@@ -232,6 +269,8 @@ class SB3OffPolicy:
             with torch.no_grad():
                 m.log_ent_coef.copy_(snapshot["log_ent_coef"])
         m._n_updates = snapshot["n_updates"]
+        if self.graphed is not None:  # (the optimisers hold new state tensors: the graphs are captured again)
+            self.graphed.invalidate()
 
     def fault(self) -> str | None:
         """The first non-finite training loss of the last iteration, or parameter or buffer of the policy
@@ -244,6 +283,8 @@ class SB3OffPolicy:
         for key in LOSSES:
             if key in values and not np.isfinite(values[key]):
                 return f"{key.rpartition('/')[2]} {values[key]}"
+        if self.graphed is not None and self.graphed.finite:  # (checked on the device with the iteration's losses)
+            return None
         tensors = [(k, v) for k, v in m.policy.state_dict().items() if v.is_floating_point()]
         ent = getattr(m, "log_ent_coef", None)
         if ent is not None:
@@ -256,7 +297,16 @@ class SB3OffPolicy:
     def policy_weights(self) -> dict[str, np.ndarray]:
         """The policy's ``actor`` network as CPU float32 arrays."""
         sd = self.model.policy.actor.state_dict()
-        return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
+        if self.graphed is None:
+            return {k: v.detach().cpu().numpy().astype(np.float32, copy=True) for k, v in sd.items()}
+        import torch  # (on a GPU: one copy to the host, not one per tensor)
+
+        flat = torch.cat([v.detach().reshape(-1).float() for v in sd.values()]).cpu().numpy()
+        out, at = {}, 0
+        for k, v in sd.items():
+            out[k] = flat[at:at + v.numel()].reshape(tuple(v.shape)).copy()
+            at += v.numel()
+        return out
 
     def save(self, directory: Path, *, buffer: bool | StreamReplayBuffer = True) -> list[Path]:
         """``model.zip`` (SB3's ``save``) and (``buffer``) ``replay_buffer.pkl`` (``save_replay_buffer``; a
@@ -264,7 +314,16 @@ class SB3OffPolicy:
         from stable_baselines3.common.save_util import save_to_pkl
 
         directory = Path(directory)
-        self.model.save(directory / MODEL_FILE)
+        if self.graphed is not None:  # (the optimisers not capturable in the file, as SB3 writes them: loads anywhere)
+            from khgrl.learner.cuda_graph import set_capturable
+
+            set_capturable(self.model, False)
+            try:
+                self.model.save(directory / MODEL_FILE)
+            finally:
+                set_capturable(self.model, True)
+        else:
+            self.model.save(directory / MODEL_FILE)
         if buffer is False:
             return [directory / MODEL_FILE]
         save_to_pkl(directory / BUFFER_FILE, self.buffer if buffer is True else buffer)

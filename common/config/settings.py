@@ -31,9 +31,10 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from khgrl.common.config.assignments import parse_assignments
-from khgrl.common.config.fields import _LA, _LAH, _LAR, _LR, ACTOR, HUMAN, LEARNER, REFERENCE, ROLES, UP, _opt
+from khgrl.common.config.fields import _LA, _LAH, ACTOR, HUMAN, LEARNER, REFERENCE, ROLES, UP, _opt
 from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
 from khgrl.common.config.safety import SafetySettings
+from khgrl.common.config.tqc import SAMPLINGS, TQCSettings
 
 __all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSERL_DEFAULTS", "HUMANS",
            "PAPER_EPISODES", "ROLES", "TQCSettings", "StreamSettings", "SafetySettings", "RunConfig",
@@ -42,53 +43,13 @@ __all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSER
 
 METHODS = ("khgrl", "kgrl", "hil-serl")
 HUMAN_METHODS, REFERENCE_METHODS = ("khgrl", "hil-serl"), ("khgrl", "kgrl")  # with a human; khgrl reference's
-SAMPLINGS, TAKEOVERS = ("uniform", "rlpd"), ("steps", "episode")
+TAKEOVERS = ("steps", "episode")
 HILSERL_DEFAULTS = {"algo": "sac_ln", "tqc": {"sampling": "rlpd"}}  # what --method hil-serl implies unless set
-DEVICES = ("auto", "cpu", "cuda")
 MODES = ("simulation", "robot")
 PHYSICAL = ("off", "detect", "scripted")
 # khgrl human's clients (test_config checks)
 HUMANS = ("scripted", "gui", "keyboard", "gamepad", "spacemouse", "replay", "none")
 PAPER_EPISODES = (4, 5, 10, 19, 20, 28, 29)  # Section IV: episodes with human corrections (counted from 1)
-
-@dataclass(frozen=True)
-class TQCSettings:
-    """sb3-contrib TQC as in the paper (Section IV): 2 x 256, lr 1e-3, tau 0.02, gamma 0.99, train_freq 8,
-    gradient_steps 8, automatic entropy coefficient."""
-
-    learning_rate: float = _opt(1e-3, "TQC learning rate", roles=_LR)
-    tau: float = _opt(0.02, "soft target update rate", roles=_LR)
-    gamma: float = _opt(0.99, "discount factor", roles=_LR)
-    train_freq: int = _opt(8, "transitions per training iteration", roles=_LAR)
-    gradient_steps: int = _opt(8, "gradient steps per training iteration", roles=_LR)
-    ent_coef: str = _opt("auto", "entropy coefficient ('auto': learned)", roles=_LR)
-    net_arch: tuple[int, ...] = _opt((256, 256), "hidden layer sizes of actor and critics", roles=_LAR)
-    learning_starts: int = _opt(100, "uniform random actions (and no training) for the first N transitions",
-                                roles=_LAR)
-    batch_size: int = _opt(256, "minibatch size of a gradient step", roles=_LR)
-    buffer_size: int = _opt(200_000, "replay buffer capacity (transitions)", roles=_LR)
-    sampling: str = _opt("uniform", "how a minibatch is drawn: uniform (SB3's, the paper's) or rlpd (RLPD's symmetric "
-                                    "sampling: half of each batch from the prior data -- demonstrations replayed as "
-                                    "transitions and the human's interventions -- half from all data)", SAMPLINGS,
-                         roles=_LA)
-    device: str = _opt("auto", "where the learner trains: auto (cuda if torch sees a GPU, else cpu), cpu or cuda; "
-                               "weights always go to actors as CPU float32 arrays", DEVICES, roles=_LR)
-
-    def sb3_kwargs(self, seed: int) -> dict[str, Any]:
-        """Keyword arguments of ``sb3_contrib.TQC("MlpPolicy", env, **kwargs)``."""
-        return dict(learning_rate=self.learning_rate, tau=self.tau, gamma=self.gamma, train_freq=self.train_freq,
-                    gradient_steps=self.gradient_steps, ent_coef=self.ent_coef,
-                    policy_kwargs=dict(net_arch=list(self.net_arch)), learning_starts=self.learning_starts,
-                    batch_size=self.batch_size, buffer_size=self.buffer_size, seed=seed, device=self.device,
-                    verbose=0)
-
-    def validate(self) -> None:
-        for name in ("train_freq", "gradient_steps", "batch_size", "buffer_size"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1")
-        if self.learning_starts < 0 or not self.net_arch or min(self.net_arch) < 1:
-            raise ValueError("learning_starts must be >= 0 and net_arch a list of positive sizes")
-
 
 @dataclass(frozen=True)
 class StreamSettings:
