@@ -1,7 +1,7 @@
 """The payload of a ``control`` message, built without numpy (docs/protocol.md, "control"): the one place the
 launcher, ``khgrl stop``, ``khgrl supervise`` and the benchmarks encode their commands, so ``khgrl stop --now``
 starts fast (README, "On a real robot"). The bytes are exactly :func:`khgrl.common.wire.protocol.encode`'s for a
-:class:`~khgrl.common.wire.messages.Control` (tests/unit/test_supervision.py checks it).
+:class:`~khgrl.common.wire.messages.Control` (tests/unit/test_supervision_parts.py checks it).
 
 Besides the commands of :data:`~khgrl.common.wire.messages.COMMANDS` that a person gives, the supervisor's heartbeat
 (:mod:`khgrl.deploy.supervise`) is a control message on ``control/actor``: ``heartbeat`` while the run's e-stop is
