@@ -90,6 +90,7 @@ PROCESS_COMMANDS = {
     "stop": ("khgrl.deploy.stop", "main", "stop a run, or press / release its e-stop (--now, --release)"),
     "view": ("khgrl.deploy.view_cmd", "main", "a finished run in Rerun: an .rrd recording (--out) or the viewer"),
     "ready": ("khgrl.deploy.stop", "ready_main", "the robot is ready: the next episode may start (--confirm-reset)"),
+    "keys": ("khgrl.deploy.keys_cmd", "main", "the run's signing keys, one per process (for hand-started processes)"),
     # by name: the benchmarks drive the deployment tools (benchmarks imports deploy, not the other way round)
     "bench": ("khgrl.benchmarks.cli", "main", "benchmarks that print numbers (khgrl bench --help)"),
 }

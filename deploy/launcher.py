@@ -11,8 +11,9 @@ TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mo
 ``--zenoh-config FILE`` gives every process a Zenoh configuration file.
 
 ``RUN_DIR/run.key`` gets a new secret first (0600; kept on ``--resume``): the learner signs acks and weights with it,
-actors check them (:mod:`khgrl.common.delivery.run_key`). An actor's alarm in its status (another process publishes
-as it, two learners) ends the run with that line as its error (:mod:`khgrl.deploy.outcome`).
+actors check them (:mod:`khgrl.common.delivery.run_key`), and ``RUN_DIR/keys`` a signing key per process (control:
+:mod:`khgrl.common.delivery.control_auth`). An actor's alarm in its status (another process publishes as it, two
+learners) ends the run with that line as its error (:mod:`khgrl.deploy.outcome`).
 
 Exit codes: 0 the actors finished; 1 a process failed, an actor's alarm, the router was unreachable, ``--timeout``
 or a stop command from elsewhere; 2 a bad configuration or run directory; 128 + signal number on SIGINT/SIGTERM.
@@ -30,14 +31,14 @@ from pathlib import Path
 from typing import Any
 
 from khgrl.common.config.settings import HUMAN_METHODS, RunConfig, add_config_flags, resolve, write_run_config
-from khgrl.common.delivery import run_key
+from khgrl.common.delivery import control_auth, role_keys, run_key
 from khgrl.common.delivery.declare import put, subscribe
 from khgrl.common.delivery.task_link import TASK_FILE, save_task
 from khgrl.common.delivery.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
 from khgrl.common.delivery.zenoh_config import config_file
 from khgrl.common.process import StopFlag, install_stop_handlers
 from khgrl.common.wire.messages import Control, EpisodeReport, Status
-from khgrl.common.wire.protocol import Keys, ProtocolError, RejectCounter, decode, encode
+from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, RejectCounter, decode
 from khgrl.deploy import outcome, rundir
 from khgrl.deploy.outcome import Outcome, ending, exit_code, final_line, report_failures, write_summary
 from khgrl.deploy.progress import ProgressView
@@ -205,6 +206,7 @@ def prepare_run_dir(plan: RunPlan) -> None:
         kept = rundir.keep_demos(plan.run_dir, plan.cfg.task_spec, plan.cfg.demos)
         plan.cfg = dataclasses.replace(plan.cfg, demos=str(kept))
     run_key.create(plan.run_dir, fresh=not plan.resume)  # the learner signs acks and weights, actors check
+    role_keys.make_run_keys(plan.run_dir, run_identities(plan.cfg), fresh=not plan.resume)  # the operator signs control
     if plan.secure:
         plan.secure_run = prepare_secure_run(plan.run_dir, plan.endpoint, run_identities(plan.cfg))
     runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "cwd": os.getcwd(), "actor_ids": plan.cfg.actor_ids(),
@@ -234,6 +236,7 @@ class Run:
         self.keys = Keys(plan.run_id)
         self.inbox = Inbox(maxsize=10_000, overflow="drop_oldest")
         self.rejects = RejectCounter("launcher")
+        self.signer, self.gate = control_auth.operator_side(plan.run_dir)  # signs and checks control
         self.out = Outcome()
         self.actors: list[Proc] = []
 
@@ -327,8 +330,9 @@ class Run:
             self.rejects.reject(kind, key, exc)
 
     def _control(self, msg: Control, key: str) -> None:
-        """A control command from another session (whatever its ``sender`` says): a stop ends the run as stopped
-        from elsewhere (exit 1); any command is reported."""
+        """A control command from another session, signed by the operator's key (else refused, counted): a stop
+        ends the run as stopped from elsewhere (exit 1); any command is reported."""
+        self.gate.admit(msg, key)
         print(f"khgrl up: control {msg.command!r} on {key} from another session (sender {msg.envelope.sender!r})",
               file=sys.stderr, flush=True)
         if msg.command == "stop" and not self.out.stopped_by:
@@ -344,10 +348,9 @@ class Run:
         return bool(self.out.failed) or all(p.poll() == 0 for p in self.actors)
 
     def _stop_children(self, session) -> None:
-        """Actors first, then everything else: ``control/actor stop`` until the actors exited (each publishes its
-        last batch and waits a moment for the learner to checkpoint it) or :data:`ACTOR_STOP_GRACE_S`, then
-        ``control/all stop`` until every process but the router exited or the grace is over (then :meth:`execute`
-        signals them). Each command is repeated each second (a process still starting subscribes late)."""
+        """Actors first, then everything else: ``control/actor stop`` until the actors exited (each publishes its last
+        batch, waits a moment for the learner to checkpoint it) or :data:`ACTOR_STOP_GRACE_S`, then ``control/all stop``
+        until all but the router exited or the grace is over (then :meth:`execute` signals them); each second again."""
         abrupt = bool(self.out.failed) or bool(self.flag)
         grace = min(self.cfg.stop_timeout, FAILURE_GRACE_S + ACTOR_STOP_GRACE_S) if abrupt else self.cfg.stop_timeout
         deadline = time.monotonic() + grace
@@ -357,7 +360,7 @@ class Run:
         seq = 0
         for procs, target, until in phases:
             while True:
-                put(session, self.keys.control(target), encode(Control(command="stop"), "launcher", seq))
+                put(session, k := self.keys.control(target), self.signer.payload(k, "stop", LAUNCHER, seq))
                 seq += 1
                 left = until - time.monotonic()
                 if self.group.wait_all(max(0.0, min(1.0, left)), procs) or left <= 0:

@@ -9,8 +9,9 @@
 It joins the run's router as the launcher (``RUN_DIR/config.json`` gives the run id and endpoint; a ``--secure``
 run's launcher certificate is ``RUN_DIR/certs/zenoh/launcher.json5``: the router's access control lets only the
 launcher publish on ``control/**``), publishes the command on ``control/actor`` (or ``control/<ID>``) every half
-second, and waits until each live actor's status confirms it (held by the e-stop, no longer held by it, no longer
-waiting for ready, or gone).
+second, signed with the operator's key (``RUN_DIR/keys/operator-launcher.key`` or ``--key``: the actors refuse
+control without it when the run has role keys, :mod:`khgrl.common.delivery.control_auth`), and waits until each
+live actor's status confirms it (held by the e-stop, no longer held by it, no longer waiting for ready, or gone).
 
 Exit codes: 0 every actor confirmed; 1 no router, no actor alive, or an actor did not confirm within ``--timeout``
 (named); 2 a bad argument (no such run directory).
@@ -25,10 +26,11 @@ import time
 from pathlib import Path
 
 from khgrl.common.config.settings import read_run_file
+from khgrl.common.delivery.control_auth import OPERATOR, ControlSigner
 from khgrl.common.delivery.declare import alive_now, put, subscribe
 from khgrl.common.delivery.transport import open_client, undeclare_all
-from khgrl.common.wire.messages import Control, Status
-from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, decode, encode
+from khgrl.common.wire.messages import Status
+from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, decode
 
 __all__ = ["main", "ready_main", "build_parser", "target"]
 
@@ -55,6 +57,8 @@ def build_parser(prog: str = "khgrl stop") -> argparse.ArgumentParser:
     p.add_argument("--connect", default=None, help="the router's endpoint, without RUN_DIR (default: RUN_DIR's)")
     p.add_argument("--zenoh-config", default=None, help="a Zenoh configuration file with the launcher's certificate "
                    "(default: RUN_DIR/certs/zenoh/launcher.json5 for a --secure run, else none)")
+    p.add_argument("--key", default=None, metavar="FILE", help="the operator's private signing key (default: "
+                   "RUN_DIR/keys/operator-launcher.key if there, else the command goes unsigned)")
     p.add_argument("--timeout", type=float, default=None, help="seconds to wait for the actors to confirm (default: "
                    "5; a plain stop 20, for the actors' final flush)")
     return p
@@ -108,11 +112,13 @@ class _Actors:
 
 
 def _wait(session, keys: Keys, actors: _Actors, command: str, target_key: str, want: list[str],
-          timeout: float) -> list[str]:
-    """Publish ``command`` every :data:`REPEAT_S` until each actor in ``want`` confirms; the ones that did not."""
+          timeout: float, signer: ControlSigner) -> list[str]:
+    """Publish ``command`` (signed by ``signer``) every :data:`REPEAT_S` until each actor in ``want`` confirms; the
+    ones that did not."""
     deadline, seq, left = time.monotonic() + timeout, 0, list(want)
     while left and time.monotonic() < deadline:
-        put(session, target_key, _payload(command, seq), congestion="block", priority="interactive_high", express=True)
+        put(session, target_key, signer.payload(target_key, command, LAUNCHER, seq), congestion="block",
+            priority="interactive_high", express=True)
         seq += 1
         end = min(deadline, time.monotonic() + REPEAT_S)
         while left and time.monotonic() < end:
@@ -121,10 +127,6 @@ def _wait(session, keys: Keys, actors: _Actors, command: str, target_key: str, w
             with actors.lock:
                 left = [a for a in left if not _confirmed(command, a in alive, actors.held.get(a))]
     return left
-
-
-def _payload(command: str, seq: int) -> bytes:
-    return encode(Control(command=command), LAUNCHER, seq)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -144,7 +146,8 @@ def _send(args: argparse.Namespace, command: str) -> int:
     try:
         run, connect, conf = target(args)
         keys = Keys(run)
-    except (ValueError, FileNotFoundError) as exc:
+        signer = ControlSigner.load(args.run_dir, OPERATOR, args.key)
+    except (ValueError, FileNotFoundError) as exc:  # (a bad key file: a RoleKeyError, a ValueError)
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
     try:
@@ -161,7 +164,7 @@ def _send(args: argparse.Namespace, command: str) -> int:
                 print(f"{prog}: error: no actor of run {run} is alive at {connect}", file=sys.stderr)
                 return 1
             t0 = time.monotonic()
-            left = _wait(session, keys, actors, command, keys.control(args.actor or "actor"), want, timeout)
+            left = _wait(session, keys, actors, command, keys.control(args.actor or "actor"), want, timeout, signer)
         finally:
             undeclare_all(sub)
     done = {"estop": "held by the e-stop", "release": "released", "stop": "stopped", "ready": "ready"}[command]
