@@ -15,6 +15,7 @@ from khgrl.actor.arbiter import CorrectionArbiter
 from khgrl.actor.human_limits import Assignments
 from khgrl.actor.inbound import Inbound
 from khgrl.actor.weights import PolicyWeights, WeightsReceiver, WeightsUpdate
+from khgrl.common.delivery.control_auth import ControlGate
 from khgrl.common.delivery.trust import HOLD_S, MAX_VERSIONS_PER_S, VERSION_SLACK, WeightsGate, learner_of
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
@@ -179,7 +180,8 @@ def _inbound(tmp_path) -> tuple[Inbound, SimpleNamespace, StopFlag]:
     stream, _, _, rejects = make_stream(tmp_path)
     w, rx, _ = _policy_weights(Clock())
     rx.rejects = rejects
-    parts = SimpleNamespace(stream=stream, weights=w, rejects=rejects, env=SimpleNamespace(t=0), task=None, link=None,
+    parts = SimpleNamespace(stream=stream, weights=w, rejects=rejects, env=SimpleNamespace(t=0),
+                            control=ControlGate.of_run(None), task=None, link=None,
                             arbiter=CorrectionArbiter("a0", 0.5, enabled=True))
     flag = StopFlag()
     return Inbound(parts, flag, Dims(out=2)), parts, flag
@@ -262,6 +264,8 @@ def test_the_estop_is_latched_until_the_launchers_release_and_ready_only_counts_
     assert inbound.paused and inbound.held_reason.startswith("waiting for ready before episode 2")
     inbound.handle("human_request", human, encode(Control(command="ready"), "kb", 5), 0.0, episode=1)
     assert inbound.awaiting_ready is None and not inbound.paused
-    parts.arbiter.assignments = Assignments("a0", "other=a0")  # kb is not assigned to this actor
-    inbound.handle("human_request", human, encode(Control(command="estop"), "kb", 6), 0.0, episode=1)
-    assert inbound.estop is None and parts.rejects.by_kind() == {"control": 2}
+    parts.arbiter.assignments = Assignments("a0", "other=a0")  # kb is not assigned to this actor:
+    inbound.handle("human_request", human, encode(Control(command="pause"), "kb", 6), 0.0, episode=1)
+    assert not inbound.paused and parts.rejects.by_kind() == {"control": 2}  # its pause is refused,
+    inbound.handle("human_request", human, encode(Control(command="estop"), "kb", 7), 0.0, episode=1)
+    assert inbound.estop is not None and parts.rejects.by_kind() == {"control": 2}  # its e-stop holds (any client)
