@@ -112,7 +112,7 @@ def _attack(session, tap: "Tap", up: Launcher, held: float, attacks: list[tuple[
     for key, payload in attacks:
         session.put(key, payload)
     time.sleep(QUIET_S)
-    assert tap.frames_since(held) == 0, f"{what} release moved the robot"
+    assert tap.frames_since(held) == 0, f"{what} control moved the robot"
     assert up.proc.poll() is None and tap.said("e-stop by launcher", held), (what, up.stdout, up.stderr)
 
 
@@ -135,7 +135,8 @@ def test_keyless_and_wrong_role_control_cannot_release_stop_or_ready_a_robot(tmp
         assert press.returncode == 0 and "a0: held by the e-stop" in press.stdout, press.stdout + press.stderr
         held = time.time()
         attacks = _keyless(keys)
-        _attack(session, tap, up, held, attacks, "a keyless")  # (before the fix: the first put released a0)
+        _attack(session, tap, up, held, attacks[:2], "a keyless")  # (before the fix: the first put released a0)
+        _attack(session, tap, up, held, attacks[2:], "a keyless stop or ready")  # (before: a0 and the run ended)
         attacks += _wrong_role(up.run_dir, keys)
         _attack(session, tap, up, held, attacks[4:], "another role's")
 
