@@ -25,7 +25,6 @@ from pathlib import Path
 
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
-from cryptography.hazmat.primitives.serialization import Encoding, NoEncryption, PrivateFormat, PublicFormat
 
 __all__ = ["ROLES", "KEY_DIR", "PUBLIC_FILE", "RoleKeyError", "key_id", "role_of", "private_path", "make_keys",
            "make_run_keys", "load_private", "PublicKeys", "SIG_BYTES"]
@@ -104,8 +103,8 @@ def make_keys(run_dir: str | Path, kids: list[str], fresh: bool = False) -> list
         if not fresh and kid in table and private_path(run_dir, kid).is_file():
             continue
         key = Ed25519PrivateKey.generate()
-        _write(private_path(run_dir, kid), key.private_bytes(Encoding.Raw, PrivateFormat.Raw, NoEncryption()), 0o600)
-        table[kid] = key.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw).hex()
+        _write(private_path(run_dir, kid), key.private_bytes_raw(), 0o600)
+        table[kid] = key.public_key().public_bytes_raw().hex()
         made.append(kid)
     _write(folder / PUBLIC_FILE, json.dumps({"v": 1, "keys": dict(sorted(table.items()))}, indent=1).encode(), 0o644)
     return made
