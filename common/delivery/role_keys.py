@@ -111,13 +111,15 @@ def make_keys(run_dir: str | Path, kids: list[str], fresh: bool = False) -> list
 
 
 def make_run_keys(run_dir: str | Path, identities: list[tuple[str, str]], fresh: bool = False) -> list[str]:
-    """:func:`make_keys` for the operator (``operator:launcher``) and each (role, id) of ``identities``.
+    """:func:`make_keys` for the operator (``operator:launcher``), each (role, id) of ``identities`` and the spare
+    client ``human:user`` (the client a user plugs in: ``--secure``'s ``human-user`` certificate).
 
     :param run_dir: the run directory.
     :param identities: (role, id) of the run's processes besides the operator.
     :param fresh: new keys for all of them (a new run).
     """
-    return make_keys(run_dir, [key_id("operator", "launcher")] + [key_id(r, i) for r, i in identities], fresh)
+    kids = [key_id("operator", "launcher")] + [key_id(r, i) for r, i in [*identities, ("human", "user")]]
+    return make_keys(run_dir, list(dict.fromkeys(kids)), fresh)
 
 
 def load_private(run_dir: str | Path | None, kid: str, path: str | Path | None = None) -> Ed25519PrivateKey | None:

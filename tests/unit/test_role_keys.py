@@ -35,7 +35,7 @@ def _got(payload: bytes) -> Control:
 def test_each_process_gets_its_own_0600_private_key_and_everyone_the_public_table(tmp_path):
     run = _run(tmp_path)
     table = PublicKeys.read_table(run)
-    assert sorted(table) == ["actor:a0", "human:h0", "learner:learner", OPERATOR]
+    assert sorted(table) == ["actor:a0", "human:h0", "human:user", "learner:learner", OPERATOR]  # (+ the spare)
     for kid in table:
         path = private_path(run, kid)
         assert path.stat().st_mode & 0o777 == 0o600 and path.stat().st_size == 32
