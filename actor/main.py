@@ -197,6 +197,9 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         gate = ControlGate.of_run(cfg.run_dir)  # control must carry the operator's (a client's) signature
     except (run_key.RunKeyError, RoleKeyError) as exc:
         return _error(actor, exc)
+    if not gate.active:
+        log.warning("no role keys in %s (khgrl keys RUN_DIR): control is not authenticated, anyone on the router may "
+                    "release the e-stop or stop this actor", cfg.run_dir)
     torch.set_num_threads(1)
     flag = StopFlag()
     install_stop_handlers(flag)

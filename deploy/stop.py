@@ -150,6 +150,9 @@ def _send(args: argparse.Namespace, command: str) -> int:
     except (ValueError, FileNotFoundError) as exc:  # (a bad key file: a RoleKeyError, a ValueError)
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    if signer.key is None:  # (a run without role keys takes it; one with them refuses it)
+        print(f"{prog}: warning: no operator key (RUN_DIR/keys/operator-launcher.key or --key): the command goes "
+              f"unsigned, and the actors of a run with role keys refuse it", file=sys.stderr)
     try:
         session = open_client(connect, timeout=5.0, zenoh_config=conf)
     except ConnectionError as exc:
