@@ -9,7 +9,8 @@ machine reaching the loopback port -- and by processes that hold another role's 
    ``release`` signed by a0's own key (as itself, and claiming to be the operator); a ``release`` signed by a human
    client's key (``khgrl keys RUN_DIR --human h9``, made while the run goes on) on ``control/actor``; an unsigned
    ``stop`` on ``control/all`` and ``ready`` on ``control/actor``. None of them moves the robot (no frame), stops an
-   actor or the run (the launcher does not take the stop), and each is counted in a0's rejects.
+   actor, the learner or the run (the launcher does not take the stop), and each is counted in a0's and the
+   launcher's rejects.
    Before this fix the first put released the e-stop: frames came again at once (the issue: "releases the e-stop
    with one Zenoh put"), the unsigned ``stop`` ended a0 and the run, and the launcher printed them like genuine ones.
 2. The operator's genuine ``khgrl stop --release`` works (recorded off the wire by this test); the human client h9
@@ -168,4 +169,7 @@ def test_keyless_and_wrong_role_control_cannot_release_stop_or_ready_a_robot(tmp
     for why in ("not signed", "only the operator", "wrong signature", "a replay"):
         assert why in log, why
     assert "from another session (sender 'mallory')" not in up.stderr and "stopped by a stop command" in up.stderr
+    launcher = read_json(up.run_dir / "summary.json")["launcher_rejects"].get("control", 0)
+    assert launcher >= 7, launcher  # khgrl up refused them too (the 7 on control/*, and the replay)
+    assert "stop not signed" in (up.run_dir / "learner" / "learner.log").read_text()  # the learner refused the stop
     print(f"refused control: {refused} (attacks {len(attacks)} + 1 replay); e-stop held through all of them")
