@@ -157,7 +157,7 @@ class PublicKeys:
 
     run_dir: str | Path | None
     keys: dict[str, Ed25519PublicKey] = field(default_factory=dict)
-    _stamp: tuple = ()
+    _stamp: tuple = field(default=(), init=False, repr=False)  # (mtime, size, inode) of the file last read
 
     def __post_init__(self) -> None:
         self.refresh()
@@ -205,9 +205,12 @@ class PublicKeys:
         stamp = (st.st_mtime_ns, st.st_size, st.st_ino) if st is not None else ()
         if stamp == self._stamp:
             return False
-        self._stamp = stamp
         table = self.read_table(self.run_dir) if st is not None else {}
-        self.keys = {kid: Ed25519PublicKey.from_public_bytes(bytes.fromhex(h)) for kid, h in table.items()}
+        try:
+            self.keys = {kid: Ed25519PublicKey.from_public_bytes(bytes.fromhex(h)) for kid, h in table.items()}
+        except ValueError as exc:  # (not hex, not a key)
+            raise RoleKeyError(f"{path}: {exc}") from None
+        self._stamp = stamp
         return True
 
     def verify(self, kid: str, sig: bytes, data: bytes) -> str | None:
@@ -218,8 +221,11 @@ class PublicKeys:
         :param data: the signed bytes.
         """
         pub = self.keys.get(kid)
-        if pub is None and self.refresh():
-            pub = self.keys.get(kid)
+        if pub is None:
+            try:
+                pub = self.keys.get(kid) if self.refresh() else None
+            except RoleKeyError as exc:  # (the table was damaged while the run goes on: the known keys stay)
+                return f"signed by {kid!r}, not known; {exc}"
         if pub is None:
             return f"signed by {kid!r}, a key this run does not know"
         try:

@@ -104,6 +104,12 @@ def test_a_forged_moved_or_replayed_signature_is_refused(tmp_path):
     stranger = ControlSigner.load(None, "human:h7", private_path(run, "human:h0"))  # a key the run does not know
     msg = _got(stranger.payload(KEYS.human_request("h7"), "estop", "h7", 0))
     assert "does not know" in gate.check(msg, KEYS.human_request("h7"))
+    public = run / "keys" / "public.json"
+    good = public.read_text()
+    public.write_text("{damaged")  # a damaged table while the run goes on: refused with the reason, no exception
+    assert "not a key table" in gate.check(msg, KEYS.human_request("h7"))
+    assert gate.check(_got(operator.payload(key, "stop", LAUNCHER, 20)), key) is None  # the known keys stay
+    public.write_text(good)
     make_keys(run, ["human:h7"])  # a client added while the run goes on: known at its next message
     h7 = ControlSigner.load(run, "human:h7")
     assert gate.check(_got(h7.payload(KEYS.human_request("h7"), "estop", "h7", 1)), KEYS.human_request("h7")) is None
