@@ -9,9 +9,12 @@ one that claims batches never sent, and with the run's key (:mod:`~khgrl.common.
 without the learner's ``mac``; a ``superseded`` ack is obeyed only when authenticated (without the key: once an
 ack of another stream of this id came; that stream's acks also stop the actor:
 :class:`~khgrl.common.delivery.actor_guard.ActorGuard`);
-a learner of another task is ignored (the actor stops only if none of its own task comes); a ``stop`` or ``pause``
-that does not come from the launcher is obeyed but logged as such (a warning with its sender and key). A
-human-input client's ``pause`` holds only the actors it is assigned to and ends unless renewed within
+a learner of another task is ignored (the actor stops only if none of its own task comes). With the run's role keys
+(``RUN_DIR/keys``) control is taken only signed by the operator (a human-input client's request by that client's
+key), fresh and not replayed (:class:`~khgrl.common.delivery.control_auth.ControlGate`): anything else is counted and
+logged as a rejected message. Without them a ``stop`` or ``pause`` that does not come from the launcher is obeyed but
+logged as such (a warning with its sender and key). Any human-input client may press the e-stop; its ``pause`` holds
+only the actors it is assigned to and ends unless renewed within
 ``human_pause_s`` (:class:`~khgrl.actor.human_limits.HumanPauses`); a correction the arbiter refuses (a client not
 assigned to this actor, P_h far outside the workspace) is counted and logged as a rejected message.
 """
@@ -187,6 +190,9 @@ class Inbound:
         except ProtocolError as exc:
             self.p.rejects.reject(getattr(exc, "kind", kind), key, exc)
             return
+        if kind in ("control", "human_request") and (why := self.p.control.check(msg, key)):
+            self.p.rejects.reject("control", key, ProtocolError(why))  # (unsigned, wrong key or role, a replay)
+            return
         if kind == "ack":
             self._on_ack(msg, key)
         elif kind == "correction":
@@ -199,7 +205,7 @@ class Inbound:
 
     def _on_human_request(self, msg: Control, key: str, arrival: float, episode: int) -> None:
         client = msg.envelope.sender
-        if msg.command != "estop" and not self.p.arbiter.assignments.allows(client):  # (any client's e-stop holds)
+        if msg.command != "estop" and not self.p.arbiter.assignments.allows(client):  # (any client may press it)
             self.p.rejects.reject("control", key, ProtocolError(
                 f"{msg.command} from human-input client {client!r}, not assigned to actor {self.p.arbiter.actor}"))
             return
@@ -298,6 +304,9 @@ class Inbound:
         elif msg.command == "ready":
             self.ready(msg.envelope.sender)
         elif msg.command == "release":
+            if self.estop is not None and self.estop.by == msg.envelope.sender and msg.envelope.ts <= self.estop.sent:
+                log.warning("release from %s ignored: signed before the press it would release", msg.envelope.sender)
+                return
             if self.estop is not None:
                 log.warning("e-stop released by %s", msg.envelope.sender)
             self.estop = None

@@ -50,7 +50,9 @@ from khgrl.common.config.process import ProcessConfig, add_process_flags, resolv
 from khgrl.common.config.settings import HUMAN_METHODS
 from khgrl.common.delivery import run_key
 from khgrl.common.delivery.actor_link import ActorLink, actor_alive
+from khgrl.common.delivery.control_auth import ControlGate
 from khgrl.common.delivery.restart import AlreadyRunning, StreamRecord, StreamStart, lock_actor_dir, open_stream
+from khgrl.common.delivery.role_keys import RoleKeyError
 from khgrl.common.delivery.stream import TransitionStream
 from khgrl.common.delivery.task_link import TaskAnnouncer
 from khgrl.common.delivery.transport import Inbox, open_client
@@ -81,8 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, start: StreamStart,
-                 resume: bool, task=None, key: bytes | None = None, physical: PhysicalHands | None = None
-                 ) -> ActorParts:
+                 resume: bool, task=None, key: bytes | None = None, physical: PhysicalHands | None = None,
+                 control: ControlGate | None = None) -> ActorParts:
     """Declare everything on the session and wire the loop's parts (declaration order as the protocol expects:
     subscribers, publishers, the weights receiver, then the liveliness token)."""
     cfg, keys = pc.cfg, Keys(pc.run)
@@ -120,7 +122,7 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
                                              dim=env.mapping.model.out_dim),
                       episodes=episodes, tensorboard=TensorBoard(out_dir / "tb" if cfg.tensorboard else None),
                       rejects=rejects, task=task, announcer=announcer, physical=physical or PhysicalHands.off(),
-                      steps=StepRecord(out_dir, listeners=views))
+                      steps=StepRecord(out_dir, listeners=views), control=control or ControlGate.of_run(None))
 
 
 def _physical(cfg, env, out_dir: Path) -> PhysicalHands:
@@ -192,8 +194,12 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
     setup_process_logging(out_dir / "actor.log")
     try:
         key = run_key.load(cfg.run_dir)  # acks and weights must carry the learner's mac when the run has a key
-    except run_key.RunKeyError as exc:
+        gate = ControlGate.of_run(cfg.run_dir)  # control must carry the operator's (a client's) signature
+    except (run_key.RunKeyError, RoleKeyError) as exc:
         return _error(actor, exc)
+    if not gate.active:
+        log.warning("no role keys in %s (khgrl keys RUN_DIR): control is not authenticated, anyone on the router may "
+                    "release the e-stop or stop this actor", cfg.run_dir)
     torch.set_num_threads(1)
     flag = StopFlag()
     install_stop_handlers(flag)
@@ -233,7 +239,7 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
                                  f"this id is refused (give it another --id)")
         start = open_stream(out_dir, cfg.stream.outbox_memory, actor, resume)
         resume = resume or start.continued
-        parts = _build_parts(pc, actor, session, env, policy, out_dir, start, resume, task, key, physical)
+        parts = _build_parts(pc, actor, session, env, policy, out_dir, start, resume, task, key, physical, gate)
         loop = ActorLoop(cfg, actor, parts, flag)
         loop.join()
         loop.realtime = set_realtime(cfg.actor_rt_priority) if cfg.actor_rt_priority > 0 else False

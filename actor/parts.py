@@ -13,6 +13,7 @@ from khgrl.actor.results import EpisodeLog
 from khgrl.actor.telemetry import TensorBoard
 from khgrl.actor.weights import PolicyWeights
 from khgrl.common.delivery.actor_link import ActorLink
+from khgrl.common.delivery.control_auth import ControlGate
 from khgrl.common.delivery.stream import TransitionStream
 from khgrl.common.delivery.transport import Inbox
 from khgrl.common.step_records import StepRecord
@@ -43,3 +44,4 @@ class ActorParts:
     announcer: Any = None  # khgrl.common.delivery.task_link.TaskAnnouncer
     physical: PhysicalHands = field(default_factory=PhysicalHands.off)  # --physical (off: does nothing)
     steps: StepRecord = field(default_factory=lambda: StepRecord(None))  # steps/episode-N.npz (None: nothing)
+    control: ControlGate = field(default_factory=lambda: ControlGate.of_run(None))  # who may send control

@@ -161,6 +161,11 @@ BENCHMARKS: dict[str, Benchmark] = {
         SEED,
         _flag("--work", default="runs/bench-view", help="run directories (default: %(default)s)"),
         OUT)),
+    "control": Benchmark("khgrl.benchmarks.control_sign", "run_control_benchmark",
+                         "signed control: the actor's decode + verification per message, the sender's signature, and "
+                         "what khgrl stop's path pays once (import, key load)", (
+        _flag("--messages", type=int, default=2000, help="messages per case (default: %(default)s)"),
+        OUT)),
     "queries": Benchmark("khgrl.benchmarks.queries", "run_queries_benchmark",
                          "the learner's gradient steps/s while a monitor floods the weights queryable", (
         _flag("--qps", type=float, default=1000.0, help="queries per second of the flood (default: %(default)s)"),

@@ -89,6 +89,7 @@ PROCESS_COMMANDS = {
                   "supervise a run's actors: the heartbeat without which a robot holds (processes started by hand)"),
     "view": ("khgrl.deploy.view_cmd", "main", "a finished run in Rerun: an .rrd recording (--out) or the viewer"),
     "ready": ("khgrl.deploy.stop", "ready_main", "the robot is ready: the next episode may start (--confirm-reset)"),
+    "keys": ("khgrl.deploy.keys_cmd", "main", "the run's signing keys, one per process (for hand-started processes)"),
     # by name: the benchmarks drive the deployment tools (benchmarks imports deploy, not the other way round)
     "bench": ("khgrl.benchmarks.cli", "main", "benchmarks that print numbers (khgrl bench --help)"),
 }

@@ -11,8 +11,10 @@ TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mo
 ``--zenoh-config FILE`` gives every process a Zenoh configuration file.
 
 ``RUN_DIR/run.key`` gets a new secret first (0600; kept on ``--resume``): the learner signs acks and weights with it,
-actors check them (:mod:`khgrl.common.delivery.run_key`). An actor's alarm in its status ends the run with that line
-as its error (:mod:`khgrl.deploy.outcome`). In robot mode it supervises (:mod:`khgrl.deploy.supervise`).
+actors check them (:mod:`khgrl.common.delivery.run_key`), and ``RUN_DIR/keys`` a signing key per process (control:
+:mod:`khgrl.common.delivery.control_auth`). An actor's alarm in its status (another process publishes as it, two
+learners) ends the run with that line as its error (:mod:`khgrl.deploy.outcome`). In robot mode it supervises
+(:mod:`khgrl.deploy.supervise`).
 
 Exit codes: 0 the actors finished; 1 a process failed, an actor's alarm, the router was unreachable, ``--timeout``
 or a stop command from elsewhere; 2 a bad configuration or run directory; 128 + signal number on SIGINT/SIGTERM.
@@ -30,13 +32,13 @@ from pathlib import Path
 from typing import Any
 
 from khgrl.common.config.settings import HUMAN_METHODS, RunConfig, add_config_flags, resolve, write_run_config
-from khgrl.common.delivery import run_key
+from khgrl.common.delivery import control_auth, role_keys, run_key
 from khgrl.common.delivery.declare import put, subscribe
 from khgrl.common.delivery.task_link import TASK_FILE, save_task
 from khgrl.common.delivery.transport import Inbox, free_port, open_client, undeclare_all, wait_reachable
 from khgrl.common.delivery.zenoh_config import config_file
 from khgrl.common.process import StopFlag, install_stop_handlers
-from khgrl.common.wire.control import HEARTBEATS, control_payload
+from khgrl.common.wire.control import HEARTBEATS
 from khgrl.common.wire.messages import Control, EpisodeReport, Status
 from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, RejectCounter, decode
 from khgrl.deploy import outcome, rundir
@@ -206,6 +208,7 @@ def prepare_run_dir(plan: RunPlan) -> None:
         kept = rundir.keep_demos(plan.run_dir, plan.cfg.task_spec, plan.cfg.demos)
         plan.cfg = dataclasses.replace(plan.cfg, demos=str(kept))
     run_key.create(plan.run_dir, fresh=not plan.resume)  # the learner signs acks and weights, actors check
+    role_keys.make_run_keys(plan.run_dir, run_identities(plan.cfg), fresh=not plan.resume)  # the operator signs control
     if plan.secure:
         plan.secure_run = prepare_secure_run(plan.run_dir, plan.endpoint, run_identities(plan.cfg))
     runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "cwd": os.getcwd(), "actor_ids": plan.cfg.actor_ids(),
@@ -235,6 +238,7 @@ class Run:
         self.keys = Keys(plan.run_id)
         self.inbox = Inbox(maxsize=10_000, overflow="drop_oldest")
         self.rejects = RejectCounter("launcher")
+        self.signer, self.gate = control_auth.operator_side(plan.run_dir)  # signs and checks control
         self.out = Outcome()
         self.actors: list[Proc] = []
 
@@ -293,7 +297,7 @@ class Run:
                 # only other sessions' commands: this launcher's own stop never counts as one from elsewhere
                 subscribe(session, self.keys.control("**"), self.inbox.callback("control"), remote_only=True)]
         try:  # (in robot mode the actors move only while they hear this launcher's heartbeat)
-            with run_supervisor(session, self.keys, self.cfg, self.plan.run_dir):
+            with run_supervisor(session, self.keys, self.cfg, self.plan.run_dir, self.signer):
                 with ProgressView(self.cfg.actor_ids(), self.cfg.episodes, self.plan.progress) as view:
                     self._watch(view)
                 self._stop_children(session)
@@ -329,8 +333,9 @@ class Run:
             self.rejects.reject(kind, key, exc)
 
     def _control(self, msg: Control, key: str) -> None:
-        """A control command from another session (any ``sender``): reported (not another supervisor's heartbeats); a
-        stop ends the run as stopped from elsewhere (exit 1)."""
+        """A control command from another session, signed by the operator's key (else refused, counted): reported
+        (not a supervisor's heartbeats); a stop ends the run as stopped from elsewhere (exit 1)."""
+        self.gate.admit(msg, key)
         if msg.command not in HEARTBEATS:
             print(f"khgrl up: control {msg.command!r} on {key} from another session (sender "
                   f"{msg.envelope.sender!r})", file=sys.stderr, flush=True)
@@ -348,9 +353,8 @@ class Run:
 
     def _stop_children(self, session) -> None:
         """Actors first, then everything else: ``control/actor stop`` until the actors exited (each publishes its last
-        batch and waits a moment for the learner to checkpoint it) or :data:`ACTOR_STOP_GRACE_S`, then ``control/all
-        stop`` until every process but the router exited or the grace is over (then :meth:`execute` signals them).
-        Each command is repeated each second (a process still starting subscribes late)."""
+        batch, waits a moment for the learner to checkpoint it) or :data:`ACTOR_STOP_GRACE_S`, then ``control/all stop``
+        until all but the router exited or the grace is over (then :meth:`execute` signals them); each second again."""
         abrupt = bool(self.out.failed) or bool(self.flag)
         grace = min(self.cfg.stop_timeout, FAILURE_GRACE_S + ACTOR_STOP_GRACE_S) if abrupt else self.cfg.stop_timeout
         deadline = time.monotonic() + grace
@@ -360,7 +364,7 @@ class Run:
         seq = 0
         for procs, target, until in phases:
             while True:
-                put(session, self.keys.control(target), control_payload("stop", LAUNCHER, seq))
+                put(session, k := self.keys.control(target), self.signer.payload(k, "stop", LAUNCHER, seq))
                 seq += 1
                 left = until - time.monotonic()
                 if self.group.wait_all(max(0.0, min(1.0, left)), procs) or left <= 0:

@@ -9,8 +9,9 @@
 It joins the run's router as the launcher (``RUN_DIR/config.json`` gives the run id and endpoint; a ``--secure``
 run's launcher certificate is ``RUN_DIR/certs/zenoh/launcher.json5``: the router's access control lets only the
 launcher publish on ``control/**``), publishes the command on ``control/actor`` (or ``control/<ID>``) every half
-second, and waits until each live actor's status confirms it (held by the e-stop, no longer held by it, no longer
-waiting for ready, or gone).
+second, signed with the operator's key (``RUN_DIR/keys/operator-launcher.key`` or ``--key``: the actors refuse
+control without it when the run has role keys, :mod:`khgrl.common.delivery.control_auth`), and waits until each
+live actor's status confirms it (held by the e-stop, no longer held by it, no longer waiting for ready, or gone).
 
 ``khgrl ready`` is sent only when an actor's status says it waits for ready; the others are named, and when none waits
 it says so and sends nothing (exit 1).
@@ -35,10 +36,11 @@ import threading
 import time
 from pathlib import Path
 
+from khgrl.common.delivery.control_sign import OPERATOR, ControlSigner
 from khgrl.common.delivery.declare import alive_now, put, subscribe
 from khgrl.common.delivery.estop_state import write_state
 from khgrl.common.delivery.transport import open_client, undeclare_all
-from khgrl.common.wire.control import HEARTBEAT, HEARTBEAT_ESTOP, LAUNCHER, control_payload
+from khgrl.common.wire.control import HEARTBEAT, HEARTBEAT_ESTOP, LAUNCHER
 from khgrl.common.wire.keys import Keys
 
 __all__ = ["main", "ready_main", "build_parser", "target"]
@@ -67,6 +69,8 @@ def build_parser(prog: str = "khgrl stop") -> argparse.ArgumentParser:
     p.add_argument("--connect", default=None, help="the router's endpoint, without RUN_DIR (default: RUN_DIR's)")
     p.add_argument("--zenoh-config", default=None, help="a Zenoh configuration file with the launcher's certificate "
                    "(default: RUN_DIR/certs/zenoh/launcher.json5 for a --secure run, else none)")
+    p.add_argument("--key", default=None, metavar="FILE", help="the operator's private signing key (default: "
+                   "RUN_DIR/keys/operator-launcher.key if there, else the command goes unsigned)")
     p.add_argument("--timeout", type=float, default=None, help="seconds to wait for the actors to confirm (default: "
                    "5; a plain stop 20, for the actors' final flush)")
     return p
@@ -127,13 +131,14 @@ class _Actors:
 
 
 def _wait(session, keys: Keys, actors: _Actors, command: str, target_key: str, want: list[str],
-          timeout: float, seq: int = 0) -> list[str]:
-    """Publish ``command`` every :data:`REPEAT_S` until each actor in ``want`` confirms; the ones that did not."""
+          timeout: float, signer: ControlSigner, seq: int = 0) -> list[str]:
+    """Publish ``command`` (signed by ``signer``) every :data:`REPEAT_S` until each actor in ``want`` confirms; the
+    ones that did not."""
     deadline, left, sent = time.monotonic() + timeout, list(want), seq > 0  # (seq > 0: the first went out already)
     while left and time.monotonic() < deadline:
         if not sent:
-            put(session, target_key, _payload(command, seq), congestion="block", priority="interactive_high",
-                express=True)
+            put(session, target_key, signer.payload(target_key, command, LAUNCHER, seq), congestion="block",
+                priority="interactive_high", express=True)
             seq += 1
         sent = False
         end = min(deadline, time.monotonic() + REPEAT_S)
@@ -162,10 +167,6 @@ def _waiting_for_ready(actors: _Actors, want: list[str], prog: str) -> list[str]
     if not waiting:
         print(f"{prog}: nothing was waiting for ready: not sent", file=sys.stderr)
     return waiting
-
-
-def _payload(command: str, seq: int) -> bytes:
-    return control_payload(command, LAUNCHER, seq)
 
 
 class _Supervisor:
@@ -197,7 +198,8 @@ def _record(args: argparse.Namespace, command: str, prog: str) -> Path | None:
         return None
 
 
-def _no_actor(session, keys: Keys, command: str, recorded: Path | None, run: str, connect: str, prog: str) -> int:
+def _no_actor(session, keys: Keys, command: str, recorded: Path | None, run: str, connect: str, prog: str,
+              signer: ControlSigner) -> int:
     """No actor alive: an e-stop press or release is still the run's state -- confirmed by the file just written or
     by the supervisor's heartbeat (asked for :data:`REPEAT_S` * 3); the exit code."""
     if command in ("estop", "release"):
@@ -206,7 +208,8 @@ def _no_actor(session, keys: Keys, command: str, recorded: Path | None, run: str
         try:
             want = HEARTBEAT_ESTOP if command == "estop" else HEARTBEAT
             for seq in range(1, 4):
-                put(session, keys.control("actor"), _payload(command, seq), congestion="block",
+                key = keys.control("actor")
+                put(session, key, signer.payload(key, command, LAUNCHER, seq), congestion="block",
                     priority="interactive_high", express=True)
                 end = time.monotonic() + REPEAT_S
                 while sup.said != want and time.monotonic() < end:
@@ -240,9 +243,13 @@ def _send(args: argparse.Namespace, command: str) -> int:
     try:
         run, connect, conf = target(args)
         keys = Keys(run)
-    except (ValueError, FileNotFoundError) as exc:
+        signer = ControlSigner.load(args.run_dir, OPERATOR, args.key)
+    except (ValueError, FileNotFoundError) as exc:  # (a bad key file: a RoleKeyError, a ValueError)
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
+    if signer.key is None:  # (a run without role keys takes it; one with them refuses it)
+        print(f"{prog}: warning: no operator key (RUN_DIR/keys/operator-launcher.key or --key): the command goes "
+              f"unsigned, and the actors of a run with role keys refuse it", file=sys.stderr)
     recorded = _record(args, command, prog)
     try:
         session = open_client(connect, timeout=5.0, zenoh_config=conf)
@@ -252,20 +259,20 @@ def _send(args: argparse.Namespace, command: str) -> int:
     with session:
         t0, target_key, seq = time.monotonic(), keys.control(args.actor or "actor"), 0
         if command == "estop":  # at once, before anything else is asked or loaded
-            put(session, target_key, _payload(command, 0), congestion="block", priority="interactive_high",
-                express=True)
+            put(session, target_key, signer.payload(target_key, command, LAUNCHER, 0), congestion="block",
+                priority="interactive_high", express=True)
             seq = 1
         actors = _Actors()
         sub = subscribe(session, keys.status("actor", "*"), actors.on_status)
         try:
             want = sorted(k.split("/")[-1] for k in alive_now(session, keys.alive("actor", args.actor or "*"), 1.0))
             if not want:
-                return _no_actor(session, keys, command, recorded, run, connect, prog)
+                return _no_actor(session, keys, command, recorded, run, connect, prog, signer)
             if command == "ready":
                 if not (want := _waiting_for_ready(actors, want, prog)):
                     return 1
                 t0 = time.monotonic()
-            left = _wait(session, keys, actors, command, target_key, want, timeout, seq)
+            left = _wait(session, keys, actors, command, target_key, want, timeout, signer, seq)
         finally:
             undeclare_all(sub)
     done = {"estop": "held by the e-stop", "release": "released", "stop": "stopped", "ready": "ready"}[command]

@@ -24,9 +24,10 @@ import sys
 import threading
 from pathlib import Path
 
+from khgrl.common.delivery.control_sign import OPERATOR, ControlSigner
 from khgrl.common.delivery.declare import put, subscribe
 from khgrl.common.delivery.estop_state import read_state, write_state
-from khgrl.common.wire.control import HEARTBEAT, HEARTBEAT_ESTOP, control_payload
+from khgrl.common.wire.control import HEARTBEAT, HEARTBEAT_ESTOP
 from khgrl.common.wire.protocol import LAUNCHER, Keys
 
 __all__ = ["Heartbeat", "run_supervisor", "main", "build_parser", "HEARTBEAT_S"]
@@ -44,12 +45,18 @@ class Heartbeat:
     :param state_dir: where ``estop.json`` is kept (None: in memory only).
     :param period: seconds between heartbeats.
     :param say: called with a line when the state changes (default: the log).
+    :param signer: the operator's signer (:class:`~khgrl.common.delivery.control_sign.ControlSigner`; default:
+        unsigned, for a run without role keys).
+    :param gate: the run's :class:`~khgrl.common.delivery.control_auth.ControlGate`: a press or release it refuses
+        (unsigned, another role's key, a replay) does not change the run's state (default: none, nothing checked).
     """
 
     def __init__(self, session, keys: Keys, state_dir: Path | None, period: float = HEARTBEAT_S,
-                 say=None) -> None:
+                 say=None, signer: ControlSigner | None = None, gate=None) -> None:
         self.session, self.keys, self.dir, self.period = session, keys, state_dir, period
         self.say = say or log.info
+        self.signer = signer or ControlSigner(None, OPERATOR)  # signs the heartbeats (a run with role keys)
+        self.gate = gate  # checks what it hears (a ControlGate; None: nothing checked)
         state = read_state(state_dir) if state_dir is not None else None
         self.pressed = bool(state and state.pressed)
         self.by = str(state.get("by")) if state else ""
@@ -75,8 +82,12 @@ class Heartbeat:
             msg = decode(Control, sample.payload.to_bytes())
         except ProtocolError:
             return
-        if msg.command in ("estop", "release"):  # (not the heartbeats of another supervisor)
-            self.note(msg.command == "estop", f"{msg.envelope.sender} on {sample.key_expr}")
+        if msg.command not in ("estop", "release"):  # (not the heartbeats of another supervisor)
+            return
+        if self.gate is not None and (why := self.gate.check(msg, str(sample.key_expr))):
+            log.warning("%s on %s not taken: %s", msg.command, sample.key_expr, why)  # (the actors refuse it too)
+            return
+        self.note(msg.command == "estop", f"{msg.envelope.sender} on {sample.key_expr}")
 
     def note(self, pressed: bool, by: str) -> None:
         """A press or a release heard: the run's state (kept in ``estop.json``), sent with the next heartbeat.
@@ -104,9 +115,10 @@ class Heartbeat:
     def beat(self) -> None:
         """One heartbeat (the state as it is now)."""
         self._from_file()
-        put(self.session, self.keys.control("actor"),
-            control_payload(HEARTBEAT_ESTOP if self.pressed else HEARTBEAT, LAUNCHER, self.sent),
-            congestion="drop", priority="interactive_high", express=True)
+        key = self.keys.control("actor")
+        put(self.session, key, self.signer.payload(key, HEARTBEAT_ESTOP if self.pressed else HEARTBEAT, LAUNCHER,
+                                                   self.sent), congestion="drop", priority="interactive_high",
+            express=True)
         self.sent += 1
 
     def _run(self) -> None:
@@ -127,21 +139,25 @@ class Heartbeat:
         undeclare_all(*self._subs)
 
 
-def run_supervisor(session, keys: Keys, cfg, run_dir: Path):
+def run_supervisor(session, keys: Keys, cfg, run_dir: Path, signer: ControlSigner | None = None):
     """``khgrl up``'s supervisor: a :class:`Heartbeat` when its actors need one (``safety.supervised``), else a context
     that does nothing.
 
     :param session: the launcher's session.
     :param keys: the run's key expressions.
     :param cfg: the run's settings.
-    :param run_dir: the run directory (``estop.json``).
+    :param run_dir: the run directory (``estop.json``, ``keys/public.json``).
+    :param signer: the operator's signer (default: unsigned).
     """
     from contextlib import nullcontext
 
     if not cfg.safety.supervised(cfg.stream.mode):
         return nullcontext()
+    from khgrl.common.delivery.control_auth import ControlGate
+
     return Heartbeat(session, keys, run_dir, cfg.safety.heartbeat_s,
-                     say=lambda line: print(f"khgrl up: {line}", file=sys.stderr, flush=True))
+                     say=lambda line: print(f"khgrl up: {line}", file=sys.stderr, flush=True), signer=signer,
+                     gate=ControlGate.of_run(run_dir))  # (its own: the launcher's gate takes the same messages)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -154,6 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--connect", default=None, help="the router's endpoint, without RUN_DIR (default: RUN_DIR's)")
     p.add_argument("--zenoh-config", default=None, help="a Zenoh configuration file with the launcher's certificate "
                    "(default: RUN_DIR/certs/zenoh/launcher.json5 for a --secure run, else none)")
+    p.add_argument("--key", default=None, metavar="FILE", help="the operator's private signing key (default: "
+                   "RUN_DIR/keys/operator-launcher.key if there, else the heartbeats go unsigned)")
     p.add_argument("--state-dir", default=None, help="where to keep estop.json (default: RUN_DIR; without RUN_DIR: "
                    "in memory only)")
     p.add_argument("--heartbeat-s", type=float, default=None, help="seconds between heartbeats (default: RUN_DIR's "
@@ -182,6 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         run, connect, conf = target(args)
         keys, period = Keys(run), _period(args)
+        signer = ControlSigner.load(args.run_dir, OPERATOR, args.key)
         state_dir = Path(args.state_dir or args.run_dir) if (args.state_dir or args.run_dir) else None
         if state_dir is not None and not state_dir.is_dir():
             raise FileNotFoundError(f"--state-dir {state_dir} is not a directory")
@@ -195,7 +214,11 @@ def main(argv: list[str] | None = None) -> int:
     except ConnectionError as exc:
         print(f"khgrl supervise: error: {exc}", file=sys.stderr)
         return 1 if not flag else 0
-    with session, Heartbeat(session, keys, state_dir, period, say=lambda line: print(line, flush=True)) as beat:
+    from khgrl.common.delivery.control_auth import ControlGate
+
+    beat = Heartbeat(session, keys, state_dir, period, say=lambda line: print(line, flush=True), signer=signer,
+                     gate=ControlGate.of_run(args.run_dir))
+    with session, beat:
         print(f"khgrl supervise: run {run} at {connect}: a heartbeat every {period:g} s (e-stop "
               f"{'pressed' if beat.pressed else 'released'})", flush=True)
         flag.event.wait()

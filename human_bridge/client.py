@@ -19,6 +19,7 @@ from typing import Iterator
 
 import numpy as np
 from khgrl.common.config.process import ProcessConfig
+from khgrl.common.delivery.control_auth import ControlGate, ControlSigner
 from khgrl.common.delivery.declare import publisher, put, subscribe, token
 from khgrl.common.delivery.senders import HUMAN_COMMANDS
 from khgrl.common.delivery.task_link import fetch_task
@@ -105,8 +106,11 @@ class HumanClient:
     """
 
     def __init__(self, session, keys: Keys, client: str, flag: StopFlag, actor: str = "*",
-                 kinds: tuple[str, ...] = ("frame",)) -> None:
+                 kinds: tuple[str, ...] = ("frame",), signer: ControlSigner | None = None,
+                 gate: ControlGate | None = None) -> None:
         self.session, self.keys, self.client, self.flag = session, keys, client, flag
+        self.signer = signer or ControlSigner(None, f"human:{client}")  # signs this client's requests
+        self.gate = gate or ControlGate.of_run(None)  # checks the stop it gets (the operator's signature)
         self.rejects = RejectCounter(f"human/{client}")
         self.frames = 0
         self.inbox = Inbox(4096, "drop_oldest")  # a viewer needs the newest frames, not every old one
@@ -144,7 +148,9 @@ class HumanClient:
     def _handle_controls(self) -> None:
         while (item := self.controls.get()) is not None:
             msg = read("control", item[1], item[2], self.rejects)
-            if msg is not None and msg.command == "stop":
+            if msg is not None and (why := self.gate.check(msg, item[1])):
+                self.rejects.reject("control", item[1], ProtocolError(why))
+            elif msg is not None and msg.command == "stop":
                 attribute_control(msg, item[1], log)
                 self.flag.set("stop command")
 
@@ -173,8 +179,8 @@ class HumanClient:
             self._request(command)
 
     def _request(self, command: str) -> None:
-        put(self.session, self.keys.human_request(self.client),
-            encode(Control(command=command), self.client, self._control_seq), congestion="block",
+        key = self.keys.human_request(self.client)
+        put(self.session, key, self.signer.payload(key, command, self.client, self._control_seq), congestion="block",
             priority="interactive_high", express=True)
         self._control_seq += 1
 
@@ -199,9 +205,11 @@ def connected(proc: ProcessConfig, client: str, flag: StopFlag, actor: str = "*"
     :param actor: the actor to follow (``*``: all).
     :param kinds: what to subscribe to (see :class:`HumanClient`).
     """
+    run_dir = proc.cfg.run_dir  # this client's signing key and the run's public keys (RUN_DIR/keys)
+    signer, gate = ControlSigner.load(run_dir, f"human:{client}"), ControlGate.of_run(run_dir)
     with open_client(proc.endpoint, proc.cfg.stream.lease_ms, stop=lambda: bool(flag),
                      timeout=proc.cfg.connect_timeout, zenoh_config=proc.zenoh_config) as session:
-        link = HumanClient(session, Keys(proc.run), client, flag, actor, kinds)
+        link = HumanClient(session, Keys(proc.run), client, flag, actor, kinds, signer, gate)
         try:
             yield link
         finally:

@@ -106,7 +106,9 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     """
     import torch  # (imported here: --help and flag errors answer at once)
     from khgrl.common.delivery import run_key
+    from khgrl.common.delivery.control_auth import ControlGate
     from khgrl.common.delivery.learner_link import LearnerLink
+    from khgrl.common.delivery.role_keys import RoleKeyError
     from khgrl.learner.journal import Journal, journal_dir
     from khgrl.learner.loop import LearnerLoop
     from khgrl.learner.resume import open_learner
@@ -116,7 +118,8 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     setup_process_logging(learner_dir / "learner.log")
     try:
         key = run_key.load(cfg.run_dir)  # acks and weights carry a mac, batches must, when the run has a key
-    except run_key.RunKeyError as exc:
+        gate = ControlGate.of_run(cfg.run_dir)  # control must carry the operator's signature when the run has keys
+    except (run_key.RunKeyError, RoleKeyError) as exc:
         return _fail(exc)
     torch.set_num_threads(max(1, cfg.learner_threads))
     try:
@@ -157,6 +160,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
                            model_checkpoint_every=cfg.stream.model_checkpoint_every,
                            lead_cap=lead_cap(cfg.stream), key=key)
         loop.set_task(task)
+        loop.ingest.control = gate
         loop.start()
         link.announce(trainer.epoch)
         print(f"khgrl learner {learner_id} ready (epoch {trainer.epoch}, version {trainer.version}, "

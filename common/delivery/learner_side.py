@@ -27,6 +27,7 @@ from collections import Counter
 from typing import Any, Callable, Protocol
 
 from khgrl.common.delivery import run_key
+from khgrl.common.delivery.control_auth import ControlGate
 from khgrl.common.delivery.guards import ReplayGuard, RequestLimiter
 from khgrl.common.delivery.ingest import ActorStream, FairInbox, StreamTable
 from khgrl.common.delivery.learner_link import Publisher
@@ -71,6 +72,7 @@ class LearnerIngest:
                  key: bytes | None = None) -> None:
         self.streams, self.pub, self.store, self.ack_of, self.on_control = streams, publisher, store, ack_of, on_control
         self.flag, self.key = flag, key
+        self.control = ControlGate.of_run(None)  # who may send control (set to the run's: its role keys)
         self.rejects = RejectCounter(f"learner/{learner_id}")
         self.results: Counter = Counter()  # offers by result
         self.touched: set[str] = set()
@@ -121,6 +123,9 @@ class LearnerIngest:
             self._take(msg, key)
             return
         if kind == "control":
+            if why := self.control.check(msg, key):  # (unsigned, not the operator's, a replay)
+                self.rejects.reject("control", key, ProtocolError(why))
+                return
             attribute_control(msg, key, log)
         elif kind == "request":  # only checkpoint requests from their own actor get here (read_for_learner)
             with self.lock:

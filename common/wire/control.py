@@ -22,14 +22,20 @@ HEARTBEAT, HEARTBEAT_ESTOP = "heartbeat", "heartbeat-estop"
 HEARTBEATS = (HEARTBEAT, HEARTBEAT_ESTOP)
 
 
-def control_payload(command: str, sender: str, seq: int, ts: float | None = None) -> bytes:
-    """The encoded ``control`` message ``command`` from ``sender``, number ``seq``.
+def control_payload(command: str, sender: str, seq: int, ts: float | None = None, signer: str | None = None,
+                    sig: bytes | None = None) -> bytes:
+    """The encoded ``control`` message ``command`` from ``sender``, number ``seq`` (signed: with ``signer`` and
+    ``sig``, :mod:`khgrl.common.delivery.control_sign`).
 
     :param command: one of :data:`~khgrl.common.wire.messages.COMMANDS` (not checked here: the receivers check).
     :param sender: the sender's id (``launcher`` for the operator's side).
     :param seq: the sender's sequence number.
     :param ts: the timestamp (default: now).
+    :param signer: the signer's key id (None: unsigned).
+    :param sig: its signature (with ``signer``).
     """
     body = {"v": SCHEMA_VERSION, "kind": "control", "sender": sender, "seq": int(seq),
             "ts": float(time.time() if ts is None else ts), "command": command}
+    if signer is not None:
+        body["signer"], body["sig"] = signer, bytes(sig)
     return msgpack.packb(body, use_bin_type=True)

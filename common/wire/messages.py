@@ -51,14 +51,19 @@ def _any_vec(name: str, value: Any, most: int) -> np.ndarray:
 
 
 MAC_BYTES = 32  # the ``mac`` of acks, weights and transitions
+SIG_BYTES = 64  # the ``sig`` of control (Ed25519)
 
 
-def _mac(name: str, value: Any) -> bytes:
-    """A ``mac`` field: exactly :data:`MAC_BYTES` bytes."""
-    typ(name, value, bytes)
-    if len(value) != MAC_BYTES:
-        raise ProtocolError(f"{name}: {len(value)} bytes, expected {MAC_BYTES}")
-    return value
+def _exact(size: int):
+    """A check of a bytes field of exactly ``size`` bytes (``mac``: :data:`MAC_BYTES`, ``sig``: :data:`SIG_BYTES`)."""
+    def check(name: str, value: Any) -> bytes:
+        if len(typ(name, value, bytes)) != size:
+            raise ProtocolError(f"{name}: {len(value)} bytes, expected {size}")
+        return value
+    return check
+
+
+_mac, _sig = _exact(MAC_BYTES), _exact(SIG_BYTES)
 
 
 @dataclass(frozen=True)
@@ -378,14 +383,17 @@ class Status(Message):
 
 @dataclass(frozen=True)
 class Control(Message):
-    """``control/<target>``: pause, resume, stop, checkpoint, or the e-stop (``estop``, ``release``)."""
+    """``control/<target>``: pause, resume, stop, checkpoint, or the e-stop (``estop``, ``release``); ``signer`` and
+    ``sig``: the signer's key id and its Ed25519 signature (khgrl.common.delivery.control_auth)."""
 
     KIND: ClassVar[str] = "control"
     command: str
+    signer: str | None = None
+    sig: bytes | None = None
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Control":
         command = typ("command", m.get("command"), str)
         if command not in COMMANDS:
             raise ProtocolError(f"unknown command {command!r}")
-        return cls(command=command)
+        return cls(command=command, signer=opt(m, "signer", ident), sig=opt(m, "sig", _sig))

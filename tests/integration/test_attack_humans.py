@@ -114,8 +114,9 @@ def _flood_queries(session, key: str, qps: float, seconds: float) -> tuple[int, 
 
 @pytest.mark.timeout(600)
 def test_human_and_monitor_attacks_are_bounded(tmp_path):
+    from khgrl.common.delivery.control_auth import ControlSigner
     from khgrl.common.delivery.learner_link import QUERY_BURST, QUERY_RATE
-    from khgrl.common.wire.messages import Control, Correction
+    from khgrl.common.wire.messages import Correction
     from khgrl.common.wire.protocol import Keys, encode
 
     up = Launcher(tmp_path, tmp_path / "run", *ARGS)
@@ -180,7 +181,8 @@ def test_human_and_monitor_attacks_are_bounded(tmp_path):
                 report["grad_ratio"] = round(flood_grad / quiet_grad, 3)
 
             # 5. a pause never renewed
-            human.put(keys.human_request("user"), encode(Control(command="pause"), "user", 0))
+            user = ControlSigner.load(up.run_dir, "human:user")  # the client's own key (khgrl up makes one for it)
+            human.put(keys.human_request("user"), user.payload(keys.human_request("user"), "pause", "user", 0))
             t0 = time.monotonic()
             time.sleep(2.0)
             assert len(watch.since(t0 + 0.5)) <= 2, "the pause did not pause a0"

@@ -232,6 +232,7 @@ def test_gui_without_a_display_fails_the_run_loudly(tmp_path):
 # ================================================================================= 7. a stop from elsewhere
 @pytest.mark.timeout(300)
 def test_a_stop_command_from_elsewhere_is_a_failure(tmp_path):
+    from khgrl.common.delivery.control_auth import OPERATOR, ControlSigner
     from khgrl.common.delivery.transport import open_client
     from khgrl.common.wire.messages import Control
     from khgrl.common.wire.protocol import Keys, encode
@@ -242,8 +243,11 @@ def test_a_stop_command_from_elsewhere_is_a_failure(tmp_path):
         up.wait_line("[a0] episode 1:", 180)
         runtime = read_json(up.run_dir / "config.json")["runtime"]
         with open_client(runtime["endpoint"], timeout=30) as session:
-            # it even claims to be the launcher: the launcher knows its own session's commands, not the name
-            session.put(Keys(runtime["run"]).control("all"), encode(Control(command="stop"), "launcher", 0))
+            key = Keys(runtime["run"]).control("all")
+            session.put(key, encode(Control(command="stop"), "mallory", 0))  # unsigned: refused, the run goes on
+            # the operator's at another terminal (signed with its key, as khgrl stop does): the launcher knows its
+            # own session's commands, not the name
+            session.put(key, ControlSigner.load(up.run_dir, OPERATOR).payload(key, "stop", "launcher", 0))
             rc = up.proc.wait(timeout=90)
         assert rc == 1, f"exit code {rc}\n{up.stdout}\n{up.stderr}"
         assert "stopped by a stop command from 'launcher'" in up.stderr, up.stderr

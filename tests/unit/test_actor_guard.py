@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from khgrl.common.delivery import run_key
 from khgrl.common.delivery.actor_guard import BEYOND_ACKS, TWO_LEARNERS_S, ActorGuard
+from khgrl.common.delivery.control_auth import ControlGate
 from khgrl.common.wire.messages import Ack, Weights
 from khgrl.common.wire.protocol import decode, encode
 
@@ -168,7 +169,8 @@ def _inbound(tmp_path, key=None, tasks=None):
     w, rx, _ = _policy_weights(Clock())
     rx.rejects = rejects
     link = SimpleNamespace(other_tasks=lambda mine: dict(tasks or {}))
-    parts = SimpleNamespace(stream=stream, weights=w, rejects=rejects, env=SimpleNamespace(t=0), task=tasks and "t",
+    parts = SimpleNamespace(stream=stream, weights=w, rejects=rejects, env=SimpleNamespace(t=0),
+                            control=ControlGate.of_run(None), task=tasks and "t",
                             link=link, arbiter=CorrectionArbiter("a0", 0.5, enabled=True))
     flag = StopFlag()
     guard = ActorGuard("a0", stream.stream, key)

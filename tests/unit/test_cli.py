@@ -67,8 +67,8 @@ def test_process_commands_run_the_process_modules():
         "actor": ("khgrl.actor.main", "main"), "human": ("khgrl.human_bridge.main", "main"),
         "experiment": ("khgrl.deploy.experiment", "main"), "report": ("khgrl.deploy.report", "main"),
         "stop": ("khgrl.deploy.stop", "main"), "ready": ("khgrl.deploy.stop", "ready_main"),
-        "view": ("khgrl.deploy.view_cmd", "main"), "bench": ("khgrl.benchmarks.cli", "main"),
-        "supervise": ("khgrl.deploy.supervise", "main")}
+        "view": ("khgrl.deploy.view_cmd", "main"), "keys": ("khgrl.deploy.keys_cmd", "main"),
+        "bench": ("khgrl.benchmarks.cli", "main"), "supervise": ("khgrl.deploy.supervise", "main")}
 
 
 def _leaf_parsers(parser: argparse.ArgumentParser, prefix=()):

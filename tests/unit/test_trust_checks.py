@@ -15,6 +15,7 @@ from khgrl.actor.arbiter import CorrectionArbiter
 from khgrl.actor.human_limits import Assignments
 from khgrl.actor.inbound import Inbound
 from khgrl.actor.weights import PolicyWeights, WeightsReceiver, WeightsUpdate
+from khgrl.common.delivery.control_auth import ControlGate
 from khgrl.common.delivery.trust import HOLD_S, MAX_VERSIONS_PER_S, VERSION_SLACK, WeightsGate, learner_of
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
@@ -179,7 +180,8 @@ def _inbound(tmp_path) -> tuple[Inbound, SimpleNamespace, StopFlag]:
     stream, _, _, rejects = make_stream(tmp_path)
     w, rx, _ = _policy_weights(Clock())
     rx.rejects = rejects
-    parts = SimpleNamespace(stream=stream, weights=w, rejects=rejects, env=SimpleNamespace(t=0), task=None, link=None,
+    parts = SimpleNamespace(stream=stream, weights=w, rejects=rejects, env=SimpleNamespace(t=0),
+                            control=ControlGate.of_run(None), task=None, link=None,
                             arbiter=CorrectionArbiter("a0", 0.5, enabled=True))
     flag = StopFlag()
     return Inbound(parts, flag, Dims(out=2)), parts, flag
