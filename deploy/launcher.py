@@ -180,7 +180,11 @@ def check_task(cfg: RunConfig):
 
     task = load_task(cfg.task_spec, cfg.demos or None)
     env = KGRLEnv(task, seed=cfg.seed)
-    env.close()
+    try:
+        if env.varies:  # the first scene's via-points, checked here rather than in an actor after launch
+            env.reset_episode(1)
+    finally:
+        env.close()
     if cfg.method in HUMAN_METHODS and cfg.human == "scripted" and task.scripted_human is None:
         raise TaskError(f"task {task.name!r} has no scripted_human: choose --human gui or --human none")
     return env.descriptor(cfg.task_spec)
