@@ -45,6 +45,7 @@ from khgrl.deploy.rundir import RunDirError
 from khgrl.deploy.secure import SecureRun, prepare_secure_run, run_identities
 from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
 from khgrl.deploy.view_sink import RunView, add_view_flags, run_view
+from khgrl.human_bridge.hid_devices import check_human_device
 from khgrl.learner.algorithm import check_algorithm
 
 __all__ = ["main", "build_parser", "RunPlan", "plan_run"]
@@ -154,6 +155,7 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     run_dir = Path(cfg.run_dir)
     _check_run_dir(run_dir, args, cfg.checkpoint_dir)
     check_algorithm(cfg.algo)
+    check_human_device(cfg.human)
     task = check_task(cfg)
     previous = rundir.previous_runtime(run_dir) if args.resume else {}
     run_id = cfg.run or str(previous.get("run") or "") or rundir.make_run_id(run_dir)

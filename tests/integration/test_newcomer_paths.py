@@ -61,3 +61,24 @@ def test_view_into_a_missing_folder_and_eval_of_zero_scenes_are_one_line_at_once
     assert ev.returncode == 2 and "--scenes: must be >= 1" in ev.stderr and "Traceback" not in ev.stderr, ev.stderr
     assert "torch" not in ev.stderr
     print(f"khgrl eval --scenes 0 answered in {took:.2f} s")
+
+
+def test_no_spacemouse_is_said_before_anything_starts(tmp_path):
+    """Before: ``khgrl up --human spacemouse`` started every process and failed after 36 s; ``khgrl human
+    spacemouse`` blamed the display or hidapi. Here the kernel's device list is an empty folder (no SpaceMouse),
+    then one that lists a SpaceMouse Compact (USB 256f:c635)."""
+    from khgrl.human_bridge.hid_devices import HID_DEVICES_ENV, connected_spacemice
+
+    devices = tmp_path / "hid"
+    devices.mkdir()
+    env = {**_env(no_display=True), HID_DEVICES_ENV: str(devices)}
+    up = subprocess.run([*CLI, "up", "--human", "spacemouse", "--episodes", "1", "--run-dir", str(tmp_path / "run")],
+                        capture_output=True, text=True, timeout=120, env=env)
+    assert up.returncode == 2 and "no SpaceMouse found" in up.stderr and up.stderr.count("\n") == 1, up.stderr
+    assert not (tmp_path / "run").exists()
+    client = subprocess.run([*CLI, "human", "spacemouse", "--run", "r", "--connect", "tcp/127.0.0.1:1"],
+                            capture_output=True, text=True, timeout=120, env=env)
+    assert client.returncode == 3 and "no SpaceMouse found" in client.stderr, client.stderr
+    assert connected_spacemice(str(devices)) == []
+    (devices / "0003:256F:C635.0001").mkdir()
+    assert connected_spacemice(str(devices)) == ["SpaceMouseCompact"]
