@@ -235,7 +235,7 @@ class Recorder:
 def placeholder_demos(task, n: int) -> np.ndarray:
     """Two straight lines from the task's ``start`` to its ``goal`` point (its view's shapes; default: across the
     workspace's diagonal), for a task with no demonstrations yet: the KMP fitted to them is the reference."""
-    from khgrl.common.tasks.api import vector
+    from khgrl.common.tasks.checks import vector
 
     low = vector(task, "workspace low", task.workspace[0])
     high = vector(task, "workspace high", task.workspace[1], low.size)

@@ -43,7 +43,8 @@ from gymnasium import spaces
 from khgrl.common.kmp.mapping import KGRLMapping
 from khgrl.common.kmp.scale import ScaleModel
 from khgrl.common.tasks.adapted import episode_scene
-from khgrl.common.tasks.api import Task, TaskError, value_bounds
+from khgrl.common.tasks.api import Task, TaskError
+from khgrl.common.tasks.checks import value_bounds
 from khgrl.common.tasks.delta import DeltaControl
 from khgrl.common.tasks.safety import RateLimiter
 from khgrl.common.tasks.scene import scene_seed

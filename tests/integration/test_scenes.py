@@ -39,7 +39,8 @@ CASES = {
 @pytest.mark.parametrize("case", list(CASES))
 def test_varying_scene_through_khgrl_up(tmp_path: Path, case: str) -> None:
     from khgrl.common.delivery.transport import open_client
-    from khgrl.common.tasks.api import load_task, task_constraints
+    from khgrl.common.tasks.api import load_task
+    from khgrl.common.tasks.checks import task_constraints
     from khgrl.common.tasks.world import build_task_world
     from khgrl.common.wire.messages import Frame
     from khgrl.common.wire.protocol import Keys, decode
