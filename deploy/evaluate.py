@@ -16,6 +16,9 @@ scenes.
 ``scene_seed(SEED, k, stream="eval")``): the success rate with its 95 % Wilson interval, a per-scene CSV with each
 scene's placement (``RUN_DIR/eval/scenes.csv``) and with ``--gif`` the first ``--gif-scenes`` scenes one after
 another. A missing or unusable run directory, checkpoint or task is one line and exit 2.
+
+One module of ~320 lines on purpose: the command and its rollouts; its inputs (run directory, checkpoint,
+task, scale) are :mod:`~khgrl.deploy.eval_inputs`, the scenes and their CSV :mod:`~khgrl.deploy.eval_scenes`.
 """
 
 from __future__ import annotations

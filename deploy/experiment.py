@@ -17,6 +17,10 @@ redone; any other run directory (an interrupted or failed run) is wiped and the 
 scratch, so no half-run is ever mixed into the results. ``OUT/experiment.json`` records the resolved
 configuration, the machine and every run's status and wall time; ``khgrl report OUT`` analyses it. With ``--ray
 ADDRESS`` the runs are Ray tasks on a cluster's workers instead (:mod:`khgrl.deploy.experiment_ray`).
+
+One module of ~350 lines on purpose: the grid (configuration, plan, one run's command) and the local runner
+that walks it; the progress display is :mod:`~khgrl.deploy.experiment_progress`, Ray's runner
+:mod:`~khgrl.deploy.experiment_ray`.
 """
 
 from __future__ import annotations
