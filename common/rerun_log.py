@@ -37,6 +37,10 @@ Timelines: ``episode`` (the episode, whole run), ``step`` (the step within it), 
 over the whole run: one timeline to scrub across episodes) and ``ingested`` (the learner's stored transitions);
 Rerun adds ``log_time`` (wall clock) to everything. One recording per run: application id ``khgrl``, recording id
 the run id, whichever processes log into it.
+
+One module of ~330 lines on purpose: the one definition of the entities both the live view and ``khgrl view``
+log, so that the two cannot drift apart; the sink and the command are :mod:`~khgrl.deploy.view_sink` and
+:mod:`~khgrl.deploy.view_cmd`.
 """
 
 from __future__ import annotations

@@ -16,6 +16,9 @@ scenes.
 ``scene_seed(SEED, k, stream="eval")``): the success rate with its 95 % Wilson interval, a per-scene CSV with each
 scene's placement (``RUN_DIR/eval/scenes.csv``) and with ``--gif`` the first ``--gif-scenes`` scenes one after
 another. A missing or unusable run directory, checkpoint or task is one line and exit 2.
+
+One module of ~320 lines on purpose: the command and its rollouts; its inputs (run directory, checkpoint,
+task, scale) are :mod:`~khgrl.deploy.eval_inputs`, the scenes and their CSV :mod:`~khgrl.deploy.eval_scenes`.
 """
 
 from __future__ import annotations
@@ -255,6 +258,17 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def at_least_one(text: str) -> int:
+    """An argparse type: a count >= 1, refused by the parser before anything loads."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, not {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
 def add_parser(sub: Any) -> argparse.ArgumentParser:
     """Register ``khgrl eval`` on the subcommands ``sub`` of the ``khgrl`` parser.
 
@@ -267,8 +281,8 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
                         "started by hand with one --run-dir), or its actor folder RUN_DIR/actor-ID")
     p.add_argument("--checkpoint", default=None, metavar="PATH",
                    help="a learner checkpoint directory or model.zip (default: RUN_DIR/learner/checkpoint)")
-    p.add_argument("--episodes", type=int, default=None, help="episodes (default: 10)")
-    p.add_argument("--scenes", type=int, default=None, metavar="K",
+    p.add_argument("--episodes", type=at_least_one, default=None, help="episodes (default: 10)")
+    p.add_argument("--scenes", type=at_least_one, default=None, metavar="K",
                    help="instead of --episodes: K seeded scenes, scene k reset with scene_seed(SEED, k, 'eval') "
                         "(the same scenes for every run evaluated with the same SEED); prints the success rate with "
                         "its 95 %% Wilson interval and writes a per-scene CSV with each scene's placement "
@@ -279,7 +293,7 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
     p.add_argument("--gif", default=None, metavar="FILE",
                    help="animate episode 1 (with --scenes: the first --gif-scenes scenes) into this GIF "
                         "(default: none)")
-    p.add_argument("--gif-scenes", type=int, default=3, metavar="N",
+    p.add_argument("--gif-scenes", type=at_least_one, default=3, metavar="N",
                    help="with --scenes: scenes the GIF shows one after another (default: %(default)s)")
     p.add_argument("--csv", default=None, metavar="FILE",
                    help="per-episode results (default: RUN_DIR/eval/eval.csv, with --scenes RUN_DIR/eval/scenes.csv; "

@@ -17,6 +17,10 @@ redone; any other run directory (an interrupted or failed run) is wiped and the 
 scratch, so no half-run is ever mixed into the results. ``OUT/experiment.json`` records the resolved
 configuration, the machine and every run's status and wall time; ``khgrl report OUT`` analyses it. With ``--ray
 ADDRESS`` the runs are Ray tasks on a cluster's workers instead (:mod:`khgrl.deploy.experiment_ray`).
+
+One module of ~350 lines on purpose: the grid (configuration, plan, one run's command) and the local runner
+that walks it; the progress display is :mod:`~khgrl.deploy.experiment_progress`, Ray's runner
+:mod:`~khgrl.deploy.experiment_ray`.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from pathlib import Path
 
 from khgrl.common.config.settings import HUMAN_METHODS, PAPER_EPISODES, REFERENCE_METHODS, TQCSettings, read_table
 from khgrl.common.tasks.passage.scenarios import SCENARIOS
+from khgrl.deploy.experiment_progress import Progress, last_line
 from khgrl.deploy.experiment_ray import DEFAULT_CPUS, EPISODE_LINE, RayRunner, add_ray_arguments, check_ray_settings
 from khgrl.deploy.run_results import METHOD_LABEL
 
@@ -231,7 +236,8 @@ class _Runner:
         ok = rc == 0 and run_is_done(run_dir, self.cfg)
         status = "done" if ok else ("interrupted" if self.stopping else "failed")
         self.record(spec.name, status=status, returncode=rc, wall_time_s=round(wall, 1))
-        self.progress.finish(spec.name, status, wall)
+        why = "" if ok else f"{last_line(log_path.read_text(errors='replace'))} (log: {log_path})"
+        self.progress.finish(spec.name, status, wall, why)
         return status
 
     def stop(self) -> None:
@@ -259,58 +265,6 @@ def _machine() -> dict:
             "platform": platform.platform()}
 
 
-class _Progress:
-    """One bar per run (episodes) and one overall bar (runs), or plain lines without a terminal."""
-
-    def __init__(self, total_runs: int, episodes: int, enabled: bool) -> None:
-        self.episodes, self.enabled = episodes, enabled
-        self.tasks: dict[str, int] = {}
-        self._p = None
-        if enabled:
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-            self._p = Progress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(),
-                               TextColumn("{task.fields[note]}"), TimeElapsedColumn())
-            self._overall = self._p.add_task("runs", total=total_runs, note="")
-
-    def __enter__(self):
-        if self._p is not None:
-            self._p.start()
-        return self
-
-    def __exit__(self, *exc):
-        if self._p is not None:
-            self._p.stop()
-
-    def _print(self, text: str) -> None:
-        if self._p is not None:
-            self._p.console.print(text)
-        else:
-            print(text, flush=True)
-
-    def skip(self, name: str) -> None:
-        self._print(f"{name}: finished before, not redone")
-        if self._p is not None:
-            self._p.advance(self._overall)
-
-    def start(self, name: str, note: str = "") -> None:
-        if self._p is not None:
-            self.tasks[name] = self._p.add_task(name, total=self.episodes, note=note)
-        else:
-            self._print(f"{name}: started{' ' + note if note else ''}")
-
-    def advance(self, name: str, episode: int) -> None:
-        if self._p is not None and name in self.tasks:
-            self._p.update(self.tasks[name], completed=episode)
-
-    def finish(self, name: str, status: str, wall: float) -> None:
-        if self._p is not None:
-            if name in self.tasks:
-                self._p.update(self.tasks[name], note=status, visible=False)
-            self._p.advance(self._overall)
-        self._print(f"{name}: {status} in {wall:.0f} s")
-
-
 def run(args: argparse.Namespace) -> int:
     overrides = {"out": args.out, "scenarios": args.scenarios, "tasks": args.tasks, "methods": args.methods,
                  "seeds": args.seeds, "episodes": args.episodes, "human_episodes": args.human_episodes,
@@ -333,7 +287,7 @@ def run(args: argparse.Namespace) -> int:
     where = f"as Ray tasks on {cfg.ray}, {cfg.ray_cpus:g} CPUs each" if cfg.ray else f"{cfg.jobs} at a time"
     print(f"khgrl experiment: {len(specs)} runs ({cfg.system}) into {out}, {where}", flush=True)
     t0 = time.time()
-    progress = _Progress(len(specs), cfg.episodes, enabled=not args.no_progress and sys.stdout.isatty())
+    progress = Progress(len(specs), cfg.episodes, enabled=not args.no_progress and sys.stdout.isatty())
     runner = _Runner(cfg, specs, progress)
     previous = signal.signal(signal.SIGINT, lambda *_: runner.stop())
     try:
@@ -348,7 +302,8 @@ def run(args: argparse.Namespace) -> int:
         if info.get("status") == "running" and run_is_done(out / name, cfg):
             runner.record(name, status="done")
     counts = {s: results.count(s) for s in sorted(set(results))}
-    print(f"khgrl experiment: {counts} in {time.time() - t0:.0f} s; analyse with: khgrl report {out}", flush=True)
+    after = f"analyse with: khgrl report {out}" if counts.get("done") else f"no run finished: see {out}/experiment.json"
+    print(f"khgrl experiment: {counts} in {time.time() - t0:.0f} s; {after}", flush=True)
     if runner.stopping:
         return 130
     return 0 if counts.get("done", 0) == len(specs) else 1

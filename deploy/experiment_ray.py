@@ -29,38 +29,29 @@ Ray is imported only here and only when ``--ray`` is given (``pip install 'khgrl
 from __future__ import annotations
 
 import argparse
-import ctypes
 import gzip
 import io
 import os
-import platform
-import re
 import secrets
 import shutil
-import signal
-import subprocess
 import sys
 import tarfile
-import tempfile
 import time
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-import khgrl
+from khgrl.deploy.experiment_progress import last_line
+from khgrl.deploy.ray_worker import EPISODE_LINE, khgrl_identity, run_on_worker
 
-__all__ = ["EPISODE_LINE", "DEFAULT_CPUS", "check_ray_settings", "add_ray_arguments", "import_ray", "khgrl_identity",
-           "check_identity", "pack_run", "unpack_run", "run_on_worker", "RayRunner"]
+__all__ = ["EPISODE_LINE", "DEFAULT_CPUS", "check_ray_settings", "add_ray_arguments", "import_ray", "unpack_run",
+           "RayRunner"]
 
-EPISODE_LINE = re.compile(r"\[a0\] episode (\d+):|^\s*(\d+)/(\d+) episodes")  # a run's progress in its output
 DEFAULT_CPUS = 2.0  # a run's learner and actor, one core each
 MAX_RETRIES = 2  # Ray re-runs a task whose worker died, this many times
-LOG_TAIL_LINES = 40
 CANCEL_GRACE_S = 15.0  # after ray.cancel, before ray.cancel(force=True)
 WAIT_HINT_S = 120.0  # no run started this long after submitting: say what they need
-_SCRATCH = "khgrl-ray"  # under the worker's temporary directory
-_PR_SET_PDEATHSIG = 1
 
 
 def check_ray_settings(address: str, cpus: float, gpus: float, system: str) -> None:
@@ -106,41 +97,6 @@ def import_ray() -> Any:
     return ray
 
 
-def khgrl_identity() -> dict[str, str]:
-    """This khgrl's version and, for a git checkout, its commit (``""`` otherwise)."""
-    root = Path(khgrl.__file__).resolve().parents[1]
-    try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=10).stdout.strip() if (root / ".git").exists() else ""
-    except (OSError, subprocess.SubprocessError):
-        commit = ""
-    return {"version": khgrl.__version__, "commit": commit}
-
-
-def check_identity(head: dict[str, str]) -> None:
-    """Raise when this (worker's) khgrl is not the head's: another version, or another commit of a checkout.
-
-    :param head: :func:`khgrl_identity` on the head
-    """
-    mine = khgrl_identity()
-    same_commit = not (head.get("commit") and mine["commit"]) or head["commit"] == mine["commit"]
-    if head.get("version") != mine["version"] or not same_commit:
-        raise RuntimeError(f"khgrl on {platform.node()} is {mine}, the head's is {head}: install the head's khgrl "
-                           "on every Ray worker")
-
-
-def pack_run(run_dir: Path) -> bytes:
-    """The run folder as tar.gz bytes (paths relative to it).
-
-    :param run_dir: a finished run's directory
-    """
-    buf = io.BytesIO()
-    with tarfile.open(fileobj=buf, mode="w:gz", compresslevel=6) as tar:
-        for child in sorted(run_dir.iterdir()):
-            tar.add(child, arcname=child.name)
-    return buf.getvalue()
-
-
 def unpack_run(data: bytes, dest: Path, accept: Callable[[Path], bool] | None = None) -> bool:
     """Unpack :func:`pack_run`'s bytes into ``dest`` atomically: into a temporary directory beside it, then one
     rename. ``dest`` must not exist (nothing is overwritten); nothing is left behind when the archive is bad or
@@ -171,87 +127,6 @@ def unpack_run(data: bytes, dest: Path, accept: Callable[[Path], bool] | None = 
         return True
     finally:
         shutil.rmtree(tmp, ignore_errors=True)  # gone after the rename; else the half or refused unpacking
-
-
-def _child_setup() -> None:
-    """In the run's ``khgrl up``, before exec: SIGINT and SIGTERM as in a shell (a Ray worker ignores or blocks
-    some, which its children would inherit: the router then ignores the launcher's stop and is killed), and
-    SIGTERM (a clean stop) when the Ray worker dies, even by SIGKILL."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, signal.SIG_DFL)
-    signal.pthread_sigmask(signal.SIG_SETMASK, [])
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-    except (OSError, AttributeError):
-        pass
-
-
-def _sweep_scratch(base: Path) -> None:
-    """Remove scratch directories of dead workers (a force-cancelled task cannot remove its own)."""
-    for d in base.glob("*-*"):
-        try:
-            os.kill(int(d.name.split("-")[0]), 0)
-        except ProcessLookupError:
-            shutil.rmtree(d, ignore_errors=True)
-        except (ValueError, PermissionError):
-            continue
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    """Stop a run's ``khgrl up`` that is still running: SIGINT to its group (a clean stop), then SIGKILL."""
-    for sig, wait in ((signal.SIGINT, 30.0), (signal.SIGKILL, 10.0)):
-        if proc.poll() is not None:
-            return
-        try:
-            os.killpg(proc.pid, sig)
-            proc.wait(wait)
-        except (ProcessLookupError, subprocess.TimeoutExpired):
-            continue
-
-
-def run_on_worker(name: str, argv: list[str], head_run_dir: str, head: dict[str, str]) -> Iterator[dict]:
-    """The Ray task (a streaming generator): run one ``khgrl up`` in a scratch directory on this worker.
-
-    Yields ``{"event": "start", "node"}``, ``{"event": "episode", "episode"}`` per finished episode, and last
-    ``{"event": "end", "node", "returncode", "wall_time_s", "tar", "log_tail"}``.
-
-    :param name: the run's name (its directory's)
-    :param argv: the run's command on the head (its Python and run directory are replaced by this worker's)
-    :param head_run_dir: the run directory in ``argv``
-    :param head: the head's :func:`khgrl_identity`
-    """
-    check_identity(head)
-    node = platform.node()
-    yield {"event": "start", "node": node}
-    base = Path(tempfile.gettempdir()) / _SCRATCH
-    base.mkdir(exist_ok=True)
-    _sweep_scratch(base)
-    scratch = Path(tempfile.mkdtemp(prefix=f"{os.getpid()}-", dir=base))
-    try:
-        run_dir = scratch / name
-        run_dir.mkdir()
-        cmd = [sys.executable, *(str(run_dir) if a == head_run_dir else a for a in argv[1:])]
-        t0 = time.time()
-        with open(run_dir / "experiment.log", "w") as log:
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
-                                    env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True,
-                                    preexec_fn=_child_setup, cwd=scratch)
-            try:
-                for line in proc.stdout:
-                    log.write(line)
-                    log.flush()
-                    m = EPISODE_LINE.search(line)
-                    if m:
-                        yield {"event": "episode", "episode": int(m.group(1) or m.group(2))}
-                rc = proc.wait()
-            finally:
-                _stop(proc)  # cancelled (KeyboardInterrupt) or failed mid-run: no khgrl up left behind
-        wall = time.time() - t0
-        tail = (run_dir / "experiment.log").read_text(errors="replace").splitlines()[-LOG_TAIL_LINES:]
-        yield {"event": "end", "node": node, "returncode": rc, "wall_time_s": round(wall, 1), "tar": pack_run(run_dir),
-               "log_tail": "\n".join(tail)}
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
 
 
 class Runner(Protocol):
@@ -306,7 +181,7 @@ class RayRunner:
             argv = self.argv_of(spec) + (["--device", "cuda"] if self.cfg.ray_gpus > 0 else [])
             self.live[spec.name] = task.options(num_cpus=self.cfg.ray_cpus, num_gpus=self.cfg.ray_gpus,
                                                 max_retries=MAX_RETRIES, name=spec.name).remote(
-                spec.name, argv, str(run_dir), head)
+                spec.name, argv, str(run_dir), head, [os.getcwd()])
             self.runner.record(spec.name, status="queued", argv=argv, ray=self.cfg.ray)
 
     def _event(self, name: str, item: dict) -> None:
@@ -331,16 +206,18 @@ class RayRunner:
     def _finish(self, name: str, status: str, wall: float, **info) -> None:
         self.status[name] = status
         self.runner.record(name, status=status, wall_time_s=wall, **info)
-        self.runner.progress.finish(name, status, wall)
+        why = info.get("error") or last_line(info.get("log_tail", ""))
+        self.runner.progress.finish(name, status, wall, why)
 
     def _failed(self, name: str, exc: BaseException) -> None:
         """A task that raised (version mismatch, worker died past the retries) or was cancelled."""
         self.live.pop(name, None)
         text = str(exc).strip() or type(exc).__name__
+        line = text.splitlines()[-1][:500]
         if "No module named 'khgrl" in text:
-            text = f"khgrl is not installed on the worker (install the head's khgrl there): {text}"
+            line = f"khgrl is not installed on the worker (install the head's khgrl there): {line}"
         status = "interrupted" if self.runner.stopping else "failed"
-        self._finish(name, status, 0.0, error=text.splitlines()[-1][:500], log_tail=text[-4000:])
+        self._finish(name, status, 0.0, error=line, log_tail=text[-4000:])
 
     def _cancel(self, ray: Any) -> None:
         """Ctrl-C: cancel every task (a KeyboardInterrupt in it stops its run), then kill what is left."""

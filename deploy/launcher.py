@@ -43,6 +43,7 @@ from khgrl.common.wire.messages import Control, EpisodeReport, Status
 from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, RejectCounter, decode
 from khgrl.deploy import outcome, rundir
 from khgrl.deploy.outcome import Outcome, ending, exit_code, final_line, report_failures, write_summary
+from khgrl.deploy.preflight import check_task
 from khgrl.deploy.progress import ProgressView
 from khgrl.deploy.rundir import RunDirError
 from khgrl.deploy.secure import SecureRun, prepare_secure_run, run_identities
@@ -171,23 +172,6 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     return RunPlan(cfg=cfg, run_dir=run_dir, run_id=run_id, endpoint=endpoint, resume=args.resume,
                    overwrite=args.overwrite, progress=args.progress, argv=argv, previous=previous, task=task,
                    secure=args.secure, zenoh_config=config_file(args.zenoh_config))
-
-
-def check_task(cfg: RunConfig):
-    """Build the run's task once before any process starts, so a bad task definition is one clear error here;
-    returns its descriptor.
-
-    :param cfg: the run's settings
-    :raises TaskError: naming what is wrong with the task"""
-    from khgrl.common.tasks.api import TaskError, load_task
-    from khgrl.common.tasks.kgrl_env import KGRLEnv
-
-    task = load_task(cfg.task_spec, cfg.demos or None)
-    env = KGRLEnv(task, seed=cfg.seed)
-    env.close()
-    if cfg.method in HUMAN_METHODS and cfg.human == "scripted" and task.scripted_human is None:
-        raise TaskError(f"task {task.name!r} has no scripted_human: choose --human gui or --human none")
-    return env.descriptor(cfg.task_spec)
 
 
 def prepare_run_dir(plan: RunPlan) -> None:

@@ -129,6 +129,8 @@ def _check(args: argparse.Namespace) -> tuple[Path, Path | None]:
     if out is not None:
         if out.suffix != ".rrd":
             raise ValueError(f"--out {out}: the recording file must end in .rrd")
+        if not out.parent.is_dir():
+            raise ValueError(f"--out {out}: no such folder {out.parent} (make it first)")
         if out.exists() and not args.overwrite:
             raise ValueError(f"--out {out} exists: give --overwrite to replace it, or another file")
     elif not has_display():

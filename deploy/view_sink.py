@@ -6,8 +6,8 @@
   --save FILE`` on a free loopback port, and every process streams to it over gRPC: one file, one recording,
   whichever processes log. An existing FILE is refused unless ``--overwrite``. The sink writes what arrives as it
   arrives, so a killed actor leaves what it had sent; it is stopped (SIGTERM) after the run's processes exited;
-* ``--view rerun:web``: the same sink with Rerun's web viewer (``rerun --serve-web``); its URL is printed and it
-  stays up after the run (its pid is printed: stop it with ``kill``).
+* ``--view rerun:web``: the same sink with Rerun's web viewer (``rerun --serve-web``); its URL is printed; it is
+  stopped with the run like the file sink (nothing is left behind; ``khgrl view RUN_DIR`` shows the run later).
 
 The launcher tells its children where to log in ``$KHGRL_VIEW`` (:class:`~khgrl.common.rerun_log.ViewTarget`;
 actors: :mod:`khgrl.actor.viewer`) and logs the learner's numbers itself, from the statuses it receives anyway
@@ -184,15 +184,14 @@ class RunView:
         if self.log_dir is not None:
             self.log_dir.mkdir(parents=True, exist_ok=True)
             self._out = open(self.log_dir / "rerun.log", "ab")
-        # the file sink ends with the launcher (it is stopped at the end, and dies with it; a new session: a Ctrl-C
-        # goes to the launcher first); the web viewer stays for the person watching
+        # the sink ends with the launcher (it is stopped at the end, and dies with it; a new session: a Ctrl-C
+        # goes to the launcher first): nothing is left behind
         proc = subprocess.Popen(argv, stdout=self._out or subprocess.DEVNULL, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, start_new_session=True,
-                                preexec_fn=_die_with_launcher if self.spec.kind == "file" else None)
+                                stdin=subprocess.DEVNULL, start_new_session=True, preexec_fn=_die_with_launcher)
         _wait_listening(port, proc, SINK_START_S)
         if self.spec.kind == "web":
-            print(f"khgrl up: Rerun web viewer at http://127.0.0.1:{web}/?url={quote(self.url, safe='')} (it stays "
-                  f"after the run: kill {proc.pid})", flush=True)
+            print(f"khgrl up: Rerun web viewer at http://127.0.0.1:{web}/?url={quote(self.url, safe='')} (until "
+                  f"the run ends; afterwards: khgrl view RUN_DIR)", flush=True)
         return proc
 
     def env(self) -> dict[str, str]:
@@ -223,13 +222,14 @@ class RunView:
                 self.logger.rec.disconnect()
             except Exception as err:  # noqa: BLE001
                 print(f"khgrl up: Rerun view: {err!r}", file=sys.stderr, flush=True)
-        if self.sink is not None and self.spec.kind == "file":
-            self.sink.send_signal(signal.SIGTERM)  # (it has written what arrived)
+        if self.sink is not None:
+            self.sink.send_signal(signal.SIGTERM)  # (a file sink has written what arrived)
             try:
                 self.sink.wait(SINK_STOP_S)
             except subprocess.TimeoutExpired:
                 self.sink.kill()
                 self.sink.wait(5)
-            print(f"khgrl up: Rerun recording in {self.spec.file}", flush=True)
+            if self.spec.kind == "file":
+                print(f"khgrl up: Rerun recording in {self.spec.file}", flush=True)
         if self._out is not None:
             self._out.close()

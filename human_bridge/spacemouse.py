@@ -43,13 +43,13 @@ from typing import Iterable, Sequence
 
 from khgrl.common.config.process import ProcessConfig
 from khgrl.human_bridge import keyboard
+from khgrl.human_bridge.hid_devices import REPORTS_ENV, check_spacemouse
 from khgrl.human_bridge.velocity import DEAD_ZONE, Push, dead_zone
 
 __all__ = ["SpaceMouseInput", "ReportReplay", "open_spacemouse", "add_arguments", "run", "HOLD_BUTTON",
            "TOGGLE_BUTTON", "REPORTS_ENV", "COMPACT", "MAX_READS"]
 
 HOLD_BUTTON, TOGGLE_BUTTON = 0, 1  # LEFT and RIGHT on the two-button models (Compact, Navigator, Wireless)
-REPORTS_ENV = "KHGRL_SPACEMOUSE_REPORTS"
 COMPACT = (0x256F, 0xC635)  # a SpaceMouse Compact's USB vendor and product id (the library's devices.toml)
 MAX_READS = 1000  # reports read in one tick at most (a device sends ~125 a second)
 NO_LIBRARY = "no SpaceMouse: pyspacemouse is not installed (pip install 'khgrl[spacemouse]')"
@@ -268,6 +268,12 @@ def run(args: argparse.Namespace, proc: ProcessConfig) -> int:
     :param proc: the resolved run settings.
     """
     replay = os.environ.get(REPORTS_ENV)
+    if not replay:
+        try:  # before the window: a missing device is what a user needs to hear, not the display
+            check_spacemouse(args.device)
+        except RuntimeError as exc:
+            print(f"khgrl human spacemouse: {exc}", file=sys.stderr, flush=True)
+            return keyboard.NO_DISPLAY_EXIT
 
     def make() -> SpaceMouseInput:
         try:

@@ -176,10 +176,33 @@ class LearnerLoop:
     def checkpoint_requested(self, value: bool) -> None:
         self.durable.checkpoint_requested = value
 
-    def __getattr__(self, name: str) -> Any:  # checkpoints, saves, journal, sync_journal, not_durable, ...
-        if name == "durable":
-            raise AttributeError(name)
-        return getattr(self.durable, name)
+    def sync_journal(self) -> None:
+        """Make what the journal holds durable and ack it (``Durability.sync_journal``)."""
+        self.durable.sync_journal()
+
+    def not_durable(self) -> int:
+        """Transitions stored that neither the last full checkpoint nor the journal holds."""
+        return self.durable.not_durable()
+
+    @property
+    def journal(self) -> Any:
+        """The journal (None without one)."""
+        return self.durable.journal
+
+    @property
+    def saves(self) -> Any:
+        """Failed saves and journal writes and their retry backoff."""
+        return self.durable.saves
+
+    @property
+    def checkpoints(self) -> int:
+        """Full checkpoints written."""
+        return self.durable.checkpoints
+
+    @property
+    def model_checkpoints(self) -> int:
+        """Model-only checkpoints written (with a journal)."""
+        return self.durable.model_checkpoints
 
     def info(self) -> LearnerInfo:
         """This learner's status (the rate: gradient steps per second since the previous call)."""

@@ -26,7 +26,7 @@ def passage_digest() -> str:
     """The task digest of the benchmark learner's task (the passage world, as :func:`procs.passage_task_file`
     writes it): every batch must carry it."""
     from khgrl.common.config.settings import RunConfig
-    from khgrl.deploy.launcher import check_task
+    from khgrl.deploy.preflight import check_task
 
     return check_task(RunConfig()).digest
 

@@ -87,7 +87,7 @@ def task_file(run_dir: Path, overrides: dict | None = None) -> None:
     """
     from khgrl.common.config.settings import resolve
     from khgrl.common.delivery.task_link import TASK_FILE, save_task
-    from khgrl.deploy.launcher import check_task
+    from khgrl.deploy.preflight import check_task
 
     path = Path(run_dir) / "learner" / TASK_FILE
     if not path.exists():

@@ -19,6 +19,9 @@ Conventions: ``s`` (N, I) reference inputs, ``mu`` (N, O) GMR means, ``sigma`` (
 covariances, stacked point-major. Constraints ``(G, c)`` mean ``G[n, f] @ eta(s_n) >= c[n, f]`` at every
 grid input; ``G`` is (F, O) (shared by all points) or (N, F, O), ``c`` is (F,) or (N, F). Their validation,
 feasibility check are in ``common/kmp/inputs.py``, the dual QP's tables in ``common/kmp/dual.py``.
+
+One module of ~390 lines on purpose: every method is the same model's equation (2)-(6) on one Cholesky factor
+and one dual QP state; the math parts it uses (kernels, inputs, the dual, the QP) are modules of their own.
 """
 
 from __future__ import annotations

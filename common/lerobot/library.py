@@ -10,7 +10,8 @@ without images or videos is none; on an image dataset, ``transforms.ToTensor`` i
 Where torchvision imports, it is used as is. Where it is missing or broken (PyPI's torchvision fails beside a torch
 it was not built for: ``RuntimeError: operator torchvision::nms does not exist``), :func:`_install_torchvision_shim`
 puts a minimal ``torchvision`` module in ``sys.modules`` holding only ``transforms.ToTensor`` (a faithful one:
-HWC uint8 image -> CHW float32 in [0, 1]) and logs one line saying so; any other torchvision attribute (the
+HWC uint8 image -> CHW float32 in [0, 1]) and logs it at debug level (the README says it once: a notice before every
+LeRobot command was noise); any other torchvision attribute (the
 torchvision video decoder) raises an ImportError naming the shim. KhGRL's datasets are state-only.
 
 **numpy >= 2.4.** LeRobot stores a per-frame scalar (``next.reward``, ``next.done``: shape (1,)) as a (1,) array,
@@ -104,7 +105,7 @@ def _install_torchvision_shim(reason: str) -> None:
     tv.__getattr__ = _unavailable("torchvision")
     tv.__khgrl_shim__ = True
     sys.modules["torchvision"], sys.modules["torchvision.transforms"] = tv, tr
-    _log.warning("torchvision unusable (%s): LeRobot's dataset code runs with KhGRL's minimal stand-in "
+    _log.debug("torchvision unusable (%s): LeRobot's dataset code runs with KhGRL's minimal stand-in "
                  "(transforms.ToTensor only; state datasets need nothing else)", reason)
 
 

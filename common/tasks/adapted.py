@@ -16,7 +16,9 @@ from khgrl.common.kmp.lcnskmp import LCNSKMP
 from khgrl.common.tasks.api import TaskError
 from khgrl.common.tasks.scene import MAX_PLACEMENT, MAX_VIA_POINTS
 
-__all__ = ["EpisodeScene", "episode_scene", "read_placement"]
+__all__ = ["EpisodeScene", "episode_scene", "read_placement", "WORKSPACE_TOL"]
+
+WORKSPACE_TOL = 1e-9  # a via-point on the workspace's edge, give or take rounding, is inside
 
 
 @dataclass(frozen=True)
@@ -76,6 +78,7 @@ def episode_scene(world: Any, obs: np.ndarray, *, adapt: bool = True, cache: Epi
     if len(snapped) > MAX_VIA_POINTS:
         raise TaskError(f"task {task.name!r}: Scene.via_points gave {len(snapped)} via-points (at most "
                         f"{MAX_VIA_POINTS})")
+    _check_in_workspace(world, snapped)
     key = tuple((s.step, *s.position.tolist(), float(s.sigma[0, 0])) for s in snapped)
     if cache is not None and cache.key == key and cache.via_points:
         model = cache.model
@@ -86,3 +89,16 @@ def episode_scene(world: Any, obs: np.ndarray, *, adapt: bool = True, cache: Epi
             raise TaskError(f"task {task.name!r}: adapting the KMP to the via-points failed: "
                             f"{type(exc).__name__}: {exc}") from None
     return EpisodeScene(placement, [(s.step, s.position) for s in snapped], model, key)
+
+
+def _check_in_workspace(world: Any, snapped: list) -> None:
+    """A via-point the robot may not reach is the task's mistake: the KMP mean would be bent to a place every
+    command is clipped away from.
+
+    :raises TaskError: a via-point outside the workspace box (by more than ``WORKSPACE_TOL``).
+    """
+    for k, s in enumerate(snapped):
+        if np.any(s.position < world.low - WORKSPACE_TOL) or np.any(s.position > world.high + WORKSPACE_TOL):
+            raise TaskError(f"task {world.task.name!r}: Scene.via_points: via-point {k} at "
+                            f"{np.round(s.position, 6).tolist()} lies outside the workspace box "
+                            f"{world.low.tolist()}..{world.high.tolist()}")

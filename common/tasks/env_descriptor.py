@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from khgrl.common.tasks.api import value_bounds
+from khgrl.common.tasks.checks import value_bounds
 
 __all__ = ["descriptor"]
 

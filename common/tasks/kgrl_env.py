@@ -234,12 +234,14 @@ class KGRLEnv(gym.Env):
     def scene_row(self) -> dict | None:
         """This episode's scene for ``scenes.csv`` (None for a task whose scene does not vary): the reset seed,
         whether the KMP was adapted, the via-points, the largest |adapted mean - via-point| at their steps, the
-        largest violation of a hard constraint by a commanded P_t (``max(c - G P_t)``, <= 0 when every one held)
-        and the placement."""
+        largest violation of a hard constraint by a commanded P_t (``max(c - G P_t)``, <= 0 when every one held;
+        rounding leaves up to ~1e-13 on a command on the constraint's edge), whether that is a violation
+        (``violated``: more than ``VIOLATION_TOL``, as ``violation_steps`` counts) and the placement."""
         if not self.varies:
             return None
         return {"seed": self.scene_seed, "adapted": bool(self.via_points), "via_points": len(self.via_points),
-                "via_error": self.via_error, "max_violation": self.max_violation, **self.placement}
+                "via_error": self.via_error, "max_violation": self.max_violation,
+                "violated": int(self.max_violation > VIOLATION_TOL), **self.placement}
 
     def _command(self, t: int, a: np.ndarray, L: np.ndarray, info: dict):
         """Eq. 5 (policy) or eq. 6 (correction): (P_t, xi, the action the transition stores)."""

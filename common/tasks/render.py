@@ -20,6 +20,9 @@ Coordinates: :meth:`TaskRenderer.to_pixel` maps a point in command coordinates (
 the renderer's own surface (x right, y down); :meth:`TaskRenderer.to_world` maps a pixel of a view back to
 that view's two axis values; :meth:`TaskRenderer.view_at` says which view a pixel is in and
 :meth:`TaskRenderer.point_at` completes a pixel to a full (O,) point. To draw at an offset, draw on a subsurface.
+
+One module of ~380 lines on purpose: one class, the renderer's layout, caches and drawing order; its drawing
+primitives are :mod:`~khgrl.common.tasks.render_parts`, a frame's content :mod:`~khgrl.common.tasks.render_frame`.
 """
 
 from __future__ import annotations

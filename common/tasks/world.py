@@ -13,16 +13,8 @@ from pathlib import Path
 import numpy as np
 from khgrl.common.kmp.fit import KMPConfig, fit_model
 from khgrl.common.kmp.lcnskmp import LCNSKMP
-from khgrl.common.tasks.api import (
-    Task,
-    TaskError,
-    View,
-    call_scripted_human,
-    check_view,
-    task_constraints,
-    task_demos,
-    vector,
-)
+from khgrl.common.tasks.api import Task, TaskError, View, call_scripted_human, task_demos
+from khgrl.common.tasks.checks import check_view, task_constraints, vector
 
 __all__ = ["TaskWorld", "build_task_world"]
 

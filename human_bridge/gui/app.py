@@ -23,6 +23,9 @@ L in force) and the via-points; without them (a fixed scene, an actor that does 
 episode) it draws the descriptor's, the demonstrations' mean and band. A GUI that joins in the middle of an
 episode has missed its first frame: it shows the demonstrations' mean until the actor's next episode begins. A
 scene whose grid or size is not the task's refuses the frame (counted, as a frame of another size is).
+
+One module of ~370 lines on purpose: the window's one state machine (press, drag, release, keys, frames of
+each actor); drawing is :mod:`~khgrl.human_bridge.gui.view`, sending :mod:`~khgrl.human_bridge.hold`.
 """
 
 from __future__ import annotations

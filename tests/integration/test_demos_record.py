@@ -21,7 +21,8 @@ os.environ["SDL_AUDIODRIVER"] = "dummy"
 import numpy as np  # noqa: E402
 import pygame  # noqa: E402
 import pytest  # noqa: E402
-from khgrl.human_bridge.record import MIN_SAMPLES, STRIP, Recorder, add_parser, resample, run_record  # noqa: E402
+from khgrl.human_bridge.record import STRIP, add_parser, run_record  # noqa: E402
+from khgrl.human_bridge.strokes import MIN_SAMPLES, Recorder, resample  # noqa: E402
 
 
 @functools.lru_cache(maxsize=None)

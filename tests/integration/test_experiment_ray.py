@@ -1,4 +1,4 @@
-"""khgrl experiment --ray: a 4-run grid on a real local Ray cluster (a head with no CPUs and one worker node, so
+"""khgrl experiment --ray: a 2-run grid on a real local Ray cluster (a head with no CPUs and one worker node, so
 every run lands on the worker) gives the same results as the same grid run locally with --jobs 2; a finished run
 folder already in OUT is kept and an unfinished one is redone."""
 
@@ -23,12 +23,12 @@ from khgrl.deploy.experiment import ExperimentConfig, run_is_done
 from helpers import REPO
 
 RAY = str(Path(sys.executable).with_name("ray"))
-GRID = ["--scenarios", "low_cov", "--methods", "khgrl", "kgrl", "--seeds", "0", "1", "--episodes", "2",
+GRID = ["--scenarios", "low_cov", "--methods", "khgrl", "kgrl", "--seeds", "0", "--episodes", "2",
         "--human-episodes", "2", "--no-progress", "--timeout", "240"]
 # Ray's token authentication (its default) with a token of this test's: the cluster, the workers and the driver
 # (khgrl experiment) get it from the environment, not from the user's ~/.ray/auth_token
 _AUTH = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
-NAMES = [f"low_cov-{m}-seed{s}" for s in (0, 1) for m in ("khgrl", "kgrl")]
+NAMES = [f"low_cov-{m}-seed0" for m in ("khgrl", "kgrl")]  # (one kept as it is, one redone on the worker)
 
 
 def _ours(temp_dir: Path) -> list[int]:
@@ -121,7 +121,7 @@ def test_ray_grid_matches_the_local_grid_and_resumes(tmp_path, ray_cluster):
     kept = remote / "low_cov-kgrl-seed0"
     shutil.copytree(local / kept.name, kept)
     stamp = (kept / "summary.json").stat().st_ino
-    half = remote / "low_cov-khgrl-seed1"
+    half = remote / "low_cov-khgrl-seed0"
     half.mkdir(parents=True)
     (half / "leftover.txt").write_text("half a run")
 

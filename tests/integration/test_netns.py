@@ -127,7 +127,7 @@ def _write_run(run_dir: Path, run: str, endpoint: str) -> Path:
     """``RUN_DIR/config.json`` and the learner's task file, as ``khgrl up`` writes them; returns config.json."""
     from khgrl.common.config.settings import RunConfig, SafetySettings, StreamSettings, TQCSettings, write_run_config
     from khgrl.common.delivery.task_link import TASK_FILE, save_task
-    from khgrl.deploy.launcher import check_task
+    from khgrl.deploy.preflight import check_task
 
     cfg = RunConfig(scenario="low_cov", method="khgrl", episodes=1000, seed=0, run_dir=str(run_dir), run=run,
                     actors=len(ACTORS), human="scripted", human_episodes=(1,), connect=endpoint, rate=RATE,

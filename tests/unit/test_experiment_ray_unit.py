@@ -12,7 +12,9 @@ from types import SimpleNamespace
 
 import pytest
 from khgrl.deploy.experiment import ExperimentConfig, load_config
-from khgrl.deploy.experiment_ray import RayRunner, check_identity, khgrl_identity, pack_run, unpack_run
+from khgrl.deploy.experiment_progress import Progress, last_line
+from khgrl.deploy.experiment_ray import RayRunner, unpack_run
+from khgrl.deploy.ray_worker import check_identity, khgrl_identity, pack_run
 
 
 def _run_folder(root: Path) -> Path:
@@ -103,8 +105,10 @@ class _Recorder:
     def __init__(self, out: Path) -> None:
         self.cfg = ExperimentConfig(out=str(out), ray="auto", episodes=1)
         self.out, self.stopping, self.records = out, False, {}
+        self.finished: dict[str, tuple] = {}
         self.progress = SimpleNamespace(start=lambda *a, **k: None, advance=lambda *a: None,
-                                        finish=lambda *a: None, skip=lambda *a: None)
+                                        finish=lambda name, *a: self.finished.update({name: a}),
+                                        skip=lambda *a: None)
 
     def record(self, name: str, **info) -> None:
         self.records[name] = {**self.records.get(name, {}), **info}
@@ -131,5 +135,16 @@ def test_the_head_keeps_a_finished_run_and_records_a_failed_one_without_a_folder
     good, bad, died = runner.records["good"], runner.records["bad"], runner.records["died"]
     assert (good["status"], good["node"], good["wall_time_s"], good["returncode"]) == ("done", "n1", 12.5, 0)
     assert "log_tail" not in good and bad["log_tail"] == "last lines" and bad["returncode"] == 3
-    assert "khgrl is not installed on the worker" in died["log_tail"]
+    assert "khgrl is not installed on the worker" in died["error"]
     assert "broken" in runner.records["broken"]["error"]
+    # a failed run says why on the terminal, not only in experiment.json (issue 36: before, only the status)
+    assert runner.finished["bad"][-1] == "last lines"
+    assert "khgrl is not installed on the worker" in runner.finished["died"][-1]
+
+
+def test_a_failed_run_prints_its_reason(capsys):
+    progress = Progress(total_runs=2, episodes=1, enabled=False)
+    progress.finish("r1", "failed", 3.0, last_line("starting\nkhgrl up: error: no module named 'mytask'\n\n"))
+    progress.finish("r2", "done", 9.0, "ignored for a finished run")
+    out = capsys.readouterr().out.splitlines()
+    assert out == ["r1: failed in 3 s: khgrl up: error: no module named 'mytask'", "r2: done in 9 s"]

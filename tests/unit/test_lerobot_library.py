@@ -65,3 +65,15 @@ def test_writer_is_all_or_nothing(tmp_path: Path) -> None:
     ds = load_with_library(out)  # the first dataset is still there, whole
     assert ds.num_episodes == 1 and ds.num_frames == 3 and (out / "meta" / "khgrl.json").is_file()
     np.testing.assert_array_equal(np.asarray(ds.hf_dataset.with_format("numpy")["next.reward"]), [0, 1, 2])
+
+
+def test_lerobots_loader_imports_in_this_environment_without_a_notice():
+    """Before: every LeRobot command began with a torchvision warning on stderr (the stand-in's notice)."""
+    import subprocess
+    import sys
+
+    code = ("from khgrl.common.lerobot.library import lerobot_dataset_class; "
+            "print(lerobot_dataset_class().__name__)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == "LeRobotDataset", proc.stderr
+    assert "torchvision" not in proc.stderr, proc.stderr

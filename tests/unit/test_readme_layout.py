@@ -1,6 +1,7 @@
-"""The README's "Layout" section is checked against the code: every module path it names exists, and every
-function, class or method it names (``file.py`` ``Class.method``, or a bare name after a file) is defined in
-the file named before it. A renamed or removed function makes this fail, so the map cannot rot."""
+"""The layout map (docs/layout.md, the whole map, and the README's "Layout" section) is checked against the code:
+every module path it names exists, and every function, class or method it names (``file.py`` ``Class.method``, or
+a bare name after a file) is defined in the file named before it. A renamed or removed function makes this fail,
+so the map cannot rot."""
 
 from __future__ import annotations
 
@@ -16,9 +17,10 @@ NOT_A_NAME = re.compile(r"(^khgrl\b)|(\.(csv|json|toml|md|png|gif|npz|rrd|msgpac
 
 
 def layout_section(text: str) -> str:
-    """The README text from ``## Layout`` to the next ``## `` heading."""
-    start = text.index("\n## Layout\n")
-    end = text.find("\n## ", start + 1)
+    """The text from a ``## Layout`` (or ``# Layout``) heading to the next heading of that level."""
+    level = "\n## " if "\n## Layout\n" in text else "\n# "
+    start = text.index(f"{level}Layout\n")
+    end = text.find(level, start + 1)
     return text[start:end if end > 0 else None]
 
 
@@ -69,8 +71,9 @@ def check_layout(text: str, repo: Path = REPO) -> list[str]:
 
 
 def test_every_path_and_function_the_layout_names_exists():
-    problems = check_layout((REPO / "README.md").read_text())
-    assert not problems, "README Layout is out of date:\n" + "\n".join(problems)
+    for page in ("README.md", "docs/layout.md"):
+        problems = check_layout("\n" + (REPO / page).read_text())
+        assert not problems, f"{page}: Layout is out of date:\n" + "\n".join(problems)
 
 
 def test_the_check_finds_a_missing_file_and_a_missing_method(tmp_path):

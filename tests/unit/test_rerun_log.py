@@ -150,3 +150,16 @@ def test_live_view_survives_its_own_errors(tmp_path: Path, monkeypatch: pytest.M
     view.step(1, _row(2, False))
     view.finish(1, {}, SimpleNamespace(ret=0.0, success=False))
     view.close()
+
+
+def test_the_web_viewer_ends_with_the_run(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``--view rerun:web``: Rerun's real web-viewer sink starts and serves, and is stopped when the run's view
+    closes. Before (issue 36): it stayed after the run ("kill PID"), a server left behind."""
+    from khgrl.deploy.view_sink import RunView
+
+    view = RunView(parse_view("rerun:web"), run_id="r", log_dir=tmp_path)
+    with view:
+        sink = view.sink
+        assert sink is not None and sink.poll() is None
+    assert sink.poll() is not None
+    assert "until the run ends" in capsys.readouterr().out

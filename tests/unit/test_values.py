@@ -13,7 +13,8 @@ import pytest
 import torch
 from khgrl.common.config.settings import TQCSettings
 from khgrl.common.process import StopFlag
-from khgrl.common.tasks.api import TaskError, value_bounds
+from khgrl.common.tasks.api import TaskError
+from khgrl.common.tasks.checks import value_bounds
 from khgrl.common.tasks.passage.env import PassageEnv
 from khgrl.common.wire.bounds import bad_rows, check_bounds
 from khgrl.common.wire.checks import ProtocolError
