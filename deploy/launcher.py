@@ -282,7 +282,8 @@ class Run:
                 subscribe(session, self.keys.control("**"), self.inbox.callback("control"), remote_only=True)]
         try:  # (in robot mode the actors move only while they hear this launcher's heartbeat)
             with run_supervisor(session, self.keys, self.cfg, self.plan.run_dir, self.signer):
-                with ProgressView(self.cfg.actor_ids(), self.cfg.episodes, self.plan.progress) as view:
+                with ProgressView(self.cfg.actor_ids(), self.cfg.episodes, self.plan.progress,
+                                  schedule_quiet=self.cfg.stream.mode == "simulation") as view:
                     self._watch(view)
                 self._stop_children(session)
         finally:

@@ -105,6 +105,9 @@ class ActorRow:
         return [name, f"{self.done}/{episodes}", str(self.success), ret, str(self.count), str(n), clipped, xi]
 
 
+SCHEDULE_HOLD = "waiting for the learner"  # simulation mode's lock-step wait (the watchdog's reason starts so)
+
+
 class ProgressView:
     """The live table (``enabled`` on a terminal) or plain episode lines; use it as a context manager.
 
@@ -113,9 +116,12 @@ class ProgressView:
     :param enabled: the table was asked for (``--progress``): live on a terminal; elsewhere plain episode lines
         and the table once, in plain text, at the end. False (``--no-progress``): the lines only.
     :param tty: whether stdout is a terminal (None: ask ``sys.stdout``)
+    :param schedule_quiet: simulation mode: the lock-step waits for the learner are the schedule, not news -- no
+        "robot held: waiting for the learner" / "robot released" line for them (robot mode: every hold is said)
     """
 
-    def __init__(self, actors: list[str], episodes: int, enabled: bool, tty: bool | None = None) -> None:
+    def __init__(self, actors: list[str], episodes: int, enabled: bool, tty: bool | None = None,
+                 schedule_quiet: bool = False) -> None:
         self.rows = {a: ActorRow() for a in actors}
         self.episodes = episodes
         self.enabled = enabled
@@ -124,6 +130,8 @@ class ProgressView:
         self.live = enabled and tty
         self.learner: LearnerInfo | None = None
         self.held: dict[str, str] = {}  # actor -> why its robot is held ("": it is not)
+        self.schedule_quiet = schedule_quiet
+        self._said: dict[str, bool] = {}  # actor -> its last line said "robot held" (a release is said after one)
         self._live = None
 
     def __enter__(self) -> "ProgressView":
@@ -158,10 +166,7 @@ class ProgressView:
         :param status: a decoded status message (info typed by role)
         """
         if isinstance(status.info, ActorInfo) and status.info.held != self.held.get(status.info.id, ""):
-            self.held[status.info.id] = status.info.held  # the watchdog holds (or releases) the robot: say so
-            if not self.live:
-                print(f"[{status.info.id}] " + (f"robot held: {status.info.held}" if status.info.held
-                                                else "robot released"), flush=True)
+            self._held_line(status.info.id, status.info.held)
             self.refresh()
         if isinstance(status.info, LearnerInfo):
             before = self.learner.checkpoint_error if self.learner is not None else ""
@@ -170,6 +175,16 @@ class ProgressView:
                 line = checkpoint_line(status.info) or f"checkpoint recovered ({status.info.checkpoints} saved)"
                 print(f"[{status.info.id}] {line}", flush=True)
             self.refresh()
+
+    def _held_line(self, actor: str, held: str) -> None:
+        """The watchdog holds (or releases) ``actor``'s robot: say so, unless it is the schedule (see the class)."""
+        self.held[actor] = held
+        schedule = self.schedule_quiet and held.startswith(SCHEDULE_HOLD)
+        said = self._said.get(actor, False)
+        if self.live or schedule or (not held and not said):
+            return
+        print(f"[{actor}] " + (f"robot held: {held}" if held else "robot released"), flush=True)
+        self._said[actor] = bool(held)
 
     def refresh(self) -> None:
         if self._live is not None:

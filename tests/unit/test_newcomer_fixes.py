@@ -264,3 +264,29 @@ def test_the_readme_says_what_one_seed_gives_and_results_say_where_numbers_come_
     for fact in ("282f924", "repeats exactly on one machine", "diverge on another machine", "set_num_threads",
                  "use_deterministic_algorithms", "2 shared x86-64"):
         assert fact in section, fact
+
+
+def test_simulation_mode_does_not_report_its_lock_step_waits_as_holds(capsys):
+    """Issue 36: a 15-episode simulation run printed 104 "robot held: waiting for the learner" / "robot released"
+    lines, the schedule of lock-step training, against 23 useful ones. Simulation mode now says only holds that are
+    news (and their release); robot mode says every hold."""
+    from khgrl.common.wire.messages import Status
+    from khgrl.common.wire.status import ActorInfo
+
+    def status(held: str) -> Status:
+        return Status(role="actor", info=ActorInfo(
+            id="a0", episode=1, t=5, transitions=5, sent=0, next_seq=0, outbox=0, received=-1, durable=-1, trained=0,
+            weights_version=0, ack_version=0, learner_alive=True, waits=0, wait_s=0.0, resends=0, corrections={},
+            intervening=False, rejects={}, paused=bool(held), period_ms_p50=None, held=held))
+
+    helds = ["waiting for the learner (1.2 s)", "", "waiting for the learner (0.6 s)", "",
+             "e-stop by launcher", "", "waiting for the learner (0.7 s)", ""]
+    for quiet in (True, False):
+        view = ProgressView(["a0"], 10, enabled=False, tty=False, schedule_quiet=quiet)
+        for held in helds:
+            view.status(status(held))
+        lines = capsys.readouterr().out.splitlines()
+        if quiet:
+            assert lines == ["[a0] robot held: e-stop by launcher", "[a0] robot released"]
+        else:
+            assert len(lines) == 8 and lines[0] == "[a0] robot held: waiting for the learner (1.2 s)"
