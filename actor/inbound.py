@@ -137,7 +137,8 @@ class Inbound:
     def held_reason(self) -> str:
         """Why the actor is held by a command ("" when it is not): the e-stop first."""
         if self.estop is not None:
-            return f"e-stop by {self.estop.by}"
+            return f"e-stop by {self.estop.by}" + (f" (also pressed by {', '.join(self.estop.also)})"
+                                                   if self.estop.also else "")
         if self.supervision.waiting:
             return "waiting for the supervisor's heartbeat (khgrl up, or khgrl supervise RUN_DIR)"
         if self.launcher_paused:
@@ -170,7 +171,9 @@ class Inbound:
             self.estop = EStop(by=by, sent=sent, episode=episode, t=int(self.p.env.t))
             log.warning("e-stop pressed by %s: the robot holds until `khgrl stop --release`", by)
         else:
-            log.warning("e-stop pressed by %s (held already: e-stop by %s)", by, self.estop.by)
+            if by != self.estop.by and by not in self.estop.also:  # (named in the status: a client's press confirmed)
+                self.estop.also.append(by)
+                log.warning("e-stop pressed by %s (held already: e-stop by %s)", by, self.estop.by)
 
     def handle(self, kind: str, key: str, payload, arrival: float, episode: int) -> None:
         """One inbox item.

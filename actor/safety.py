@@ -68,6 +68,7 @@ class EStop:
     episode: int
     t: int
     latency_ms: float | None = None  # from the command's timestamp to the actor's first held period
+    also: list = field(default_factory=list)  # who pressed it again while it held (named in the held reason)
 
 
 @dataclass

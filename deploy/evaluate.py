@@ -55,6 +55,7 @@ from khgrl.deploy.eval_scenes import (
     scene_placement,
     write_scenes_csv,
 )
+from khgrl.deploy.rundir import still_running
 
 __all__ = ["EvalError", "EpisodeResult", "Evaluation", "evaluate", "add_parser", "free_path", "report", "find_run",
            "read_config"]
@@ -133,7 +134,12 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
         raise EvalError("--scenes and --gif-scenes must be >= 1")
     run_dir, actor = find_run(run_dir, actor)
     cfg, runtime, settings = read_config(run_dir, actor)
-    model_zip = find_model(run_dir, checkpoint)
+    try:
+        model_zip = find_model(run_dir, checkpoint)
+    except EvalError:
+        if running := still_running(run_dir, "khgrl eval"):  # (a live run: its first checkpoint may still come)
+            raise EvalError(f"{running}; it has no checkpoint yet") from None
+        raise
     task, spec = load_run_task(cfg, runtime.get("cwd"))
     seed = cfg.seed if seed is None else int(seed)
     adapted = bool(cfg.adapt if adapt is None else adapt)

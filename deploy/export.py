@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 from khgrl.common.lerobot.library import ACTION, DONE, INTERVENTION, REWARD, STATE
+from khgrl.deploy.rundir import still_running
 
 __all__ = ["add_parser", "export_run", "FEATURES", "DEFAULT_FPS"]
 
@@ -119,6 +120,8 @@ def export_run(run_dir: str | Path, out: str | Path, *, fps: int | None = None, 
     _check_replace(run_dir, out)
     if not run_dir.is_dir():
         raise ExportError(f"{run_dir}: no such run directory")
+    if running := still_running(run_dir, "khgrl export"):
+        raise ExportError(running)
     try:
         cfg, runtime, _ = read_config(run_dir)
     except EvalError as exc:

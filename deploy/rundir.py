@@ -26,8 +26,8 @@ import secrets
 import shutil
 from pathlib import Path
 
-__all__ = ["RunDirError", "results_in", "has_checkpoint", "clear_run", "live_run", "refuse_live", "archive_part",
-           "previous_runtime", "make_run_id", "write_pids", "resolve_demos", "keep_demos"]
+__all__ = ["RunDirError", "results_in", "has_checkpoint", "clear_run", "live_run", "still_running", "refuse_live",
+           "archive_part", "previous_runtime", "make_run_id", "write_pids", "resolve_demos", "keep_demos"]
 
 # entries that mark a directory as holding (part of) a run; --overwrite deletes exactly these
 _RESULT_FILES = ("config.json", "config.toml", "summary.json", "pids.json", "estop.json")  # (--resume keeps estop.json)
@@ -97,6 +97,18 @@ def live_run(run_dir: Path) -> list[str]:
              if isinstance(pid, int) and pid != os.getpid() and _runs_khgrl(pid)]
     return alive + [f"{lock.parent.name} (it holds {lock.parent.name}/{lock.name})"
                     for lock in sorted(run_dir.glob("actor-*/actor.lock")) if _locked(lock)]
+
+
+def still_running(run_dir: Path, command: str) -> str:
+    """Why ``command`` should not read ``run_dir`` now ("" when its run has ended): it reads a finished run, and a
+    live one's files are half written (``khgrl export`` and ``khgrl view`` took what was there, silently).
+
+    :param run_dir: the run directory
+    :param command: the command that asks (``khgrl export``, ``khgrl view``, ``khgrl eval``)
+    """
+    alive = live_run(run_dir)
+    return (f"the run in {run_dir} is still running ({', '.join(alive)}): {command} reads a finished run -- wait for "
+            f"it to end, or stop it (khgrl stop {run_dir})") if alive else ""
 
 
 def refuse_live(run_dir: Path) -> None:

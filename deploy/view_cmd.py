@@ -26,6 +26,7 @@ from typing import Any
 
 from khgrl.common.rerun_log import RunLogger, blueprint, has_display, import_rerun, open_recording
 from khgrl.common.step_records import actor_dirs, read_steps
+from khgrl.deploy.rundir import still_running
 
 __all__ = ["main", "build_parser", "log_run", "episode_results"]
 
@@ -122,6 +123,8 @@ def _check(args: argparse.Namespace) -> tuple[Path, Path | None]:
     run_dir = Path(args.run_dir)
     if not run_dir.is_dir():
         raise ValueError(f"{run_dir} is not a directory")
+    if running := still_running(run_dir, "khgrl view"):
+        raise ValueError(running)
     if not any(run_dir.glob("actor-*/steps/episode-*.npz")):
         raise ValueError(f"{run_dir}: no step records (RUN_DIR/actor-ID/steps/episode-N.npz: a run of this version "
                          f"of khgrl up keeps them for each finished episode)")

@@ -121,7 +121,7 @@ class HumanClient:
         self._decls = [subscribe(session, topics[k], self.inbox.callback(k)) for k in kinds]
         self._decls += [subscribe(session, keys.control(t), self.controls.callback("control"))
                         for t in ("human", "all")]
-        self.estop = EStopPress(lambda: self._request("estop"))  # repeated until the actors' statuses confirm it
+        self.estop = EStopPress(lambda: self._request("estop"), f"human client {client}")  # repeated until confirmed
         self._decls.append(subscribe(session, keys.status("actor", "*"), self.estop.on_status))
         self._decls.append(token(session, keys.alive("human", client)))
         self._status = publisher(session, keys.status("human", client), congestion="drop")

@@ -1,8 +1,9 @@
 """A human-input client's e-stop (x in a window, a device's e-stop button): one press is repeated every
 :data:`REPEAT_S` until the actors' statuses confirm it, as ``khgrl stop --now`` does -- a press while the router
 restarts is not lost. Every actor whose status the client heard in the last :data:`FRESH_S` must say, in a status
-that came after the press, that it is held by the e-stop (any admitted client may press it, for every actor; only the
-operator releases it: ``khgrl stop RUN_DIR --release``).
+that came after the press, that it is held by the e-stop with this client among those who pressed it (an e-stop the
+watchdog latched on a lost link is not this press: the client goes on until its own is named). Any admitted client
+may press it, for every actor; only the operator releases it (``khgrl stop RUN_DIR --release``).
 """
 
 from __future__ import annotations
@@ -24,10 +25,13 @@ class EStopPress:
     """The client's e-stop press and its confirmation.
 
     :param send: publishes one ``estop`` request.
+    :param by: how the actors name this client's press (``human client <id>``): a status confirms it only when it
+        names it -- an e-stop already latched by another (the watchdog on a lost link) is not this press (default:
+        any e-stop confirms)
     """
 
-    def __init__(self, send: Callable[[], None]) -> None:
-        self.send = send
+    def __init__(self, send: Callable[[], None], by: str = "") -> None:
+        self.send, self.by = send, by
         self.since: float | None = None  # when the unconfirmed press began (None: none waits)
         self.confirmed_after: float | None = None  # seconds from the press to its confirmation
         self.presses = 0
@@ -67,8 +71,16 @@ class EStopPress:
         now, since = time.monotonic(), self.since
         with self._lock:
             recent = {a: v for a, v in self._held.items() if now - v[0] <= FRESH_S}
-        return since is not None and bool(recent) and all(t >= since and held.startswith("e-stop")
+        return since is not None and bool(recent) and all(t >= since and self._names_us(held)
                                                           for t, held in recent.values())
+
+    def _names_us(self, held: str) -> bool:
+        """Whether an actor's held reason is the e-stop with this client's press among its pressers ("e-stop by A (also
+        pressed by B, C)", :meth:`khgrl.actor.inbound.Inbound.held_reason`)."""
+        if not held.startswith("e-stop by "):
+            return False
+        names = held[len("e-stop by "):].replace(" (also pressed by ", ", ").rstrip(")").split(", ")
+        return not self.by or self.by in names
 
     def tick(self) -> None:
         """Called each pass of the client's loop: repeat the press until confirmed."""
