@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 from typing import Any
 
 from khgrl.actor.human_limits import HumanPauses
 from khgrl.actor.safety import EStop
 from khgrl.actor.supervision import Supervision, heartbeat_refusal
 from khgrl.common.delivery.actor_guard import ActorGuard
+from khgrl.common.delivery.estop_state import STATE_FILE, read_state
 from khgrl.common.delivery.senders import HUMAN_COMMANDS, read_for_actor
 from khgrl.common.delivery.trust import WeightsGate, learner_of
 from khgrl.common.process import StopFlag
@@ -123,6 +125,13 @@ class Inbound:
         late = silence - self.supervision.timeout
         self.press_estop(f"the watchdog (no heartbeat from the supervisor for {silence:.2f} s)", time.time() - late,
                          self.episode)
+
+    def restore_run_state(self, run_dir: str) -> None:
+        """Before the first command: the run's e-stop state from ``RUN_DIR/estop.json`` (:meth:`restore`).
+
+        :param run_dir: the run directory.
+        """
+        self.restore(read_state(run_dir), str(Path(run_dir) / STATE_FILE))
 
     def restore(self, state: dict | None, where: str) -> None:
         """Before the first command: the run's e-stop state from disk (:mod:`~khgrl.common.delivery.estop_state`).

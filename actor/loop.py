@@ -24,7 +24,6 @@ import logging
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 from khgrl.actor.demos import replay_demos
@@ -38,7 +37,6 @@ from khgrl.actor.supervision import Supervision
 from khgrl.actor.telemetry import frame, status_info
 from khgrl.common.config.settings import RunConfig
 from khgrl.common.delivery.actor_side import ActorDelivery
-from khgrl.common.delivery.estop_state import STATE_FILE, read_state
 from khgrl.common.metrics import EpisodeAccumulator
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import Dims, EpisodeReport, Status
@@ -82,12 +80,11 @@ class ActorLoop:
         self.inbound = Inbound(parts, flag, self.dims, parts.weights.receiver.gate,  # acks, corrections, liveliness
                                pause_s=cfg.stream.human_pause_s,
                                supervision=Supervision(s.supervised(cfg.stream.mode), s.supervision_timeout))
-        self.inbound.restore(read_state(cfg.run_dir), str(Path(cfg.run_dir) / STATE_FILE))
+        self.inbound.restore_run_state(cfg.run_dir)
         self.delivery = ActorDelivery(actor, parts.link, parts.inbox, parts.stream, parts.weights, cfg.stream, flag,
                                       self.inbound, lambda item: self.inbound.handle(*item, episode=self.episode),
                                       self._publish_status)
         self.service, self.waits = self.delivery.service, self.delivery.waits
-        # the watchdog holds the robot while the loop waits or a holding human is silent
         self.watchdog = Watchdog(parts.env, self.inbound, parts.arbiter, s.human_silence_s, s.deadline_margin,
                                  self.pacer.period, self.service, self.rate_limit, self._publish_status,
                                  lambda: bool(flag))

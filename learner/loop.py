@@ -126,7 +126,7 @@ class LearnerLoop:
     def step(self) -> None:
         """After messages were taken in: ack, sync the journal (what the journal thread does), then :meth:`work`."""
         self.ingest.ack_touched()
-        self.sync_journal()
+        self.durable.sync_journal()
         self.work()
 
     def work(self) -> bool:
@@ -176,45 +176,17 @@ class LearnerLoop:
     def checkpoint_requested(self, value: bool) -> None:
         self.durable.checkpoint_requested = value
 
-    def sync_journal(self) -> None:
-        """Make what the journal holds durable and ack it (``Durability.sync_journal``)."""
-        self.durable.sync_journal()
-
-    def not_durable(self) -> int:
-        """Transitions stored that neither the last full checkpoint nor the journal holds."""
-        return self.durable.not_durable()
-
-    @property
-    def journal(self) -> Any:
-        """The journal (None without one)."""
-        return self.durable.journal
-
-    @property
-    def saves(self) -> Any:
-        """Failed saves and journal writes and their retry backoff."""
-        return self.durable.saves
-
-    @property
-    def checkpoints(self) -> int:
-        """Full checkpoints written."""
-        return self.durable.checkpoints
-
-    @property
-    def model_checkpoints(self) -> int:
-        """Model-only checkpoints written (with a journal)."""
-        return self.durable.model_checkpoints
-
     def info(self) -> LearnerInfo:
         """This learner's status (the rate: gradient steps per second since the previous call)."""
         sampling = self.trainer.buffer.sampling_info()  # (its own lock, not taken inside the ingest lock)
         with self.lock:
-            tr, now = self.trainer, self.clock()
+            tr, now, saves = self.trainer, self.clock(), self.durable.saves
             rate = (tr.gradient_steps - self._status_steps) / max(now - self._status_t, 1e-9)
             self._status_t, self._status_steps = now, tr.gradient_steps
             return LearnerInfo(id=self.id, epoch=tr.epoch, ingested=tr.total, iterations=tr.iterations,
                                gradient_steps=tr.gradient_steps, grad_steps_per_s=round(rate, 2), version=tr.version,
-                               pending_iterations=len(tr.due), paused=self.paused, checkpoints=self.checkpoints,
-                               checkpoint_error=self.saves.error, checkpoint_failures=self.saves.failures,
+                               pending_iterations=len(tr.due), paused=self.paused, checkpoints=self.durable.checkpoints,
+                               checkpoint_error=saves.error, checkpoint_failures=saves.failures,
                                mode=self.mode, utd=round(tr.utd, 4), rss_mb=rss_mb(), rollbacks=tr.rollbacks,
                                **sampling, **self.ingest.info())
 
@@ -230,7 +202,7 @@ class LearnerLoop:
         """
         ingest = self.ingest.start(inbox)
         syncer = None
-        if self.journal is not None:
+        if self.durable.journal is not None:
             syncer = threading.Thread(target=self.durable.sync_loop, args=(self.flag,), name="journal", daemon=True)
             syncer.start()
         try:

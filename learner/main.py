@@ -191,8 +191,8 @@ def _final_checkpoint_failed(loop: LearnerLoop) -> int:
 
     :param loop: the learner loop whose final :meth:`~khgrl.learner.loop.LearnerLoop.checkpoint` failed
     """
-    unsaved = loop.not_durable()
-    message = f"the final checkpoint in {loop.ckpt_dir} failed ({loop.saves.error}): "
+    unsaved = loop.durable.not_durable()
+    message = f"the final checkpoint in {loop.ckpt_dir} failed ({loop.durable.saves.error}): "
     if unsaved:
         message += (f"the {unsaved} transitions received that neither the last checkpoint nor the journal holds are "
                     f"lost here. Running actors keep every batch that acks never said durable and re-send it to a "

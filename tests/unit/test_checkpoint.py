@@ -185,7 +185,7 @@ def test_loop_survives_a_failing_checkpoint_and_recovers(tmp_path, monkeypatch):
     for seq in range(4):
         loop.offer(_batch(seq))
     loop.step()
-    assert loop.checkpoints == 1 and pub.of(Ack)[-1].durable == 3
+    assert loop.durable.checkpoints == 1 and pub.of(Ack)[-1].durable == 3
     first = find_checkpoint(tmp_path / "learner")
     real_save = loop_module.save_checkpoint
     attempts = []
@@ -206,13 +206,13 @@ def test_loop_survives_a_failing_checkpoint_and_recovers(tmp_path, monkeypatch):
     while now[0] < 8.0:  # retried after 1 s, then 2 s, then 4 s (not at every turn)
         now[0] += 0.25
         loop.step()
-    assert attempts == [0.0, 1.0, 3.0, 7.0] and loop.saves.failures == 4
+    assert attempts == [0.0, 1.0, 3.0, 7.0] and loop.durable.saves.failures == 4
     assert all(a.durable <= 3 for a in pub.of(Ack))
     assert json.loads((first / "state.json").read_text())["total_ingested"] == 32  # the previous one, intact
     monkeypatch.setattr(loop_module, "save_checkpoint", real_save)  # the disk is fixed
     now[0] = 15.0  # the retry after 8 s is due
     loop.step()
-    assert loop.checkpoints == 2 and pub.of(Ack)[-1].durable == 7
+    assert loop.durable.checkpoints == 2 and pub.of(Ack)[-1].durable == 7
     assert loop.info().checkpoint_error == "" and loop.info().checkpoint_failures == 4
     arrays = load_checkpoint_arrays(find_checkpoint(tmp_path / "learner"))
     assert arrays["provenance_step"][:64].tolist() == list(range(64))
@@ -260,8 +260,8 @@ def test_a_failed_final_checkpoint_is_one_clear_error(capsys):
     from khgrl.learner.main import _final_checkpoint_failed
 
     lost = {"n": 60}
-    loop = SimpleNamespace(not_durable=lambda: lost["n"], ckpt_dir=Path("/data/ck"),
-                           saves=SimpleNamespace(error="ENOSPC No space left on device"))
+    loop = SimpleNamespace(ckpt_dir=Path("/data/ck"), durable=SimpleNamespace(
+        not_durable=lambda: lost["n"], saves=SimpleNamespace(error="ENOSPC No space left on device")))
     assert _final_checkpoint_failed(loop) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("khgrl learner: error: the final checkpoint in /data/ck failed "

@@ -152,12 +152,14 @@ def test_scenes_on_a_fixed_scene_task_say_so(fixed, capsys):
 
 
 def test_scenes_usage_errors(varying, capsys):
-    for argv, expect in ((["--scenes", "0"], "--scenes and --gif-scenes must be >= 1"),
-                         (["--scenes", "2", "--episodes", "2"], "not both"),
-                         (["--scenes", "2", "--gif-scenes", "0"], "--gif-scenes must be >= 1")):
-        assert khgrl(["eval", str(varying), *argv]) == 2
-        err = capsys.readouterr().err.strip()
-        assert err.count("\n") == 0 and expect in err, err
+    assert khgrl(["eval", str(varying), "--scenes", "2", "--episodes", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "not both" in err, err
+    for argv, expect in ((["--scenes", "0"], "argument --scenes: must be >= 1"),
+                         (["--scenes", "2", "--gif-scenes", "0"], "argument --gif-scenes: must be >= 1")):
+        with pytest.raises(SystemExit) as exc:  # the parser's usage error, before anything is loaded (issue 36)
+            khgrl(["eval", str(varying), *argv])
+        assert exc.value.code == 2 and expect in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------------ khgrl report

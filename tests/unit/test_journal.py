@@ -157,20 +157,20 @@ def test_the_journal_makes_batches_durable_and_a_killed_learner_resumes_exactly_
         loop.step()
     acks = pub.of(Ack)
     # durable from the journal alone: no full checkpoint was written
-    assert loop.checkpoints == 0 and find_checkpoint(tmp_path / "learner") is None
+    assert loop.durable.checkpoints == 0 and find_checkpoint(tmp_path / "learner") is None
     assert [a.durable for a in acks if a.actor == "a0"][-1] == 5
-    assert loop.model_checkpoints >= 1 and find_model(tmp_path / "learner") is not None
+    assert loop.durable.model_checkpoints >= 1 and find_model(tmp_path / "learner") is not None
     for seq in range(6, 9):  # 84 transitions at seq 6: more than snapshot_rows -> a full checkpoint
         loop.offer(batch(seq, 8 * seq, 8))
         loop.offer(batch(seq, 4 * seq, 4, actor="a1", stream="t0"))
         loop.step()
-    assert loop.checkpoints == 1 and [i for i, _ in segments(loop.journal.dir)] == [1]
+    assert loop.durable.checkpoints == 1 and [i for i, _ in segments(loop.durable.journal.dir)] == [1]
     for seq in range(9, 12):  # after the snapshot: journal only
         loop.offer(batch(seq, 8 * seq, 8))
         loop.step()
     loop.control(Control(command="checkpoint"))  # an actor's request: the journal synced and the model saved
     loop.step()
-    assert loop.checkpoints == 1 and [a.durable for a in pub.of(Ack) if a.actor == "a0"][-1] == 11
+    assert loop.durable.checkpoints == 1 and [a.durable for a in pub.of(Ack) if a.actor == "a0"][-1] == 11
     model = json.loads((find_model(tmp_path / "learner") / "state.json").read_text())
     assert model["iterations"] == loop.trainer.iterations
     expected, total = _provenance(loop), loop.trainer.total
@@ -218,9 +218,9 @@ def test_a_fresh_start_removes_an_earlier_learners_journal_and_checkpoints(tmp_p
     loop.checkpoint()
     loop.offer(batch(1, 8, 8))
     loop.step()
-    assert segments(loop.journal.dir) and find_checkpoint(tmp_path / "learner")
+    assert segments(loop.durable.journal.dir) and find_checkpoint(tmp_path / "learner")
     fresh, _ = _loop(tmp_path)
-    assert not segments(fresh.journal.dir) and find_checkpoint(tmp_path / "learner") is None
+    assert not segments(fresh.durable.journal.dir) and find_checkpoint(tmp_path / "learner") is None
     with pytest.raises(Exception, match="no checkpoint"):
         open_learner(SMALL, 1, tmp_path / "learner", resume=True, logger_formats=("csv",))
 
@@ -254,7 +254,7 @@ def test_ingest_goes_on_into_the_journal_while_a_full_checkpoint_is_saved(tmp_pa
 
     def save_while_ingesting(*args, **kwargs):
         loop.offer(batch(3, 24, 8))  # arrives while the snapshot is written: stored, journaled, durable
-        loop.sync_journal()
+        loop.durable.sync_journal()
         assert not loop.lock._is_owned()  # ingest was not paused for the save
         return real(*args, **kwargs)
 
@@ -264,7 +264,7 @@ def test_ingest_goes_on_into_the_journal_while_a_full_checkpoint_is_saved(tmp_pa
     state = json.loads((ckpt / "state.json").read_text())
     assert state["total_ingested"] == 24 and state["actors"]["a0"]["next_seq"] == 3
     assert sorted(load_checkpoint_arrays(ckpt)["provenance_step"][:24].tolist()) == list(range(24))
-    assert [m.envelope.seq for m in read_records(loop.journal.dir, state["journal"]["next"])] == [3]
+    assert [m.envelope.seq for m in read_records(loop.durable.journal.dir, state["journal"]["next"])] == [3]
     assert [a.durable for a in pub.of(Ack)][-1] == 3 and loop.trainer.total == 32
     again, _ = _loop(tmp_path, resume=True)
     assert _provenance(again) == [("a0", i) for i in range(32)] and again.streams["a0"].next_seq == 4

@@ -266,13 +266,13 @@ def test_loop_controls_and_checkpoint_interval(tmp_path):
         loop.offer(batch(seq, 8 * seq, 8))
     loop.step()
     assert loop.paused and loop.trainer.due and loop.trainer.version == 0  # paused: no training
-    assert loop.checkpoints == 1 and pub.of(Ack)[-1].durable == 3  # 32 >= 16 ingested since the start
+    assert loop.durable.checkpoints == 1 and pub.of(Ack)[-1].durable == 3  # 32 >= 16 ingested since the start
     loop.control(Control(command="resume"))
     loop.step()
-    assert loop.trainer.version == 1 and loop.checkpoints == 1
+    assert loop.trainer.version == 1 and loop.durable.checkpoints == 1
     loop.control(Control(command="checkpoint"))
     loop.step()
-    assert loop.checkpoints == 2
+    assert loop.durable.checkpoints == 2
     loop.control(Control(command="stop"))
     assert loop.flag and loop.flag.reason == "stop command"
 
