@@ -123,6 +123,7 @@ def replay_journal(trainer: Trainer, streams: StreamTable, directory: Path, star
                             batch.actor, int(bad.sum()), batch.n)
                 continue
             trainer.add(batch, res.stream, streams.positions)
+            res.stream.mark()  # (as the ingest thread marks it: trained weights cover it, then it leaves the lead)
             stored += 1
             rows += batch.n
     if stored or dropped:
