@@ -23,7 +23,7 @@ JOURNAL_ROWS = 48  # transitions in the journal after the full checkpoint when t
 
 def _journal_after_checkpoint(ckpt_dir: Path) -> list:
     """The journal's records after the full checkpoint (what a resumed learner replays)."""
-    from khgrl.learner.journal import read_records
+    from khgrl.learner.journal_scan import read_records
 
     state = read_json(ckpt_dir / "checkpoint" / "state.json")
     return list(read_records(ckpt_dir / "journal", state["journal"]["next"]))
