@@ -103,23 +103,27 @@ def segments(directory: str | Path) -> list[tuple[int, Path]]:
     return sorted(found)
 
 
-def encode_record(msg: Transitions, seq: int) -> bytes:
+def encode_record(msg: Transitions, seq: int, skipped: int = 0) -> bytes:
     """One journal record of a stored batch.
 
     :param msg: the batch
     :param seq: its seq in the actor's stream
+    :param skipped: the batches its stream had skipped when it was stored (``ActorStream.skipped``: a replay tells
+        the learner's own skips from batches the journal lost)
     """
     meta = json.dumps({"actor": msg.actor, "stream": msg.stream or "", "seq": int(seq),
                        "base": int(msg.base_seq or 0), "first": int(msg.first_step), "n": msg.n,
-                       "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1])}).encode()
+                       "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1]),
+                       "skipped": int(skipped)}).encode()
     parts = [_META.pack(len(meta)), meta]
     parts += [np.ascontiguousarray(getattr(msg, name), dtype=dt).tobytes() for name, dt, _ in ARRAYS]
     body = b"".join(parts)
     return HEAD.pack(MAGIC, len(body), zlib.crc32(body)) + body
 
 
-def decode_body(body: memoryview) -> Transitions:
-    """The batch of a record's body (ValueError, KeyError or TypeError if it does not decode).
+def decode_body(body: memoryview) -> tuple[Transitions, int | None]:
+    """The batch of a record's body and the batches its stream had skipped then (None: a record of a learner
+    before that was kept); ValueError, KeyError or TypeError if it does not decode.
 
     :param body: the record's body (after its header)
     """
@@ -139,7 +143,7 @@ def decode_body(body: memoryview) -> Transitions:
                       base_seq=int(meta["base"]), **arrays)
     object.__setattr__(msg, "envelope", Envelope(kind=Transitions.KIND, sender=meta["actor"], seq=int(meta["seq"]),
                                                  ts=0.0))
-    return msg
+    return msg, (int(meta["skipped"]) if "skipped" in meta else None)
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -181,7 +185,7 @@ class Journal:
         self.records = 0  # records written (this process)
         self.syncs = 0  # groups written and fsynced (this process)
         self.wake = threading.Event()  # something waits to be written
-        self._pending: list[tuple[Any, Transitions]] = []
+        self._pending: list[tuple[Any, Transitions, int]] = []  # (stream, batch, the stream's skipped then)
         self._waiting_bytes = 0
         self._mu = threading.Lock()  # _pending, rows, error
         self._io = threading.Lock()  # the files (one group written at a time)
@@ -203,7 +207,7 @@ class Journal:
                 self._pending, self._waiting_bytes = [], 0
                 log.warning("journal: %s; off until the next full checkpoint", self.error)
                 return
-            self._pending.append((stream, msg))
+            self._pending.append((stream, msg, int(getattr(stream, "skipped", 0))))
             self._waiting_bytes += size
             self.rows += msg.n
         self.wake.set()
@@ -232,14 +236,14 @@ class Journal:
                     self._pending, self._waiting_bytes = [], 0
                 return {}, exc
         marks: dict[int, tuple[Any, int]] = {}
-        for stream, msg in items:
+        for stream, msg, _ in items:
             marks[id(stream)] = (stream, msg.envelope.seq)
         return marks, None
 
-    def _write(self, items: list[tuple[Any, Transitions]]) -> None:
+    def _write(self, items: list[tuple[Any, Transitions, int]]) -> None:
         if self.size >= self.segment_bytes:
             self.index, self.size = self.index + 1, 0
-        data = b"".join(encode_record(msg, msg.envelope.seq) for _, msg in items)
+        data = b"".join(encode_record(msg, msg.envelope.seq, skipped) for _, msg, skipped in items)
         path = _segment(self.dir, self.index)
         new = not path.exists()
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -254,10 +258,10 @@ class Journal:
             _fsync_dir(self.dir)
         self.size += len(data)
         self.mark.segments[self.index] = self.size  # confirmed: before any ack says so (the journal's mark)
-        for _, msg in items:
+        for _, msg, _ in items:
             self.mark.durable[msg.actor] = (msg.stream or "", int(msg.envelope.seq))
         save_mark(self.dir, self.mark)
-        self.synced_rows += sum(msg.n for _, msg in items)
+        self.synced_rows += sum(msg.n for _, msg, _ in items)
         self.records += len(items)
         self.syncs += 1
 

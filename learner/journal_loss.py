@@ -19,9 +19,8 @@ import logging
 from dataclasses import dataclass, field
 
 from khgrl.common.delivery.ingest import StreamTable
-from khgrl.common.wire.protocol import Transitions
 from khgrl.learner.checkpoint import CheckpointError
-from khgrl.learner.journal_scan import Damage, JournalScan
+from khgrl.learner.journal_scan import Damage, JournalScan, Record
 
 __all__ = ["ACCEPT_FLAG", "Gap", "JournalLoss", "JournalDamage", "check_loss"]
 
@@ -68,27 +67,28 @@ class JournalLoss:
     def __bool__(self) -> bool:
         return bool(self.damage or self.gaps)
 
-    def step_over_gap(self, streams: StreamTable, msg: Transitions, name: str, offset: int) -> None:
-        """Before a replayed batch is offered: if batches of its stream are missing in front of it (beyond what its
-        actor said it no longer holds), note the hole and move the stream past it.
+    def step_over_gap(self, streams: StreamTable, rec: Record) -> None:
+        """Before a replayed batch is offered: if batches of its stream are missing in front of it, note the hole and
+        move the stream past it. Missing are the batches between the stream's next seq and the record's -- unless
+        the learner had skipped them itself when it stored the record (its actor no longer held them: the record's
+        ``skipped`` is higher than the stream's), then only those before the batch's ``base_seq``.
 
         :param streams: the stream table being replayed into
-        :param msg: the replayed batch
-        :param name: its segment file
-        :param offset: its byte offset there
+        :param rec: the replayed record
         """
+        msg = rec.msg
         st = streams.streams.get(msg.actor)
         if st is None or (msg.stream and st.stream and msg.stream != st.stream):
             return  # (a stream's first batch: it starts where the actor said)
-        expected, seq = max(st.next_seq, msg.base_seq or 0), msg.envelope.seq
+        own_skip = rec.skipped is None or rec.skipped > st.skipped
+        expected, seq = max(st.next_seq, msg.base_seq or 0) if own_skip else st.next_seq, msg.envelope.seq
         if seq <= expected:
             return
-        lost = msg.first_step - st.index if st.next_seq >= (msg.base_seq or 0) else None
-        gap = Gap(msg.actor, st.stream, expected, seq - 1, "hole", f"{name} before byte {offset}", lost)
+        gap = Gap(msg.actor, st.stream, expected, seq - 1, "hole", f"{rec.file} before byte {rec.offset}",
+                  msg.first_step - st.index)
         self.gaps.append(gap)
         log.error("journal: confirmed batches %s are missing (the journal holds batch %d after them, %s)", gap, seq,
                   gap.where)
-        st.skipped += gap.batches
         st.next_seq, st.index = seq, msg.first_step
 
     def finish(self, scan: JournalScan, streams: StreamTable) -> None:
@@ -99,6 +99,8 @@ class JournalLoss:
         :param streams: the stream table after the replay
         """
         self.damage = list(scan.damage)
+        for g in (g for g in self.gaps if g.kind == "hole"):  # (counted as the stream's skips from now on)
+            streams.streams[g.actor].skipped += g.batches
         for actor, (stream, seq) in sorted((scan.mark.durable if scan.mark is not None else {}).items()):
             st = streams.streams.get(actor)
             if st is not None and st.stream == stream and st.next_seq > seq:
@@ -130,7 +132,7 @@ class JournalLoss:
 
     def line(self) -> str:
         """One line: the first damage (file, byte), how much more, and the confirmed batches affected."""
-        where = str(self.damage[0]) if self.damage else "batches missing between records"
+        where = str(self.damage[0]) if self.damage else f"batches missing in {self.gaps[0].where}"
         more = f" (and {len(self.damage) - 1} more)" if len(self.damage) > 1 else ""
         gaps = ", ".join(str(g) for g in self.gaps) or "none found from the seqs (the damaged records' batches)"
         return f"the journal is damaged: {where}{more}; confirmed batches affected: {gaps}"

@@ -21,13 +21,13 @@ import logging
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, NamedTuple
 
 from khgrl.common.wire.protocol import Transitions
 from khgrl.learner.journal import HEAD, MAGIC, MAX_BODY, decode_body, segments
 from khgrl.learner.journal_mark import JournalMark, load_mark
 
-__all__ = ["Damage", "JournalScan", "read_records"]
+__all__ = ["Damage", "Record", "JournalScan", "read_records"]
 
 log = logging.getLogger("khgrl.learner")
 
@@ -42,6 +42,16 @@ class Damage:
 
     def __str__(self) -> str:
         return f"{self.file} at byte {self.offset} ({self.problem})"
+
+
+class Record(NamedTuple):
+    """A whole record: the batch, the batches its stream had skipped when the learner stored it (None: not
+    recorded, an older learner's record), its segment file and byte offset."""
+
+    msg: Transitions
+    skipped: int | None
+    file: str
+    offset: int
 
 
 def _problem(data: memoryview, off: int) -> tuple[str, int]:
@@ -89,8 +99,8 @@ class JournalScan:
         if self.mark is None:
             self.mark = load_mark(self.directory)
 
-    def records(self) -> Iterator[tuple[Transitions, str, int]]:
-        """Every whole record, in the order written, with its segment file's name and byte offset."""
+    def records(self) -> Iterator[Record]:
+        """Every whole record, in the order written (:class:`Record`)."""
         found = dict(segments(self.directory))
         confirmed = self.mark.segments if self.mark is not None else {}
         for index in sorted(i for i in confirmed if i >= self.start and i not in found):
@@ -103,18 +113,18 @@ class JournalScan:
         self.damage.append(damage)
         log.error("journal damaged: %s", damage)
 
-    def _segment(self, path: Path, confirmed: int | None) -> Iterator[tuple[Transitions, str, int]]:
+    def _segment(self, path: Path, confirmed: int | None) -> Iterator[Record]:
         data = memoryview(path.read_bytes())
         off = 0
         while off < len(data):
             problem, size = _problem(data, off)
             if not problem:
                 try:
-                    msg = decode_body(data[off + HEAD.size:off + HEAD.size + size])
+                    msg, skipped = decode_body(data[off + HEAD.size:off + HEAD.size + size])
                 except (ValueError, KeyError, TypeError) as exc:
                     problem = f"does not decode: {exc}"
                 else:
-                    yield msg, path.name, off
+                    yield Record(msg, skipped, path.name, off)
                     off += HEAD.size + size
                     continue
             after = _next_whole(data, off + 1)
@@ -141,5 +151,5 @@ def read_records(directory: str | Path, start: int = 0) -> Iterator[Transitions]
     :param directory: the journal directory
     :param start: the first segment to read (a snapshot's ``journal.next``)
     """
-    for msg, _, _ in JournalScan(Path(directory), start).records():
-        yield msg
+    for rec in JournalScan(Path(directory), start).records():
+        yield rec.msg

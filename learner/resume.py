@@ -123,8 +123,9 @@ def replay_journal(trainer: Trainer, streams: StreamTable, directory: Path, star
     stored = dropped = rows = 0
     loss = loss if loss is not None else JournalLoss()
     scan = JournalScan(directory, start)
-    for msg, name, offset in scan.records():
-        loss.step_over_gap(streams, msg, name, offset)
+    for rec in scan.records():
+        msg = rec.msg
+        loss.step_over_gap(streams, rec)
         res = streams.offer(msg)
         if res.result != "accepted":
             log.warning("journal: batch %d of actor %s (stream %s) is %s on replay", msg.envelope.seq, msg.actor,

@@ -8,11 +8,12 @@ the damage tests start from a real journal.
 from __future__ import annotations
 
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
 
-from helpers import ProcGroup, read_json, unique_run, wait_for
+from helpers import REPO, ProcGroup, python_main, read_json, unique_run, wait_for
 
 ACTOR = ["--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "16", "--max-lead", "8",
          "--episodes", "2", "--id", "a0", "--flush-timeout", "90"]
@@ -74,3 +75,74 @@ def test_a_resumed_learner_takes_up_the_actor_at_the_default_lead_cap(killed_and
     assert summary["durable"] == summary["last_seq"]
     check = r["check"]
     assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] == summary["next_index"], check
+
+
+def _damage(run_dir: Path, kind: str) -> tuple[str, int]:
+    """Damage the journal segment after the full checkpoint of a copied run: a bit flipped inside its second
+    record's body, or the file cut in the middle of a record past its first half. Returns the file and the offset
+    of the damaged record."""
+    from khgrl.learner.journal_scan import JournalScan
+
+    ckpt = run_dir / "learner"
+    start = read_json(ckpt / "checkpoint" / "state.json")["journal"]["next"]
+    where = [(rec.file, rec.offset) for rec in JournalScan(ckpt / "journal", start).records()]
+    assert len(where) >= 6 and len({name for name, _ in where}) == 1, where
+    name, off = where[1] if kind == "bitflip" else where[len(where) // 2]
+    path = ckpt / "journal" / name
+    data = bytearray(path.read_bytes())
+    if kind == "bitflip":
+        data[off + 80] ^= 0x04
+    else:
+        del data[off + 30:]
+    path.write_bytes(bytes(data))
+    return name, off
+
+
+def _learner_argv(run: str, ep: str, run_dir: Path, *extra: str) -> list[str]:
+    return python_main("khgrl.learner.main") + ["--run", run, "--connect", ep, "--run-dir", str(run_dir), *LEARNER,
+                                                 "--resume", *extra]
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("kind", ["bitflip", "truncate"])
+def test_a_damaged_journal_is_refused_or_its_loss_accepted_and_counted(killed_and_resumed, tmp_path, kind):
+    """Issue 34, defect 2. Before the fix a flipped bit mid-segment or a truncated segment read as "a write cut
+    short": the resumed learner ignored the rest of the segment, skipped the confirmed batches it lacked ("a0 no
+    longer holds batches ...: skipping them") and ended with exit 0 -- here the first `--resume` started and ran
+    instead of refusing (the 120 s subprocess timeout), and `--accept-journal-loss` did not exist."""
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.protocol import Ack, Keys, decode
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(killed_and_resumed["at_kill"], run_dir)
+    name, off = _damage(run_dir, kind)
+    files = {p.name: p.read_bytes() for p in (run_dir / "learner" / "journal").iterdir()}
+    run = unique_run("dmg")
+    acks: list = []
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        refused = subprocess.run(_learner_argv(run, ep, run_dir), cwd=REPO, capture_output=True, text=True,
+                                 timeout=120)
+        assert refused.returncode == 2, refused.stdout[-3000:] + refused.stderr
+        lines = refused.stderr.strip().splitlines()
+        assert len(lines) == 1 and f"{name} at byte {off}" in lines[0] and "--accept-journal-loss" in lines[0], lines
+        assert "confirmed batches affected: a0 " in lines[0], lines
+        assert {p.name: p.read_bytes() for p in (run_dir / "learner" / "journal").iterdir()} == files  # untouched
+        with open_client(ep) as s:
+            sub = s.declare_subscriber(Keys(run).ack("a0"), lambda m: acks.append(decode(Ack, m.payload.to_bytes())))
+            try:
+                learner = g.start("learner", _learner_argv(run, ep, run_dir, "--accept-journal-loss"))
+                wait_for(lambda: acks, 120, "the accepting learner's ack", procs=[learner])
+                rc = learner.stop(60)
+            finally:
+                sub.undeclare()
+        text = learner.text()
+    state = read_json(run_dir / "learner" / "checkpoint" / "state.json")
+    lost = state["actors"]["a0"]["skipped"]
+    assert rc == 3 and "batches confirmed durable before this learner resumed are lost" in text, text[-3000:]
+    if kind == "bitflip":  # a hole: stepped over, counted, the stream goes on after it
+        assert lost >= 1 and acks[0].received == state["actors"]["a0"]["next_seq"] - 1
+    else:  # a tail: the ack's received is where the journal ends, so that a0 re-sends what it still holds
+        assert acks[0].received < killed_and_resumed["replayed"][-1].envelope.seq
+    assert "'lost_batches': 0" not in text and "resuming without them (--accept-journal-loss)" in text

@@ -30,10 +30,10 @@ def _journal(tmp_path: Path, groups: int = 3, per_group: int = 2) -> tuple[Journ
     s, seq = _Stream(), 0
     for _ in range(groups):
         for _ in range(per_group):
-            j.append(batch(seq, 8 * seq, 8), s)
+            j.append(batch(seq, 8 * seq, 8, base=seq), s)  # (base: the actor dropped what was acked durable)
             seq += 1
         j.sync()
-    offsets = [off for _, _, off in JournalScan(j.dir).records()]
+    offsets = [rec.offset for rec in JournalScan(j.dir).records()]
     return j, offsets
 
 
@@ -44,7 +44,7 @@ def _flip(path: Path, at: int) -> None:
 
 
 def _seqs(scan: JournalScan) -> list[int]:
-    return [m.envelope.seq for m, _, _ in scan.records()]
+    return [rec.msg.envelope.seq for rec in scan.records()]
 
 
 def _resume(tmp_path: Path, accept: bool = False):
@@ -130,3 +130,24 @@ def test_a_missing_segment_and_a_journal_without_a_mark(tmp_path):
     _flip(segments(k.dir)[0][1], offsets[1] + 60)
     scan = JournalScan(k.dir)
     assert _seqs(scan) == [0, 2, 3, 4, 5] and len(scan.damage) == 1
+
+
+def test_the_learners_own_skip_is_not_a_hole(tmp_path):
+    """A batch stored after the learner skipped batches its actor no longer held (base_seq) is replayed as it was
+    stored: the same skip, no damage; the same base_seq without that skip recorded is a hole."""
+    j = Journal(journal_dir(tmp_path / "learner"))
+    s = _Stream()
+    j.append(batch(0, 0, 8), s)
+    s.skipped = 2  # the ingest thread skipped 1 and 2 before storing 3
+    j.append(batch(3, 24, 8, base=3), s)
+    j.sync()
+    trainer, streams = _resume(tmp_path)
+    assert streams.journal_loss is None and streams["a0"].next_seq == 4 and streams["a0"].skipped == 2
+    k = Journal(journal_dir(tmp_path / "other" / "learner"))
+    s = _Stream()
+    for seq in (0, 3):  # no skip recorded: batches 1 and 2 were stored, and the journal lost them
+        k.append(batch(seq, 8 * seq, 8, base=seq), s)
+    k.sync()
+    hole = r"batches missing in segment-000000.bin before byte 570; confirmed batches affected: a0 1\.\.2"
+    with pytest.raises(JournalDamage, match=hole):
+        _resume(tmp_path / "other")
