@@ -3,12 +3,13 @@ what is wrong with the rest -- a torn tail or damage.
 
 A record that is not whole (its header, length or checksum wrong, or it does not decode) is
 
-* a **torn tail** when nothing whole follows it in its segment and it lies beyond the bytes the journal's mark
-  (:mod:`khgrl.learner.journal_mark`) says were confirmed: a learner killed while writing a group that it never
-  acked. It ends its segment, logged as a warning; nothing confirmed is lost.
-* **damage** otherwise: a whole record follows it (a bit flip mid-segment: reading goes on at that record), or it
-  lies inside the confirmed bytes. A segment shorter than its confirmed bytes (truncated) and a confirmed segment
-  that is missing are damage too.
+* a **torn tail** when it lies beyond the bytes the journal's mark (:mod:`khgrl.learner.journal_mark`) says were
+  confirmed in its segment -- a group that a learner killed (or a machine stopped) while writing never acked -- or,
+  for a segment the mark does not know (a journal written before the mark), when nothing whole follows it. It ends
+  its segment, logged as a warning; nothing confirmed is lost (the actors still hold those batches).
+* **damage** otherwise: it lies inside the confirmed bytes, or (no mark) a whole record follows it. Reading goes on
+  at the next whole record (a bit flip mid-segment costs that record only). A segment shorter than its confirmed
+  bytes (truncated) and a confirmed segment that is missing are damage too.
 
 What damage cost -- the confirmed batches a resumed learner lacks -- is found by
 :func:`khgrl.learner.resume.replay_journal` from the seqs of the records around it and the mark's ``durable``
@@ -128,10 +129,9 @@ class JournalScan:
                     off += HEAD.size + size
                     continue
             after = _next_whole(data, off + 1)
-            if after is None and (confirmed is None or off >= confirmed):
-                log.warning("journal %s: the record at byte %d is not whole (%s) and nothing whole follows it: a "
-                            "write cut short, never confirmed; the %d bytes from there are ignored", path.name, off,
-                            problem, len(data) - off)
+            if (confirmed is not None and off >= confirmed) or (confirmed is None and after is None):
+                log.warning("journal %s: the record at byte %d is not whole (%s), beyond what was confirmed: a write "
+                            "cut short; the %d bytes from there are ignored", path.name, off, problem, len(data) - off)
                 return
             self._damaged(Damage(path.name, off, problem + ("" if after is None else
                                                             f"; {after - off} bytes to the next whole record")))

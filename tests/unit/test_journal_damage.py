@@ -151,3 +151,23 @@ def test_the_learners_own_skip_is_not_a_hole(tmp_path):
     hole = r"batches missing in segment-000000.bin before byte 570; confirmed batches affected: a0 1\.\.2"
     with pytest.raises(JournalDamage, match=hole):
         _resume(tmp_path / "other")
+
+
+def test_a_flip_beyond_the_confirmed_bytes_is_a_torn_tail(tmp_path):
+    """Bytes written after the last confirmed group (a machine stopped before their fsync returned) are never acked:
+    a damaged record there ends the segment even if whole records follow it, and nothing is refused."""
+    j, _ = _journal(tmp_path, groups=2)
+    path = segments(j.dir)[0][1]
+    confirmed = path.stat().st_size
+    more = Journal(tmp_path / "scratch")  # the bytes of a later group, appended without updating the mark
+    s = _Stream()
+    for seq in (4, 5):
+        more.append(batch(seq, 8 * seq, 8, base=seq), s)
+    more.sync()
+    with open(path, "ab") as fh:
+        fh.write(segments(more.dir)[0][1].read_bytes())
+    _flip(path, confirmed + 60)
+    scan = JournalScan(j.dir)
+    assert _seqs(scan) == [0, 1, 2, 3] and scan.damage == []
+    trainer, streams = _resume(tmp_path)
+    assert streams.journal_loss is None and streams["a0"].next_seq == 4
