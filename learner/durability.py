@@ -212,7 +212,25 @@ class Durability:
             log.exception("journal thread failed")
             flag.set("journal thread failed")
 
+    def settle_loss(self) -> Path | None:
+        """A learner resumed past journal damage the operator accepted (``streams.journal_loss``): the journal's mark
+        says confirmed only what the streams hold now, and a full checkpoint at once replaces the damaged segments
+        (so that the next resume neither finds that damage again nor counts that loss twice). Returns the checkpoint
+        (None: it failed, retried on its schedule)."""
+        if self.journal is not None:
+            self.journal.restart_mark({a: (st.stream, st.next_seq - 1) for a, st in self.streams.streams.items()})
+        return self.checkpoint()
+
+    def lost_batches(self) -> int:
+        """Confirmed batches this learner lacks: holes of an accepted journal loss, its tails that no actor re-sent,
+        and the batches skipped since the start (no actor held them any more)."""
+        loss = self.streams.journal_loss
+        lost = loss.hole_batches + loss.unfilled_tails(self.streams) if loss is not None else 0
+        return lost + self.streams.skipped
+
     def summary(self) -> dict[str, Any]:
         """Counters for the log line at the end."""
+        loss = self.streams.journal_loss
         return {"checkpoints": self.checkpoints, "model_checkpoints": self.model_checkpoints,
-                "journal": self.journal.info() if self.journal is not None else None}
+                "journal": self.journal.info() if self.journal is not None else None,
+                "lost_batches": self.lost_batches(), "journal_loss": loss.summary() if loss is not None else None}

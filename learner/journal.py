@@ -6,8 +6,10 @@ the replay buffer, in the order it was stored. A record is a 12-byte header -- `
 its CRC-32 (little endian) -- and a body: a 4-byte length, a JSON map (``actor``, ``stream``, ``seq``, ``base``,
 ``first``, ``n``, ``obs``, ``out``) and the arrays of the batch as raw little-endian bytes (``obs``, ``next_obs``,
 ``action``, ``reward`` float32; ``terminated``, ``truncated``, ``intervened``, ``clipped`` uint8). A record whose
-header, length or checksum is wrong (the torn tail of a learner killed while writing) ends what is read of its
-segment; the next segment is read after it (a resumed learner starts a new one).
+header, length or checksum is wrong is either the torn tail of a learner killed while writing (bytes never
+confirmed: the rest of its segment is ignored) or damage to what was confirmed -- :mod:`khgrl.learner.journal_scan`
+tells them apart with the journal's mark (:mod:`khgrl.learner.journal_mark`), which every group written updates
+before its batches are acked durable; a resumed learner refuses damage (:mod:`khgrl.learner.resume`).
 
 Writing (group commit): the ingest thread :meth:`Journal.append`\\ s each stored batch to a list in memory (no I/O
 on the ingest path); :meth:`Journal.sync` -- the learner's *journal thread* calls it as soon as something waits,
@@ -22,7 +24,7 @@ Snapshots: before a full snapshot (:func:`~khgrl.learner.checkpoint.save_checkpo
 :meth:`Journal.cut`\\ s the journal: what waits is written, and later batches go into a new segment whose index the
 snapshot records (``journal.next`` in its ``state.json``); once the snapshot is in place the segments before it are
 deleted (:meth:`Journal.snapshot_saved`). A resumed learner loads the snapshot and replays the records of the
-segments from that index on (:func:`read_records`).
+segments from that index on (:func:`khgrl.learner.journal_scan.read_records`).
 """
 
 from __future__ import annotations
@@ -35,20 +37,21 @@ import struct
 import threading
 import zlib
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 from khgrl.common.wire.protocol import Envelope, Transitions
+from khgrl.learner.journal_mark import JournalMark, load_mark, remove_mark, save_mark
 
-__all__ = ["Journal", "JOURNAL_DIR", "SEGMENT_BYTES", "journal_dir", "segments", "read_records", "encode_record",
-           "finite_bad_rows", "RowCheck", "ARRAYS"]
+__all__ = ["Journal", "JOURNAL_DIR", "SEGMENT_BYTES", "journal_dir", "segments", "encode_record", "decode_body",
+           "finite_bad_rows", "RowCheck", "ARRAYS", "MAGIC", "HEAD", "MAX_BODY"]
 
 log = logging.getLogger("khgrl.learner")
 
 JOURNAL_DIR = "journal"
 SEGMENT_BYTES = 64 * 2**20  # a new segment once the current one holds this much
 MAGIC = b"KJ01"
-_HEAD = struct.Struct("<4sII")  # magic, body length, crc32(body)
+HEAD = struct.Struct("<4sII")  # magic, body length, crc32(body)
 _META = struct.Struct("<I")
 MAX_BODY = 64 * 2**20  # a length beyond this is a damaged header (a batch is at most 4 MiB on the wire)
 MAX_WAITING_BYTES = 256 * 2**20  # batches waiting for a disk that does not keep up: beyond this the journal stops
@@ -100,22 +103,30 @@ def segments(directory: str | Path) -> list[tuple[int, Path]]:
     return sorted(found)
 
 
-def encode_record(msg: Transitions, seq: int) -> bytes:
+def encode_record(msg: Transitions, seq: int, skipped: int = 0) -> bytes:
     """One journal record of a stored batch.
 
     :param msg: the batch
     :param seq: its seq in the actor's stream
+    :param skipped: the batches its stream had skipped when it was stored (``ActorStream.skipped``: a replay tells
+        the learner's own skips from batches the journal lost)
     """
     meta = json.dumps({"actor": msg.actor, "stream": msg.stream or "", "seq": int(seq),
                        "base": int(msg.base_seq or 0), "first": int(msg.first_step), "n": msg.n,
-                       "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1])}).encode()
+                       "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1]),
+                       "skipped": int(skipped)}).encode()
     parts = [_META.pack(len(meta)), meta]
     parts += [np.ascontiguousarray(getattr(msg, name), dtype=dt).tobytes() for name, dt, _ in ARRAYS]
     body = b"".join(parts)
-    return _HEAD.pack(MAGIC, len(body), zlib.crc32(body)) + body
+    return HEAD.pack(MAGIC, len(body), zlib.crc32(body)) + body
 
 
-def _decode_body(body: memoryview) -> Transitions:
+def decode_body(body: memoryview) -> tuple[Transitions, int | None]:
+    """The batch of a record's body and the batches its stream had skipped then (None: a record of a learner
+    before that was kept); ValueError, KeyError or TypeError if it does not decode.
+
+    :param body: the record's body (after its header)
+    """
     (mlen,) = _META.unpack_from(body, 0)
     meta = json.loads(bytes(body[_META.size:_META.size + mlen]))
     n, off = int(meta["n"]), _META.size + mlen
@@ -132,50 +143,7 @@ def _decode_body(body: memoryview) -> Transitions:
                       base_seq=int(meta["base"]), **arrays)
     object.__setattr__(msg, "envelope", Envelope(kind=Transitions.KIND, sender=meta["actor"], seq=int(meta["seq"]),
                                                  ts=0.0))
-    return msg
-
-
-def _records(path: Path) -> Iterator[Transitions]:
-    """The whole records of one segment, in order; the first damaged one (a torn tail) ends it, logged."""
-    data = memoryview(path.read_bytes())
-    off = 0
-    while off < len(data):
-        problem = ""
-        if len(data) - off < _HEAD.size:
-            problem = f"{len(data) - off} bytes, shorter than a header"
-        else:
-            magic, size, crc = _HEAD.unpack_from(data, off)
-            body = data[off + _HEAD.size:off + _HEAD.size + size]
-            if magic != MAGIC or size > MAX_BODY:
-                problem = "not a record header"
-            elif len(body) < size:
-                problem = f"{len(body)} of {size} bytes"
-            elif zlib.crc32(body) != crc:
-                problem = "checksum mismatch"
-        if problem:
-            log.warning("journal %s: the record at byte %d is damaged (%s: a write cut short); the %d bytes from "
-                        "there are ignored", path.name, off, problem, len(data) - off)
-            return
-        try:
-            msg = _decode_body(body)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.warning("journal %s: the record at byte %d does not decode (%s); the rest is ignored", path.name, off,
-                        exc)
-            return
-        yield msg
-        off += _HEAD.size + size
-
-
-def read_records(directory: str | Path, start: int = 0) -> Iterator[Transitions]:
-    """Every whole record of the segments from index ``start`` on, in the order they were written (each a
-    :class:`~khgrl.common.wire.protocol.Transitions` whose ``envelope.seq`` is the batch's seq).
-
-    :param directory: the journal directory
-    :param start: the first segment to read (a snapshot's ``journal.next``)
-    """
-    for index, path in segments(directory):
-        if index >= start:
-            yield from _records(path)
+    return msg, (int(meta["skipped"]) if "skipped" in meta else None)
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -202,6 +170,8 @@ class Journal:
         if fresh:
             for _, path in segments(self.dir):
                 path.unlink()
+            remove_mark(self.dir)
+        self.mark = (None if fresh else load_mark(self.dir)) or JournalMark()  # (carried on by a resumed learner)
         found = segments(self.dir)
         self.index = found[-1][0] + 1 if found else 0  # the segment written to
         self.segment_bytes = int(segment_bytes)
@@ -215,7 +185,7 @@ class Journal:
         self.records = 0  # records written (this process)
         self.syncs = 0  # groups written and fsynced (this process)
         self.wake = threading.Event()  # something waits to be written
-        self._pending: list[tuple[Any, Transitions]] = []
+        self._pending: list[tuple[Any, Transitions, int]] = []  # (stream, batch, the stream's skipped then)
         self._waiting_bytes = 0
         self._mu = threading.Lock()  # _pending, rows, error
         self._io = threading.Lock()  # the files (one group written at a time)
@@ -237,7 +207,7 @@ class Journal:
                 self._pending, self._waiting_bytes = [], 0
                 log.warning("journal: %s; off until the next full checkpoint", self.error)
                 return
-            self._pending.append((stream, msg))
+            self._pending.append((stream, msg, int(getattr(stream, "skipped", 0))))
             self._waiting_bytes += size
             self.rows += msg.n
         self.wake.set()
@@ -266,14 +236,14 @@ class Journal:
                     self._pending, self._waiting_bytes = [], 0
                 return {}, exc
         marks: dict[int, tuple[Any, int]] = {}
-        for stream, msg in items:
+        for stream, msg, _ in items:
             marks[id(stream)] = (stream, msg.envelope.seq)
         return marks, None
 
-    def _write(self, items: list[tuple[Any, Transitions]]) -> None:
+    def _write(self, items: list[tuple[Any, Transitions, int]]) -> None:
         if self.size >= self.segment_bytes:
             self.index, self.size = self.index + 1, 0
-        data = b"".join(encode_record(msg, msg.envelope.seq) for _, msg in items)
+        data = b"".join(encode_record(msg, msg.envelope.seq, skipped) for _, msg, skipped in items)
         path = _segment(self.dir, self.index)
         new = not path.exists()
         fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -287,7 +257,11 @@ class Journal:
         if new:
             _fsync_dir(self.dir)
         self.size += len(data)
-        self.synced_rows += sum(msg.n for _, msg in items)
+        self.mark.segments[self.index] = self.size  # confirmed: before any ack says so (the journal's mark)
+        for _, msg, _ in items:
+            self.mark.durable[msg.actor] = (msg.stream or "", int(msg.envelope.seq))
+        save_mark(self.dir, self.mark)
+        self.synced_rows += sum(msg.n for _, msg, _ in items)
         self.records += len(items)
         self.syncs += 1
 
@@ -319,6 +293,8 @@ class Journal:
                         removed.append(path)
                     except OSError as exc:
                         log.warning("cannot delete the old journal segment %s (%s)", path, exc)
+            self.mark.segments = {i: n for i, n in self.mark.segments.items() if i >= index}
+            self._save_mark()
             self.synced_rows = max(0, self.synced_rows - self._cut_synced)
             self._cut_synced = 0
             with self._mu:
@@ -326,6 +302,22 @@ class Journal:
                     log.warning("journal: on again (the snapshot holds what it missed since: %s)", self.error)
                     self.error = ""
         return removed
+
+    def restart_mark(self, durable: dict[str, tuple[str, int]]) -> None:
+        """Say confirmed what a learner resumed past a loss the operator accepted holds (the confirmed batches it
+        lacks are counted lost once, not again at the next resume).
+
+        :param durable: {actor id: (stream id, highest seq held)}
+        """
+        with self._io:
+            self.mark.durable = dict(durable)
+            self._save_mark()
+
+    def _save_mark(self) -> None:
+        try:
+            save_mark(self.dir, self.mark)
+        except OSError as exc:  # (it then says less than the segments hold: never a false alarm, see journal_mark)
+            log.warning("journal: its mark not written (%s)", exc)
 
     def info(self) -> dict[str, Any]:
         """Counters for the log."""

@@ -42,6 +42,7 @@ from khgrl.common.process import StopFlag, die_with_parent, install_stop_handler
 from khgrl.common.wire.protocol import Keys
 from khgrl.learner.algorithm import check_algorithm
 from khgrl.learner.checkpoint import CheckpointError, can_resume
+from khgrl.learner.journal_loss import ACCEPT_FLAG
 
 if TYPE_CHECKING:
     from khgrl.learner.loop import LearnerLoop
@@ -62,6 +63,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true",
                    help="continue from the checkpoint and journal in RUN_DIR/learner (or --checkpoint-dir; an error "
                         "if there is neither; default: start afresh, removing an earlier learner's checkpoints)")
+    p.add_argument(ACCEPT_FLAG, action="store_true",
+                   help="with --resume: go on even if the journal lost batches it had confirmed (damage); actors "
+                        "re-send those they still hold, the rest is counted lost and the learner exits with 3 "
+                        "(default: off: such a journal is refused with one line naming the file, byte and batches)")
     return p
 
 
@@ -73,7 +78,8 @@ def _fail(message: object) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the learner until SIGINT/SIGTERM or a ``stop`` command; 0 on a clean stop, 1 if the final checkpoint
-    failed (or the router was unreachable), 2 on a usage error.
+    failed (or the router was unreachable), 2 on a usage error (or a damaged journal refused), 3 if a resumed
+    learner lost confirmed batches (``--accept-journal-loss``, or batches no actor held any more).
 
     :param argv: command-line arguments (default: ``sys.argv[1:]``)
     """
@@ -89,13 +95,16 @@ def main(argv: list[str] | None = None) -> int:
     ckpt_dir = Path(pc.cfg.checkpoint_dir) if pc.cfg.checkpoint_dir else learner_dir
     if args.resume and not can_resume(ckpt_dir):
         return _fail(f"--resume: no checkpoint under {ckpt_dir}")
+    if args.accept_journal_loss and not args.resume:
+        return _fail(f"{ACCEPT_FLAG} goes with --resume")
     try:
-        return run(pc, keys, args.id, learner_dir, resume=args.resume)
+        return run(pc, keys, args.id, learner_dir, resume=args.resume, accept_loss=args.accept_journal_loss)
     except CheckpointError as exc:
         return _fail(exc)
 
 
-def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, resume: bool) -> int:
+def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, resume: bool,
+        accept_loss: bool = False) -> int:
     """The learner process after its flags are resolved.
 
     :param pc: the resolved configuration, run id and router endpoint
@@ -103,6 +112,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     :param learner_id: this learner's id
     :param learner_dir: ``RUN_DIR/learner``
     :param resume: continue from the checkpoint
+    :param accept_loss: resume past journal damage (``--accept-journal-loss``)
     """
     import torch  # (imported here: --help and flag errors answer at once)
     from khgrl.common.delivery import run_key
@@ -149,7 +159,8 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         if task is None:
             return 0
         trainer, streams = open_learner(cfg.tqc, cfg.seed, learner_dir, resume=resume, logger_formats=formats,
-                                        task=task, checkpoint_dir=cfg.checkpoint_dir or None, algo=cfg.algo)
+                                        task=task, checkpoint_dir=cfg.checkpoint_dir or None, algo=cfg.algo,
+                                        accept_journal_loss=accept_loss)
         log.info("task %s (O = %d, %d observations, digest %s); epoch %s, learning_starts %d, training on %s",
                  task.name, task.out_dim, task.obs_dim, task.digest, trainer.epoch, trainer.learning_starts, device)
         journal = Journal(journal_dir(cfg.checkpoint_dir or learner_dir)) if cfg.stream.journal else None
@@ -161,6 +172,8 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
                            lead_cap=lead_cap(cfg.stream), key=key)
         loop.set_task(task)
         loop.ingest.control = gate
+        if streams.journal_loss is not None:  # (accepted): a full checkpoint replaces the damaged journal
+            loop.durable.settle_loss()
         loop.start()
         link.announce(trainer.epoch)
         print(f"khgrl learner {learner_id} ready (epoch {trainer.epoch}, version {trainer.version}, "
@@ -172,7 +185,19 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
         finally:
             link.close()
     log.info("learner %s done: %s; inbox dropped %s", learner_id, loop.summary(), link.inbox.dropped)
-    return 0 if saved else _final_checkpoint_failed(loop)
+    if not saved:
+        return _final_checkpoint_failed(loop)
+    return _lost(loop) if resume and loop.durable.lost_batches() else 0
+
+
+def _lost(loop: LearnerLoop) -> int:
+    """Say (log and stderr) that confirmed batches were lost -- journal damage accepted, batches no actor held any
+    more -- and how many; exit code 3."""
+    message = (f"{loop.durable.lost_batches()} batches confirmed durable before this learner resumed are lost "
+               f"(journal damage: {loop.durable.summary()['journal_loss']}; skipped: {loop.streams.skipped})")
+    log.error("%s", message)
+    print(f"khgrl learner: error: {message}", file=sys.stderr, flush=True)
+    return 3
 
 
 def lead_cap(stream) -> int:

@@ -25,11 +25,14 @@ from khgrl.learner.checkpoint import (
     find_model,
     remove_stale_temps,
 )
-from khgrl.learner.journal import ARRAYS, RowCheck, journal_dir, read_records, segments
+from khgrl.learner.journal import ARRAYS, RowCheck, journal_dir, segments
+from khgrl.learner.journal_loss import JournalDamage, JournalLoss, check_loss
+from khgrl.learner.journal_mark import remove_mark
+from khgrl.learner.journal_scan import JournalScan
 from khgrl.learner.sound import load_sound_checkpoint
 from khgrl.learner.trainer import Trainer, build_algorithm, keep_freed_memory, torch_device
 
-__all__ = ["open_learner", "replay_journal", "rss_mb", "DEFAULT_ROW_CHECK"]
+__all__ = ["open_learner", "replay_journal", "rss_mb", "DEFAULT_ROW_CHECK", "JournalDamage"]
 
 log = logging.getLogger("khgrl.learner")
 
@@ -41,7 +44,7 @@ DEFAULT_ROW_CHECK: RowCheck = bad_rows  # finite, and within the task's value bo
 def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume: bool,
                  logger_formats: tuple[str, ...] = ("csv", "tensorboard"), task=None,
                  checkpoint_dir: str | Path | None = None, algo: str = DEFAULT,
-                 row_check: RowCheck | None = None) -> tuple[Trainer, StreamTable]:
+                 row_check: RowCheck | None = None, accept_journal_loss: bool = False) -> tuple[Trainer, StreamTable]:
     """A fresh model and empty stream table, or (``resume``) both as the learner left them: the last full
     checkpoint, the journal after it, the newest model checkpoint that fits (the module's docstring). Temporary
     checkpoint directories that killed learners left behind are removed first; a fresh start also removes the
@@ -58,6 +61,9 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     :param checkpoint_dir: where the checkpoints are (None: ``learner_dir``)
     :param algo: the learner algorithm's registered name (``--algo``; a checkpoint must be of the same)
     :param row_check: the check of each replayed journal row (None: :data:`DEFAULT_ROW_CHECK`)
+    :param accept_journal_loss: resume even if the journal lost confirmed batches (damage): the streams skip
+        what is lost (:attr:`StreamTable.journal_loss`); without it such a journal raises :class:`JournalDamage`
+        (one line: the file, the byte, the confirmed batches affected) before anything is written
     """
     learner_dir = Path(learner_dir)
     learner_dir.mkdir(parents=True, exist_ok=True)
@@ -83,9 +89,14 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     else:
         raise CheckpointError(f"--resume: no checkpoint under {ckpt_dir}")
     base = trainer.total
+    streams.journal_loss = None
     if start is not None:
-        replay_journal(trainer, streams, jdir, int(start), row_check or DEFAULT_ROW_CHECK, task)
+        loss = JournalLoss()
+        replay_journal(trainer, streams, jdir, int(start), row_check or DEFAULT_ROW_CHECK, task, loss=loss)
+        check_loss(loss, accept_journal_loss)
+        streams.journal_loss = loss if loss else None
         streams.mark_durable()  # everything replayed is on disk
+    streams.skipped = 0  # (batches lost from here on are counted)
     _adopt_model(trainer, ckpt_dir, base, task, tqc, device, algo, kw)
     log.info("%s resumed from %s: %d transitions (buffer pos %d), version %d, %d iterations, actors %s", algo,
              ckpt or jdir, trainer.total, trainer.buffer.pos, trainer.version, trainer.iterations,
@@ -94,11 +105,12 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
 
 
 def replay_journal(trainer: Trainer, streams: StreamTable, directory: Path, start: int, row_check: RowCheck,
-                   task: Any = None) -> tuple[int, int]:
+                   task: Any = None, loss: JournalLoss | None = None) -> tuple[int, int]:
     """Store the journal's batches from segment ``start`` on, in order, as the ingest thread stored them (their
     actors' streams advance as they did). A batch with a bad row (``row_check``) is not stored, but its seq is
-    taken (its actor does not send it again); one out of order (a gap, a duplicate) is logged. Returns the
-    batches stored and dropped.
+    taken (its actor does not send it again); a duplicate is logged; a gap in front of a batch (batches the journal
+    lost: damage) is stepped over and noted in ``loss``, with the damage the scan found. Returns the batches stored
+    and dropped.
 
     :param trainer: the trainer (its replay buffer and schedule)
     :param streams: the stream table (from the full checkpoint, or empty)
@@ -106,9 +118,14 @@ def replay_journal(trainer: Trainer, streams: StreamTable, directory: Path, star
     :param start: the first segment to replay (the full checkpoint's ``journal.next``)
     :param row_check: per row of a batch, whether it is bad
     :param task: the run's task descriptor (for ``row_check``)
+    :param loss: where the damage and the gaps go (None: not kept)
     """
     stored = dropped = rows = 0
-    for msg in read_records(directory, start):
+    loss = loss if loss is not None else JournalLoss()
+    scan = JournalScan(directory, start)
+    for rec in scan.records():
+        msg = rec.msg
+        loss.step_over_gap(streams, rec)
         res = streams.offer(msg)
         if res.result != "accepted":
             log.warning("journal: batch %d of actor %s (stream %s) is %s on replay", msg.envelope.seq, msg.actor,
@@ -123,8 +140,10 @@ def replay_journal(trainer: Trainer, streams: StreamTable, directory: Path, star
                             batch.actor, int(bad.sum()), batch.n)
                 continue
             trainer.add(batch, res.stream, streams.positions)
+            res.stream.mark()  # (as the ingest thread marks it: trained weights cover it, then it leaves the lead)
             stored += 1
             rows += batch.n
+    loss.finish(scan, streams)
     if stored or dropped:
         log.info("journal: replayed %d batches (%d transitions) from segment %d on; %d dropped", stored, rows, start,
                  dropped)
@@ -173,6 +192,7 @@ def _remove_earlier(ckpt_dir: Path) -> None:
             shutil.rmtree(path, ignore_errors=True)
     for _, path in segments(journal_dir(ckpt_dir)):
         path.unlink(missing_ok=True)
+    remove_mark(journal_dir(ckpt_dir))
 
 
 def _remove_stale_temps(ckpt_dir: Path) -> None:

@@ -38,11 +38,13 @@ def measure_actor(procs: BenchProcs, ep: str, work: Path, *, scenario: str, epis
     tag = "actor-rt" if rt_priority else "actor"
     run = run_id(tag)
     run_dir = work / tag
-    common = ["--learning-starts", "128", "--seed", str(seed)]
+    # the lead limit off on both sides: the actor never waits and the learner stores all it sends (the learner's
+    # default lead cap, 24 transitions, would defer what a 50 Hz actor sends ahead of training)
+    common = ["--learning-starts", "128", "--seed", str(seed), "--max-lead", "1000000"]
     # as khgrl up does: the learner at nice 5, so training yields the CPU to the control loop
     learner = procs.learner(f"learner-{tag}", run, ep, run_dir, *common, "--learner-nice", "5")
     actor = procs.actor(tag, run, ep, run_dir, *common, "--scenario", scenario, "--method", "kgrl",
-                        "--episodes", str(episodes), "--rate", str(rate), "--max-lead", "1000000",
+                        "--episodes", str(episodes), "--rate", str(rate),
                         *(["--actor-rt-priority", str(rt_priority)] if rt_priority else []))
     try:
         deadline = time.monotonic() + 120 + episodes * 60

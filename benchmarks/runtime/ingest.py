@@ -36,9 +36,11 @@ def measure_ingest(procs: BenchProcs, ep: str, work: Path, *, n: int, batch: int
     run = run_id(tag)
     payloads = batches(n, batch, seed)
     extra = ["--buffer-size", str(buffer_size)] if buffer_size else []
+    # the learner is told the batch size this process publishes: its lead cap (max_lead + 2 batches) then holds a
+    # batch (with the default 8 it was 24 transitions and every 256-transition batch was refused as over_lead)
     learner = procs.learner(f"learner-{tag}", run, ep, work / tag, "--learning-starts", str(10**9),
                             "--checkpoint-every", str(checkpoint_every), "--journal" if journal else "--no-journal",
-                            *extra)
+                            "--batch", str(batch), *extra)
     try:
         with open_client(ep) as session:
             link = Link(session, run)

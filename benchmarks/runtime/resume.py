@@ -43,14 +43,13 @@ def measure_kill_resume(procs: BenchProcs, ep: str, work: Path, *, seed: int, re
     """
     run = run_id("resume")
     run_dir = work / "resume"
-    from khgrl.learner.journal import read_records
+    from khgrl.learner.journal_scan import read_records
 
     journal = run_dir / "learner" / "journal"
     largs = ["--learning-starts", "16"]
     learner = procs.learner("learner-resume-1", run, ep, run_dir, *largs)
     actor = procs.actor("actor-resume", run, ep, run_dir, "--scenario", "high_cov", "--method", "kgrl",
-                        "--episodes", "2", "--seed", str(seed), "--rate", "120", "--max-lead", "100000",
-                        "--learning-starts", "16")
+                        "--episodes", "2", "--seed", str(seed), "--rate", "120", "--learning-starts", "16")
     try:
         report("waiting for 128 transitions in the learner's journal")
 

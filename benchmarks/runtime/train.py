@@ -121,8 +121,11 @@ def measure_train(procs: BenchProcs, ep: str, work: Path, *, seconds: float, rou
     payloads = batches(n, batch, seed + 1)
     # at this process's priority: khgrl up runs the learner at nice 5 so that training yields the CPU to the actors,
     # but what is compared here is the code, not the priority (niced, any other load on the machine slows it alone)
+    # the backlog is stored while the learner is paused: far more than any lead cap lets an actor have out, so the
+    # cap is off here (--max-lead beyond the backlog) and the batch size is the one published
     learner = procs.learner(f"learner-{tag}", run, ep, work / tag, "--learning-starts", str(LEARNING_STARTS),
-                            "--checkpoint-every", "0", "--model-checkpoint-every", "0", "--learner-nice", "0")
+                            "--checkpoint-every", "0", "--model-checkpoint-every", "0", "--learner-nice", "0",
+                            "--batch", str(batch), "--max-lead", str(2 * n))
     slice_s = seconds / rounds
     spans: list[tuple[float, int, float, int]] = []
     standalone: list[float] = []

@@ -145,6 +145,9 @@ class StreamTable:
         self.codes: list[dict[str, str]] = []  # provenance code -> {"actor", "stream"}
         self.pending_bytes = 0  # held and deferred batches, all actors
         self.dropped_pending = 0  # batches dropped over the pending caps, all actors
+        self.skipped = 0  # batches skipped (no actor holds them any more: lost), all actors, since counting began
+        # (a resumed learner counts from the end of its journal replay)
+        self.journal_loss: Any = None  # a resumed learner: the confirmed batches its journal lost (JournalLoss)
 
     def __contains__(self, actor: str) -> bool:
         return actor in self.streams
@@ -242,6 +245,7 @@ class StreamTable:
         log.error("actor %s no longer holds batches %d..%d (confirmed durable by an earlier learner): skipping them",
                   st.actor, st.next_seq, base - 1)
         st.skipped += base - st.next_seq
+        self.skipped += base - st.next_seq
         st.next_seq = base
         for s in [s for s in st.pending if s < base]:
             self._unhold(st, s)

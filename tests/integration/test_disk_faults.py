@@ -93,7 +93,7 @@ def _checkpoint(ckpt_dir: Path) -> tuple[dict, dict[str, np.ndarray]]:
 def _assert_exactly_once(ckpt_dir: Path, actor: str, n: int) -> None:
     """The checkpoint's replay buffer and the journal after it (what a resumed learner replays) hold the actor's
     transitions 0..n-1, each once (provenance)."""
-    from khgrl.learner.journal import read_records
+    from khgrl.learner.journal_scan import read_records
 
     state, arrays = _checkpoint(ckpt_dir)
     pos = state["replay"]["size"] if state["replay"]["full"] else state["replay"]["pos"]
@@ -109,7 +109,7 @@ def _assert_exactly_once(ckpt_dir: Path, actor: str, n: int) -> None:
 
 def _durable_on_disk(ckpt_dir: Path, actor: str) -> int:
     """The highest seq of ``actor`` that the full checkpoint and the journal after it hold."""
-    from khgrl.learner.journal import read_records
+    from khgrl.learner.journal_scan import read_records
 
     state = read_json(ckpt_dir / "checkpoint" / "state.json")
     held = state["actors"][actor]["next_seq"] - 1

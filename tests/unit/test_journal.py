@@ -18,7 +18,8 @@ from khgrl.common.process import StopFlag
 from khgrl.common.wire.protocol import Ack, Control
 from khgrl.learner import journal as journal_module
 from khgrl.learner.checkpoint import find_checkpoint, find_model
-from khgrl.learner.journal import Journal, finite_bad_rows, journal_dir, read_records, segments
+from khgrl.learner.journal import Journal, finite_bad_rows, journal_dir, segments
+from khgrl.learner.journal_scan import read_records
 from khgrl.learner.loop import LearnerLoop, open_learner
 
 from test_learner_parts import SMALL, Collect, batch
