@@ -1,19 +1,27 @@
 """Rate limits on the desired position P_t, between the KGRL mapping and the robot (``--rate-limit``;
 :mod:`khgrl.common.config.safety`).
 
-Per axis i, with ``v`` the last step of the position sent (P_{t-1} - P_{t-2}) and ``w = P_t - P_{t-1}`` the step the
-mapping (or the human) asks for:
+Per axis i, with ``v`` the last step of the position sent (P_{t-1} - P_{t-2}) and ``w = clip(P_t, low, high) -
+P_{t-1}`` the step asked for (the mapping's or the human's P_t, brought into the workspace box):
 
     u_i = clip(w_i, -speed, speed)                          the speed limit
-    u_i = clip(u_i, -sqrt(2 accel |w_i|), sqrt(...))        slow down in time to stop at the target
+    u_i = clip(u_i, -b(|w_i|), b(|w_i|))                    slow down in time to stop at the target
     u_i = clip(u_i, v_i - accel, v_i + accel)               the acceleration limit
     P_sent = clip(P_{t-1} + u, low, high)                   the workspace box
+
+with ``b(w)`` the largest step from which steps that shrink by ``accel`` each stop within ``w``: from a step
+``u = (n + f) accel`` (``0 <= f < 1``) they cover ``S(u) = (n + 1) u - accel n (n + 1) / 2``, so ``b(w) = w / (n + 1) +
+accel n / 2`` with ``n = floor((sqrt(1 + 8 w / accel) - 1) / 2)``. (``sqrt(2 accel w)``, the continuous braking
+distance, passes the target by up to a step; ``u^2 + accel u = 2 accel w`` by up to ``accel / 8``.)
 
 ``speed`` and ``accel`` are the settings times ``d``, the demonstrations' largest per-axis step between consecutive
 grid points (:func:`~khgrl.common.tasks.delta.largest_step`): the task's own speed scale. It is a rate limiter, not a
 planner: the position sent lags the one asked for and may pass a target that stops suddenly by less than a braking
-distance. The box has the last word (a robot at its edge stops there, whatever its speed). A step whose position
-sent differs from the one asked for is counted (``rate_limited``).
+distance -- but never the box's edge, since the target is in the box and a braking distance always fits before the
+edge once it did (moving towards an edge at ``u`` with ``D`` left, ``S(u) <= D``, and the next step keeps it:
+``S(u) = u + S(u - accel)``). The box's own clip bites only from a start that could not stop in time (a path that
+goes on at a velocity another limiter did not bound). A step whose position sent differs from the one asked for is
+counted (``rate_limited``).
 """
 
 from __future__ import annotations
@@ -71,10 +79,12 @@ class RateLimiter:
         :param desired: P_t from the mapping or the human, (O,).
         """
         desired = np.asarray(desired, np.float64)
-        want = desired - self.last
+        want = np.clip(desired, self.low, self.high) - self.last
         u = np.clip(want, -self.speed, self.speed)
         if self.accel > 0:
-            brake = np.sqrt(2.0 * self.accel * np.abs(want))
+            w, a = np.abs(want), self.accel
+            n = np.floor(0.5 * (np.sqrt(1.0 + 8.0 * w / a) - 1.0))
+            brake = w / (n + 1.0) + 0.5 * a * n
             u = np.clip(np.clip(u, -brake, brake), self.velocity - self.accel, self.velocity + self.accel)
         sent = np.clip(self.last + u, self.low, self.high)
         self.velocity, self.last = sent - self.last, sent

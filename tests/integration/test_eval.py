@@ -194,7 +194,9 @@ def test_eval_bad_inputs_exit_2_with_one_line(run_dir, tmp_path, capsys):
     write_run_config(empty, RunConfig(run_dir=str(empty), task=SPEC), {})
     _one_error_line(capsys, [str(empty)], "no learner checkpoint")
     _one_error_line(capsys, [str(run_dir), "--checkpoint", str(tmp_path / "none")], "no model.zip")
-    _one_error_line(capsys, [str(run_dir), "--episodes", "0"], "--episodes must be >= 1")
+    with pytest.raises(SystemExit) as usage:  # the parser's usage error, before anything loads
+        khgrl(["eval", str(run_dir), "--episodes", "0"])
+    assert usage.value.code == 2 and "--episodes: must be >= 1, got 0" in capsys.readouterr().err
     bad = tmp_path / "badtask"
     write_run_config(bad, RunConfig(run_dir=str(bad), task="no_such_module:make_task"), {})
     _one_error_line(capsys, [str(bad), "--checkpoint", str(run_dir / "learner")], "cannot import 'no_such_module'")

@@ -48,7 +48,7 @@ def killed_and_resumed(tmp_path_factory):
                  "a full checkpoint, then the journal", procs=[learner, actor])
         learner.kill()
         learner.wait(30)
-        shutil.copytree(run_dir, at_kill)
+        shutil.copytree(run_dir, at_kill, copy_function=_copy_if_there)  # (the actor still writes its folder)
         replayed = _journal_after_checkpoint(at_kill / "learner")
         resumed = g.learner(run, ep, *LEARNER, "--resume")
         rc_actor = actor.wait(240)
@@ -101,6 +101,14 @@ def _damage(run_dir: Path, kind: str) -> tuple[str, int]:
 def _learner_argv(run: str, ep: str, run_dir: Path, *extra: str) -> list[str]:
     return python_main("khgrl.learner.main") + ["--run", run, "--connect", ep, "--run-dir", str(run_dir), *LEARNER,
                                                  "--resume", *extra]
+
+
+def _copy_if_there(src: str, dst: str) -> None:
+    """Copy a file of a live run, unless it was renamed or removed since it was listed (the actor's files)."""
+    try:
+        shutil.copy2(src, dst)
+    except FileNotFoundError:
+        pass
 
 
 @pytest.mark.integration

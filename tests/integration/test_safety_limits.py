@@ -197,7 +197,7 @@ def test_every_command_the_driver_gets_is_within_both_limits_after_every_kind_of
     assert len(s["reset_paths"]) == 1 and s["reset_paths"][0]["steps"] > 0, s
     assert any(r[0] == "push" for r in log), "the hand moved the arm while it was held"
     ref, v, worst, checked, after_hold = None, np.zeros(2), (0.0, 0.0), 0, 0
-    for r in log:
+    for i, r in enumerate(log):
         if r[0] in ("reset", "hold"):
             ref, v = np.array(r[-2:]), np.zeros(2)  # where the robot is, at rest
             continue
@@ -206,7 +206,7 @@ def test_every_command_the_driver_gets_is_within_both_limits_after_every_kind_of
         p = np.array(r[4:6])
         u = p - ref
         worst = (max(worst[0], float(np.max(np.abs(u))) / d), max(worst[1], float(np.max(np.abs(u - v))) / d))
-        assert np.max(np.abs(u)) <= speed + tol and np.max(np.abs(u - v)) <= accel + tol, (r, ref, v, u)
+        assert np.max(np.abs(u)) <= speed + tol and np.max(np.abs(u - v)) <= accel + tol, (r, ref, v, u, log[i - 8:i])
         after_hold += int(not np.any(v))
         ref, v, checked = p, u, checked + 1
     print(f"{checked} commands checked ({after_hold} from rest); largest step {worst[0]:.3f} d, largest change of "

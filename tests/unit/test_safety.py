@@ -27,6 +27,20 @@ def test_no_step_and_no_change_of_step_above_the_limits_whatever_is_asked():
     assert np.max(np.abs(np.diff(np.vstack([[0.0, 0.0], steps]), axis=0))) <= 0.005 + 1e-12
 
 
+def test_the_workspace_edge_is_approached_within_the_limits_too():
+    """Before: the box clipped a position after the acceleration limit, so a target beyond the edge stopped the robot
+    there in one step (the change of step as large as the speed; seen at the passage world's edge, issue 33)."""
+    rng = np.random.default_rng(1)
+    lim = RateLimiter(0.02, 0.005, LOW, HIGH)
+    lim.reset(np.full(2, 0.5))
+    targets = np.repeat(rng.uniform(-1.0, 2.0, size=(60, 2)), 25, axis=0)  # mostly beyond an edge, held a while
+    sent = _run(lim, targets)
+    steps = np.diff(np.vstack([[0.5, 0.5], sent]), axis=0)
+    assert np.any(sent == LOW) and np.any(sent == HIGH)  # it went to the edges
+    assert np.all(sent >= LOW) and np.all(sent <= HIGH) and np.max(np.abs(steps)) <= 0.02 + 1e-12
+    assert np.max(np.abs(np.diff(np.vstack([[0.0, 0.0], steps]), axis=0))) <= 0.005 + 1e-12
+
+
 def test_a_far_target_is_reached_at_the_speed_limit_then_held_without_a_jump():
     lim = RateLimiter(0.02, 0.005, LOW, HIGH)
     lim.reset(np.zeros(2))
