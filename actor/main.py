@@ -51,6 +51,7 @@ from khgrl.common.config.settings import HUMAN_METHODS
 from khgrl.common.delivery import run_key
 from khgrl.common.delivery.actor_link import ActorLink, actor_alive
 from khgrl.common.delivery.control_auth import ControlGate
+from khgrl.common.delivery.data_keys import DataKeys, Keyish
 from khgrl.common.delivery.restart import AlreadyRunning, StreamRecord, StreamStart, lock_actor_dir, open_stream
 from khgrl.common.delivery.role_keys import RoleKeyError
 from khgrl.common.delivery.stream import TransitionStream
@@ -83,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: Path, start: StreamStart,
-                 resume: bool, task=None, key: bytes | None = None, physical: PhysicalHands | None = None,
+                 resume: bool, task=None, key: Keyish = None, physical: PhysicalHands | None = None,
                  control: ControlGate | None = None) -> ActorParts:
     """Declare everything on the session and wire the loop's parts (declaration order as the protocol expects:
     subscribers, publishers, the weights receiver, then the liveliness token)."""
@@ -193,7 +194,8 @@ def run(pc: ProcessConfig, actor: str, resume: bool) -> int:
         return 2
     setup_process_logging(out_dir / "actor.log")
     try:
-        key = run_key.load(cfg.run_dir)  # acks and weights must carry the learner's mac when the run has a key
+        # acks and weights must carry the learner's mac and signature when the run has keys; batches carry ours
+        key = DataKeys.of_run(cfg.run_dir, "actor", actor)
         gate = ControlGate.of_run(cfg.run_dir)  # control must carry the operator's (a client's) signature
     except (run_key.RunKeyError, RoleKeyError) as exc:
         return _error(actor, exc)

@@ -29,16 +29,17 @@ class Outcome:
 
 
 def actor_alarm(out: Outcome, status, key: str) -> None:
-    """An actor's status with an alarm ends the run: the alarm becomes the run's error (once, said on stderr).
+    """An actor's (or the learner's: two different batches signed by one actor for one seq) status with an alarm
+    ends the run: the alarm becomes the run's error (once, said on stderr).
 
     :param out: how the run ends
     :param status: a decoded status message
     :param key: the key it came on
     """
     alarm = getattr(status.info, "alarm", "")
-    if status.role != "actor" or not alarm or out.error:
+    if status.role not in ("actor", "learner") or not alarm or out.error:
         return
-    out.error = f"actor {status.info.id}: {alarm}"
+    out.error = f"{status.role} {status.info.id}: {alarm}"
     print(f"khgrl up: error: {out.error} (status on {key}); ending the run", file=sys.stderr, flush=True)
 
 

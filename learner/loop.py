@@ -49,7 +49,7 @@ class LearnerLoop:
                  learner_dir: str | Path, checkpoint_every: int, flag: StopFlag,
                  clock: Callable[[], float] = time.monotonic, checkpoint_dir: str | Path | None = None,
                  mode: str = "simulation", journal: Journal | None = None, model_checkpoint_every: int = 0,
-                 snapshot_rows: int | None = None, lead_cap: int | None = None, key: bytes | None = None) -> None:
+                 snapshot_rows: int | None = None, lead_cap: int | None = None, key: Any = None) -> None:
         """:param trainer: the model and its schedule
         :param streams: the actor streams (empty, or from a checkpoint)
         :param publisher: where acks, weights and status go

@@ -117,6 +117,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     import torch  # (imported here: --help and flag errors answer at once)
     from khgrl.common.delivery import run_key
     from khgrl.common.delivery.control_auth import ControlGate
+    from khgrl.common.delivery.data_keys import DataKeys
     from khgrl.common.delivery.learner_link import LearnerLink
     from khgrl.common.delivery.role_keys import RoleKeyError
     from khgrl.learner.journal import Journal, journal_dir
@@ -127,7 +128,8 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
     cfg = pc.cfg
     setup_process_logging(learner_dir / "learner.log")
     try:
-        key = run_key.load(cfg.run_dir)  # acks and weights carry a mac, batches must, when the run has a key
+        # acks and weights carry a mac and our signature; batches must (their actor's) when the run has keys
+        key = DataKeys.of_run(cfg.run_dir, "learner", learner_id)
         gate = ControlGate.of_run(cfg.run_dir)  # control must carry the operator's signature when the run has keys
     except (run_key.RunKeyError, RoleKeyError) as exc:
         return _fail(exc)

@@ -27,7 +27,7 @@ import logging
 import time
 from typing import Any, Callable
 
-from khgrl.common.delivery import run_key
+from khgrl.common.delivery import data_keys
 
 __all__ = ["ActorGuard", "SPLIT_EXIT", "BEYOND_ACKS", "BEYOND_SPAN_S", "BEYOND_PROBE_S", "OTHER_ADVANCES",
            "TWO_LEARNERS_S"]
@@ -53,7 +53,7 @@ class ActorGuard:
     :param clock: monotonic seconds.
     """
 
-    def __init__(self, actor: str, stream: str, key: bytes | None = None,
+    def __init__(self, actor: str, stream: str, key: data_keys.Keyish = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.actor, self.stream, self.key, self.clock = actor, stream, key, clock
         self.fatal: str | None = None  # another process publishes as this actor: why, in one line
@@ -71,7 +71,7 @@ class ActorGuard:
 
         :param ack: a decoded ack.
         """
-        return run_key.check(ack, self.key)
+        return data_keys.check(ack, self.key)
 
     def on_ack(self, ack: Any, max_published: int, live_epochs: set) -> None:
         """An ack for this actor id arrived (before the stream takes or refuses it).

@@ -24,7 +24,7 @@ import threading
 import time
 from typing import Any, Callable, Protocol
 
-from khgrl.common.delivery import run_key
+from khgrl.common.delivery import data_keys
 from khgrl.common.delivery.declare import alive_now, publisher, queryable, subscribe, token
 from khgrl.common.delivery.task_link import TaskAnnouncer
 from khgrl.common.delivery.transport import Inbox, undeclare_all
@@ -100,7 +100,7 @@ class Publisher(Protocol):
 class ZenohPublisher:
     """Publishers of one learner; :meth:`answer` is the weights queryable's handler."""
 
-    def __init__(self, session: Any, keys: Keys, sender: str, key: bytes | None = None) -> None:
+    def __init__(self, session: Any, keys: Keys, sender: str, key: data_keys.Keyish = None) -> None:
         """:param session: an open Zenoh session
         :param keys: the run's key expressions
         :param sender: this learner's id (envelope ``sender``)
@@ -129,7 +129,7 @@ class ZenohPublisher:
 
         :param msg: the weights
         """
-        blob = self._encode(run_key.sign(msg, self.key))
+        blob = self._encode(data_keys.sign(msg, self.key))
         with self._lock:
             self._latest = blob
         self.weights_pub.put(blob)
@@ -144,7 +144,7 @@ class ZenohPublisher:
             if pub is None:
                 pub = self.ack_pubs[msg.actor] = publisher(self.session, self.keys.ack(msg.actor), congestion="block",
                                                            priority="interactive_low")
-        pub.put(self._encode(run_key.sign(msg, self.key)))
+        pub.put(self._encode(data_keys.sign(msg, self.key)))
 
     def status(self, msg: Status) -> None:
         """Publish a status (dropped under congestion: the next one follows in a second).
@@ -189,7 +189,7 @@ class LearnerLink:
     """
 
     def __init__(self, session: Any, keys: Keys, learner_id: str, task: TaskDescriptor,
-                 key: bytes | None = None) -> None:
+                 key: data_keys.Keyish = None) -> None:
         self.session, self.keys, self.id = session, keys, learner_id
         self.announcer = TaskAnnouncer(session, keys, "learner", learner_id, task)
         self.publisher = ZenohPublisher(session, keys, learner_id, key)

@@ -26,7 +26,8 @@ import threading
 from collections import Counter
 from typing import Any, Callable, Protocol
 
-from khgrl.common.delivery import run_key
+from khgrl.common.delivery import data_keys
+from khgrl.common.delivery.batch_conflicts import SignedSeqs
 from khgrl.common.delivery.control_auth import ControlGate
 from khgrl.common.delivery.guards import ReplayGuard, RequestLimiter
 from khgrl.common.delivery.ingest import ActorStream, FairInbox, StreamTable
@@ -63,13 +64,14 @@ class LearnerIngest:
     :param on_control: a control command (``stop``, ``checkpoint``, ``pause``, ``resume``)
     :param learner_id: this learner's id (rejects)
     :param flag: the process's stop flag (the ingest thread runs until it is set, and sets it if it fails)
-    :param key: the run's key (:mod:`~khgrl.common.delivery.run_key`): batches without its ``mac`` are refused
-        before they are stored or their actor id admitted (None: none checked)
+    :param key: the run's key or :class:`~khgrl.common.delivery.data_keys.DataKeys`: batches without its
+        ``mac`` or (with role keys) their actor's signature are refused before they are stored or their actor id
+        admitted (None: none checked)
     """
 
     def __init__(self, streams: StreamTable, publisher: Publisher, *, store: Callable[..., None],
                  ack_of: Callable[[Any], Ack], on_control: Callable[[Control], None], learner_id: str, flag,
-                 key: bytes | None = None) -> None:
+                 key: data_keys.Keyish = None) -> None:
         self.streams, self.pub, self.store, self.ack_of, self.on_control = streams, publisher, store, ack_of, on_control
         self.flag, self.key = flag, key
         self.control = ControlGate.of_run(None)  # who may send control (set to the run's: its role keys)
@@ -83,6 +85,7 @@ class LearnerIngest:
         self.wake = threading.Event()  # set when there may be something to train
         self.lead_cap: int | None = None  # transitions of an actor not yet covered by trained weights (None: no cap)
         self.replay = ReplayGuard()
+        self.signed = SignedSeqs()  # (actor, stream, seq) -> what its actor signed: a second, different one alarms
         self.requests = RequestLimiter(self.admitted)
 
     def admitted(self, actor: str) -> bool:
@@ -144,9 +147,16 @@ class LearnerIngest:
         :param msg: the batch
         :param key: the key it came on
         """
-        why = run_key.check(msg, self.key)
-        if why is not None:
-            self.rejects.reject("mac", key, ProtocolError(f"actor {msg.actor} batch {msg.envelope.seq}: {why}"))
+        seq = msg.envelope.seq
+        for kind, check in (("mac", data_keys.check_mac), ("sig", data_keys.check_sig)):
+            why = check(msg, self.key)
+            if why is not None:
+                self.rejects.reject(kind, key, ProtocolError(f"actor {msg.actor} batch {seq}: {why}"))
+                return
+        if data_keys.checking(self.key) and (why := self.signed.conflict(msg)) is not None:
+            if self.signed.conflicts == 1:
+                log.error("%s", why)
+            self.rejects.reject("conflict", key, ProtocolError(f"actor {msg.actor} batch {seq}: {why}"))
             return
         reason = check_bounds(msg, self.task)  # finite, and within the task's value bounds
         if reason is not None:
@@ -292,4 +302,4 @@ class LearnerIngest:
                     next_seq={st.actor: st.next_seq for st in streams},
                     durable={st.actor: st.durable for st in streams},
                     duplicates={st.actor: st.duplicates for st in streams},
-                    weights_queries=int(self.pub.queries), not_admitted_dropped=self.dropped)
+                    weights_queries=int(self.pub.queries), not_admitted_dropped=self.dropped, alarm=self.signed.alarm)

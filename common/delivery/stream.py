@@ -31,7 +31,7 @@ from types import SimpleNamespace
 from typing import Any, Callable
 
 import numpy as np
-from khgrl.common.delivery import run_key
+from khgrl.common.delivery import data_keys
 from khgrl.common.delivery.outbox import Outbox
 from khgrl.common.wire.bounds import check_bounds, limits
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
@@ -63,15 +63,16 @@ class TransitionStream:
     :param durable: the highest seq the learner confirmed durable (likewise).
     :param journal: called with :meth:`position` before batch files are deleted as durable.
     :param window: batches out beyond the learner's ``received`` at most.
-    :param key: the run's key (:mod:`~khgrl.common.delivery.run_key`): every batch sent carries its ``mac``, a
-        re-stamped one is signed again (None: no mac).
+    :param key: the run's key or the actor's :class:`~khgrl.common.delivery.data_keys.DataKeys`: every batch
+        sent carries its ``mac`` and (with a role key) its ``actor:<id>`` signature, a re-stamped one is signed again
+        (None: neither).
     """
 
     def __init__(self, actor: str, stream: str, outbox: Outbox, publish: Callable[[bytes], None],
                  rejects: RejectCounter, resend_after_s: float = 2.0,
                  clock: Callable[[], float] = time.monotonic, task: str | None = None, *, next_seq: int = 0,
                  next_index: int = 0, durable: int = -1, journal: Callable[[dict], None] | None = None,
-                 window: int = 64, key: bytes | None = None) -> None:
+                 window: int = 64, key: data_keys.Keyish = None) -> None:
         self.actor = actor
         self.key = key
         self.task = task  # the digest of this actor's task descriptor, stamped on every batch
@@ -175,7 +176,7 @@ class TransitionStream:
             terminated=np.asarray(cols[4], dtype=np.uint8), truncated=np.asarray(cols[5], dtype=np.uint8),
             intervened=np.asarray(cols[6], dtype=np.uint8), clipped=np.asarray(cols[7], dtype=np.uint8),
             base_seq=seq if oldest is None else oldest, stream=self.stream, task=self.task)
-        payload = encode(run_key.sign_batch(batch, self.key, seq), self.actor, seq)
+        payload = encode(data_keys.sign_batch(batch, self.key, seq), self.actor, seq)
         newest = self.outbox.newest()
         if newest is None or newest <= self.received:
             self.last_progress = self.clock()  # nothing was waiting: the resend timer starts now
@@ -209,7 +210,7 @@ class TransitionStream:
             return 0
         self.cursor = max(self.cursor, oldest)
         key, n = self.key, 0
-        sign = None if key is None else lambda m: run_key.wire_batch_mac(m, key)  # re-stamped: signed again
+        sign = None if key is None else lambda m: data_keys.wire_sign(m, key)  # re-stamped: signed again
         while self.cursor < self.next_seq and self._in_window(self.cursor):
             self._send(self.cursor, with_base_seq(self.outbox.get(self.cursor), oldest, sign))
             n += 1

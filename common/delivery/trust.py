@@ -32,7 +32,7 @@ import threading
 import time
 from typing import Any, Callable
 
-from khgrl.common.delivery import run_key
+from khgrl.common.delivery import data_keys
 from khgrl.common.wire.checks import ProtocolError
 
 __all__ = ["WeightsGate", "learner_of", "MAX_VERSIONS_PER_S", "VERSION_SLACK", "HOLD_S", "MAX_EPOCHS"]
@@ -66,7 +66,7 @@ class WeightsGate:
     """
 
     def __init__(self, clock: Callable[[], float] = time.monotonic, *, rate: float = MAX_VERSIONS_PER_S,
-                 slack: int = VERSION_SLACK, hold_s: float = HOLD_S, key: bytes | None = None) -> None:
+                 slack: int = VERSION_SLACK, hold_s: float = HOLD_S, key: data_keys.Keyish = None) -> None:
         self.clock, self.rate, self.slack, self.hold_s = clock, float(rate), int(slack), float(hold_s)
         self.key = key
         self.alive: dict[str, str | None] = {}  # liveliness key -> its epoch
@@ -98,7 +98,7 @@ class WeightsGate:
 
         :param msg: a :class:`~khgrl.common.wire.messages.Weights`.
         """
-        why = run_key.check(msg, self.key)
+        why = data_keys.check(msg, self.key)
         if why:
             raise ProtocolError(why)
 

@@ -104,6 +104,8 @@ class Transitions(Message):
     stream: str | None = None  # random id of the actor incarnation
     task: str | None = None  # the digest of the actor's task descriptor: required on the wire
     mac: bytes | None = None  # keyed BLAKE2b of the other fields and the envelope's seq under the run's key
+    signer: str | None = None  # the key id that signed it (``actor:<actor>``; khgrl.common.delivery.data_keys)
+    sig: bytes | None = None  # its Ed25519 signature
 
     @property
     def n(self) -> int:
@@ -137,7 +139,8 @@ class Transitions(Message):
         if m.get("task") is None:
             raise ProtocolError("task: missing (the digest of the actor's task descriptor is required)")
         return cls(actor=actor, first_step=first, base_seq=base, stream=opt(m, "stream", ident),
-                   task=ident("task", m.get("task")), mac=opt(m, "mac", _mac), **arrays)
+                   task=ident("task", m.get("task")), mac=opt(m, "mac", _mac), signer=opt(m, "signer", ident),
+                   sig=opt(m, "sig", _sig), **arrays)
 
 
 @dataclass(frozen=True)
@@ -155,6 +158,8 @@ class Ack(Message):
     task: str | None = None  # the digest of the learner's task descriptor
     superseded: bool | None = None  # true: the learner took another stream of this actor id; it refuses this one
     mac: bytes | None = None  # keyed BLAKE2b of the other fields under the run's key (khgrl.common.delivery.run_key)
+    signer: str | None = None  # the key id that signed it (``learner:<id>``; khgrl.common.delivery.data_keys)
+    sig: bytes | None = None  # its Ed25519 signature
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Ack":
@@ -163,7 +168,8 @@ class Ack(Message):
                    trained=typ("trained", m.get("trained"), int, low=0),
                    version=typ("version", m.get("version"), int, low=0), epoch=typ("epoch", m.get("epoch"), str),
                    stream=opt(m, "stream", ident), task=opt(m, "task", ident),
-                   superseded=opt(m, "superseded", typ, bool), mac=opt(m, "mac", _mac))
+                   superseded=opt(m, "superseded", typ, bool), mac=opt(m, "mac", _mac),
+                   signer=opt(m, "signer", ident), sig=opt(m, "sig", _sig))
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,6 +183,8 @@ class Weights(Message):
     tensors: dict  # {name: float32 array}
     epoch: str | None = None
     mac: bytes | None = None  # keyed BLAKE2b of the other fields under the run's key (khgrl.common.delivery.run_key)
+    signer: str | None = None  # the key id that signed it (``learner:<id>``; khgrl.common.delivery.data_keys)
+    sig: bytes | None = None  # its Ed25519 signature
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Weights":
@@ -193,7 +201,8 @@ class Weights(Message):
             ndim = len(arr.get("shape", [])) if isinstance(arr, dict) and isinstance(arr.get("shape"), list) else 0
             out[name] = unpack_array(arr, f"tensors[{name}]", dtype="<f4", shape=(None,) * ndim)
         return cls(version=typ("version", m.get("version"), int, low=0), trained=dict(trained), tensors=out,
-                   epoch=opt(m, "epoch", ident), mac=opt(m, "mac", _mac))
+                   epoch=opt(m, "epoch", ident), mac=opt(m, "mac", _mac), signer=opt(m, "signer", ident),
+                   sig=opt(m, "sig", _sig))
 
 
 @dataclass(frozen=True, eq=False)

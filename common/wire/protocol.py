@@ -155,14 +155,15 @@ def decode_any(kind: str, payload: bytes) -> Message:
     return decode(KINDS[kind], payload)
 
 
-def with_base_seq(payload: bytes, base_seq: int, mac: Callable[[dict], bytes] | None = None) -> bytes:
+def with_base_seq(payload: bytes, base_seq: int, mac: Callable[[dict], bytes | dict] | None = None) -> bytes:
     """A stored ``transitions`` payload (one this process encoded, so its fields were checked then) re-stamped
     with the sender's current ``base_seq`` for a re-send: only the envelope and ``base_seq`` are looked at.
 
     :param payload: the encoded batch.
     :param base_seq: the oldest batch the sender holds now.
-    :param mac: signs the re-stamped map (the run's key: ``run_key.wire_batch_mac``); None: no ``mac`` (one the
-        payload had is dropped, as it no longer matches).
+    :param mac: signs the re-stamped map: its ``mac`` (the run's key: ``run_key.wire_batch_mac``) or the fields to
+        set (``data_keys.wire_sign``: ``mac``, ``signer``, ``sig``); None: no ``mac`` nor signature (those the payload
+        had are dropped, as they no longer match).
     """
     msg = _unpack(payload, Transitions.MAX_BYTES, Transitions.KIND)
     env = _envelope(msg, Transitions.KIND)
@@ -170,9 +171,11 @@ def with_base_seq(payload: bytes, base_seq: int, mac: Callable[[dict], bytes] | 
     if base > env.seq:
         raise ProtocolError(f"base_seq {base} > seq {env.seq}")
     msg["base_seq"] = base
-    msg.pop("mac", None)
+    for name in ("mac", "signer", "sig"):
+        msg.pop(name, None)
     if mac is not None:
-        msg["mac"] = mac(msg)
+        signed = mac(msg)
+        msg.update({"mac": signed} if isinstance(signed, bytes) else signed)
     return msgpack.packb(msg, use_bin_type=True)
 
 

@@ -104,6 +104,7 @@ class LearnerInfo:
     prior_slots: int = 0  # stored transitions with intervened = 1 (the prior data: interventions, demonstrations)
     sampled_prior: int = 0  # transitions sampled from the prior slots (RLPD's half), all minibatches so far
     sampled_online: int = 0  # and uniformly from all slots
+    alarm: str = ""  # two different batches signed by one actor for one (stream, seq): a split brain ("" when none)
 
 
 @dataclass(frozen=True)
