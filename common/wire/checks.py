@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from khgrl.common.wire.keys import MAX_ID_LEN
 
-__all__ = ["ProtocolError", "RejectCounter", "pack_array", "unpack_array", "typ", "ident", "vec", "opt",
+__all__ = ["ProtocolError", "RejectCounter", "pack_array", "unpack_array", "typ", "ident", "vec", "opt", "exact_bytes",
            "MAX_ID_LEN"]
 
 log = logging.getLogger("khgrl.protocol")
@@ -100,6 +100,15 @@ def vec(name: str, value: Any, n: int) -> np.ndarray:
     if not isinstance(value, (list, tuple)) or len(value) != n:
         raise ProtocolError(f"{name}: expected a list of {n} numbers")
     return np.array([typ(f"{name}[{i}]", v, (int, float)) for i, v in enumerate(value)], dtype=np.float64)
+
+
+def exact_bytes(size: int):
+    """A check of a bytes field of exactly ``size`` bytes (a ``mac``, a ``sig``)."""
+    def check(name: str, value: Any) -> bytes:
+        if len(typ(name, value, bytes)) != size:
+            raise ProtocolError(f"{name}: {len(value)} bytes, expected {size}")
+        return value
+    return check
 
 
 def opt(m: dict, name: str, check, *args, **kwargs):

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
-from khgrl.common.wire.checks import ProtocolError, ident, opt, typ, unpack_array, vec
+from khgrl.common.wire.checks import ProtocolError, exact_bytes, ident, opt, typ, unpack_array, vec
 from khgrl.common.wire.descriptor import MAX_DIM, MAX_HORIZON, TaskDescriptor
 from khgrl.common.wire.status import _INFO, ActorInfo, HumanInfo, LearnerInfo, check_info
 
@@ -51,19 +51,10 @@ def _any_vec(name: str, value: Any, most: int) -> np.ndarray:
 
 
 MAC_BYTES = 32  # the ``mac`` of acks, weights and transitions
-SIG_BYTES = 64  # the ``sig`` of control (Ed25519)
+SIG_BYTES = 64  # the ``sig`` of control, acks, weights and transitions (Ed25519)
 
 
-def _exact(size: int):
-    """A check of a bytes field of exactly ``size`` bytes (``mac``: :data:`MAC_BYTES`, ``sig``: :data:`SIG_BYTES`)."""
-    def check(name: str, value: Any) -> bytes:
-        if len(typ(name, value, bytes)) != size:
-            raise ProtocolError(f"{name}: {len(value)} bytes, expected {size}")
-        return value
-    return check
-
-
-_mac, _sig = _exact(MAC_BYTES), _exact(SIG_BYTES)
+_mac, _sig = exact_bytes(MAC_BYTES), exact_bytes(SIG_BYTES)
 
 
 @dataclass(frozen=True)
