@@ -1,0 +1,244 @@
+"""A key per role for data (issue 34, points 3 and 4). Real processes; each attacker holds exactly the credentials
+named (the run's key, a certificate, one role's private key) and signs as a real process of that role would.
+
+* Plain mode, hand-started learner and actors a0, a1 with ``RUN_DIR/run.key`` and role keys: an attacker holding
+  a1's private key and the run's key publishes weights of a higher version and a ``superseded`` ack to a0, both
+  with the right ``mac`` and a1's signature. a0 refuses both (counted: ``weights`` and ``ack`` rejects), keeps
+  weights version 0 and finishes its episodes (exit 0). (Before, on main: the run's ``mac`` was all a0 checked, so
+  it loaded the forged weights and stopped at the forged ``superseded`` ack, exit 2.)
+* ``--secure`` with a0's certificate (not a0's role key) and the run's key: (b) batches on a0's stream with a0's
+  stream id and the next seqs, with the right ``mac``. The learner refuses each (``sig`` rejects), stores none, and
+  a0 runs on undisturbed. (Before: the learner stored the forged batch as a0's; a0 saw acks beyond what it sent
+  and exited 4, "another process publishes as actor a0".) (c) Then with a copy of a0's role key (two processes
+  sign as a0): a different batch for a (stream, seq) the learner already acked. The learner keeps the first,
+  refuses this one (``conflict``) and raises the split-brain alarm in its status; ``khgrl up`` ends the run with
+  that line (exit 1). (Before: taken silently as a duplicate; the run went on to exit 0.)
+"""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from helpers import ProcGroup, read_json, unique_run, wait_for
+from launch import KGRL, Launcher
+
+pytestmark = pytest.mark.integration
+
+
+def _session(run_dir, cn: str, endpoint: str):
+    from khgrl.common.delivery.transport import _open
+    from khgrl.common.delivery.zenoh_config import build_config
+
+    conf = build_config("client", [], [endpoint], 3000, run_dir / "certs" / "zenoh" / f"{cn}.json5")
+    return _open(conf, lambda: False, 20, cn)
+
+
+def _holder(run_dir, kid: str | None):
+    """What the attacker signs with: the run's key and (``kid``) that role's private key, as that process would."""
+    from khgrl.common.delivery import run_key
+
+    key = run_key.load(run_dir)
+    try:
+        from khgrl.common.delivery.data_keys import DataKeys
+        from khgrl.common.delivery.role_keys import load_private
+    except ImportError:  # (main before the change: only the run's key exists to sign with)
+        return key
+    private = load_private(run_dir, kid) if kid else None
+    return DataKeys(run=key, kid=kid or "", private=private)
+
+
+def _sign(msg, holder, seq: int | None = None):
+    try:
+        from khgrl.common.delivery import data_keys as signing
+    except ImportError:
+        from khgrl.common.delivery import run_key as signing
+    return signing.sign(msg, holder) if seq is None else signing.sign_batch(msg, holder, seq)
+
+
+# no training (learning_starts beyond the run): the learner's weights stay at version 0
+PLAIN = ["--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "100000", "--rate", "50", "--episodes", "2"]
+FORGED_VERSION = 5  # within the gate's slack of plausible versions: only the signature can refuse it
+
+
+@pytest.mark.timeout(400)
+def test_plain_mode_an_actor_key_makes_no_weights_or_acks_that_a0_takes(tmp_path):
+    from khgrl.benchmarks.scale import provenance_check
+    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery.control_sign import OPERATOR, ControlSigner
+    from khgrl.common.delivery.role_keys import make_run_keys
+    from khgrl.common.delivery.transport import open_client
+    from khgrl.common.wire.messages import Ack, Status, Transitions, Weights
+    from khgrl.common.wire.protocol import Keys, decode, encode
+
+    run, run_dir = unique_run("roles"), tmp_path / "run"
+    keys = Keys(run)
+    run_key.create(run_dir)  # as khgrl up does
+    make_run_keys(run_dir, [("learner", "learner"), ("actor", "a0"), ("actor", "a1")], fresh=True)
+    attacker = _holder(run_dir, "actor:a1")  # a1's private key and the run's key
+    seen: dict = {"wv": 0, "received": {}}
+
+    def on_ack(sample) -> None:
+        msg = decode(Ack, sample.payload.to_bytes())
+        if msg.envelope.seq < 10**6:
+            seen["ack"] = msg
+
+    def on_transitions(sample) -> None:
+        seen["stream"] = decode(Transitions, sample.payload.to_bytes()).stream
+
+    def on_status(sample) -> None:
+        info = decode(Status, sample.payload.to_bytes()).info
+        seen["received"][info.id] = info.received
+        if info.id == "a0":
+            seen["wv"] = max(seen["wv"], info.weights_version)
+
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        learner = g.learner(run, ep, "--learning-starts", "100000", "--checkpoint-every", "0")
+        actors = [g.actor(run, ep, *PLAIN, "--id", a) for a in ("a0", "a1")]
+        with open_client(ep) as s:
+            subs = [s.declare_subscriber(keys.ack("a0"), on_ack),
+                    s.declare_subscriber(keys.transitions("a0"), on_transitions),
+                    s.declare_subscriber(keys.status("actor", "*"), on_status)]
+            try:
+                wait_for(lambda: "ack" in seen and "stream" in seen and seen["received"].get("a0", -1) >= 1, 120,
+                         "a0 acked", procs=[learner, *actors])
+                real = [decode(Weights, r.ok.payload.to_bytes()) for r in s.get(keys.weights, timeout=5.0) if r.ok]
+                assert real, "no weights from the learner's queryable"
+                w = Weights(version=real[0].version + FORGED_VERSION, trained=dict(real[0].trained),
+                            tensors={n: np.zeros_like(t) for n, t in real[0].tensors.items()}, epoch=real[0].epoch)
+                ack = seen["ack"].replace(received=-1, durable=-1, superseded=True, stream=seen["stream"],
+                                          mac=None, envelope=None)
+                for i in range(3):
+                    s.put(keys.weights, encode(_sign(w, attacker), "learner", 10**6 + i))
+                    time.sleep(0.3)
+                    s.put(keys.ack("a0"), encode(_sign(ack, attacker), "learner", 10**6 + i))
+                    time.sleep(0.5)
+                time.sleep(2.0)
+                assert actors[0].poll() is None, actors[0].tail()  # (before: exit 2 at the superseded ack)
+                for a in actors:
+                    assert a.wait(240) == 0, a.tail()
+                stop = ControlSigner.load(run_dir, OPERATOR)  # (the run has role keys: control is signed)
+                s.put(keys.control("learner"), stop.payload(keys.control("learner"), "stop", "tester", 1))
+                assert learner.wait(60) == 0, learner.tail()
+            finally:
+                for sub in subs:
+                    sub.undeclare()
+    summary = read_json(run_dir / "actor-a0" / "summary.json")
+    rejects = summary["rejects"]
+    print(f"plain mode, a1's key: a0 rejects {rejects}, weights version seen {seen['wv']}, "
+          f"episodes {summary['episodes']}")
+    assert summary["episodes"] == 2 and summary["unconfirmed_transitions"] == 0, summary
+    assert rejects.get("weights", 0) >= 3 and rejects.get("ack", 0) >= 3, rejects
+    assert seen["wv"] == 0, seen["wv"]  # the forged version was never loaded
+    log = (run_dir / "actor-a0" / "actor.log").read_text()
+    assert "signed by 'actor:a1', not by a learner" in log, log[-3000:]
+    check = provenance_check(run_dir)
+    assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] > 0, check
+
+
+FORGE_FROM = 10  # KGRL's learning_starts 64 = 8 batches of 8
+
+
+def _ended(up: Launcher, timeout: float) -> int:
+    try:
+        return up.proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f"khgrl up did not end {timeout:.0f} s after the attack\n{up.stdout[-3000:]}") from None
+
+
+class _Watch:
+    """a0's batches and acks and the learner's status, as a monitor sees them."""
+
+    def __init__(self, session, keys) -> None:
+        from khgrl.common.wire.messages import Ack, Status, Transitions
+        from khgrl.common.wire.protocol import decode
+
+        self.lock = threading.Lock()
+        self.batch, self.acked, self.learner = None, -1, None
+
+        def on_batch(sample) -> None:
+            msg = decode(Transitions, sample.payload.to_bytes())
+            with self.lock:
+                if self.batch is None or msg.envelope.seq >= self.batch.envelope.seq:
+                    self.batch = msg
+
+        def on_ack(sample) -> None:
+            msg = decode(Ack, sample.payload.to_bytes())
+            with self.lock:
+                self.acked = max(self.acked, msg.received)
+
+        def on_status(sample) -> None:
+            msg = decode(Status, sample.payload.to_bytes())
+            if msg.role == "learner":
+                self.learner = msg.info
+
+        self.subs = [session.declare_subscriber(keys.transitions("a0"), on_batch),
+                     session.declare_subscriber(keys.ack("a0"), on_ack),
+                     session.declare_subscriber(keys.status("learner", "*"), on_status)]
+
+
+@pytest.mark.timeout(600)
+def test_secure_a0_certificate_without_its_key_forges_nothing_a_second_signer_raises_split_brain(tmp_path):
+    from khgrl.common.wire.protocol import Keys, encode
+
+    up = Launcher(tmp_path, tmp_path / "sec", *KGRL, "--secure", "--episodes", "40", "--seed", "5",
+                  "--timeout", "400")
+    up.wait_line("khgrl up: run ", 120)
+    runtime = read_json(up.run_dir / "config.json")["runtime"]
+    keys, ep = Keys(runtime["run"]), runtime["endpoint"]
+    try:
+        watcher = _session(up.run_dir, "monitor", ep)
+        attacker = _session(up.run_dir, "actor-a0", ep)
+        watch = _Watch(watcher, keys)
+        try:
+            wait_for(lambda: watch.batch is not None and watch.batch.envelope.seq >= FORGE_FROM, 180,
+                     "a0 past learning_starts")
+            # (b) a0's certificate and the run's key, not a0's role key: the next seqs, reward 100
+            cert_only = _holder(up.run_dir, None)
+            sent_b = []
+            for _ in range(3):
+                with watch.lock:
+                    msg = watch.batch
+                seq = msg.envelope.seq + 1
+                forged = msg.replace(first_step=msg.first_step + msg.n, reward=np.full(msg.n, 100.0, np.float32),
+                                     mac=None, signer=None, sig=None, envelope=None)
+                attacker.put(keys.transitions("a0"), encode(_sign(forged, cert_only, seq), "a0", seq))
+                sent_b.append(seq)
+                time.sleep(2.0)
+            time.sleep(3.0)
+            assert up.proc.poll() is None, f"the run ended after (b)\n{up.stderr[-3000:]}"
+            info_b = watch.learner
+            assert info_b is not None and info_b.rejects.get("sig", 0) >= 3, info_b
+            assert info_b.alarm == "", info_b.alarm
+            # (c) a copy of a0's role key: a different batch for a seq the learner acked
+            copy = _holder(up.run_dir, "actor:a0")
+            with watch.lock:
+                msg, acked = watch.batch, watch.acked
+            assert acked >= FORGE_FROM, acked
+            again = msg.replace(reward=np.full(msg.n, 100.0, np.float32), mac=None, signer=None, sig=None,
+                                envelope=None)
+            t0 = time.monotonic()
+            attacker.put(keys.transitions("a0"), encode(_sign(again, copy, acked), "a0", acked))
+            rc = _ended(up, 60)
+            ended = time.monotonic() - t0
+        finally:
+            for sub in watch.subs:
+                sub.undeclare()
+            attacker.close()
+            watcher.close()
+    finally:
+        up.cleanup()
+    print(f"secure, a0's certificate: forged batches {sent_b} refused, learner rejects {info_b.rejects}; a second "
+          f"signer at seq {acked}: khgrl up exited {rc} {ended:.1f} s later")
+    assert rc == 1, f"khgrl up exited {rc}\n{up.stdout[-2000:]}\n{up.stderr[-2000:]}"
+    assert "khgrl up: error: learner learner: split brain" in up.stderr, up.stderr[-3000:]
+    summary = read_json(up.run_dir / "summary.json")
+    assert f"seq {acked}" in summary["error"] and "actor:a0" in summary["error"], summary["error"]
+    a0_log = (up.run_dir / "actor-a0" / "actor.log").read_text()
+    assert "another process publishes as actor a0" not in a0_log  # (b) stored nothing as a0's
+    assert "split brain" in (up.run_dir / "learner" / "learner.log").read_text()
