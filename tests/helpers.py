@@ -217,3 +217,19 @@ class FakeLink:
 
     def control_actors(self, command: str) -> None:
         self.commands.append(command)
+
+
+def actor_signer(run_dir: str | Path, actor: str):
+    """What an actor process ``actor`` of the run in ``run_dir`` signs its batches with: the run's key and its own
+    role key (made now if it has none, as ``khgrl keys RUN_DIR --actor ACTOR`` does for a hand-started actor).
+
+    :param run_dir: the run directory.
+    :param actor: the actor id.
+    """
+    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery.data_keys import DataKeys
+    from khgrl.common.delivery.role_keys import key_id, load_private, make_keys
+
+    kid = key_id("actor", actor)
+    make_keys(run_dir, [kid])
+    return DataKeys(run=run_key.load(run_dir), kid=kid, private=load_private(run_dir, kid))

@@ -60,6 +60,11 @@ def _sign(msg, holder, seq: int | None = None):
     return signing.sign(msg, holder) if seq is None else signing.sign_batch(msg, holder, seq)
 
 
+def _unsigned(msg) -> dict:
+    """The fields that make ``msg`` a message to be signed anew (its envelope, ``mac``, ``signer``, ``sig``)."""
+    return {f: None for f in ("envelope", "mac", "signer", "sig") if hasattr(msg, f)}
+
+
 # no training (learning_starts beyond the run): the learner's weights stay at version 0
 PLAIN = ["--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "100000", "--rate", "50", "--episodes", "2"]
 FORGED_VERSION = 5  # within the gate's slack of plausible versions: only the signature can refuse it
@@ -112,7 +117,7 @@ def test_plain_mode_an_actor_key_makes_no_weights_or_acks_that_a0_takes(tmp_path
                 w = Weights(version=real[0].version + FORGED_VERSION, trained=dict(real[0].trained),
                             tensors={n: np.zeros_like(t) for n, t in real[0].tensors.items()}, epoch=real[0].epoch)
                 ack = seen["ack"].replace(received=-1, durable=-1, superseded=True, stream=seen["stream"],
-                                          mac=None, envelope=None)
+                                          **_unsigned(seen["ack"]))
                 for i in range(3):
                     s.put(keys.weights, encode(_sign(w, attacker), "learner", 10**6 + i))
                     time.sleep(0.3)
@@ -206,7 +211,7 @@ def test_secure_a0_certificate_without_its_key_forges_nothing_a_second_signer_ra
                     msg = watch.batch
                 seq = msg.envelope.seq + 1
                 forged = msg.replace(first_step=msg.first_step + msg.n, reward=np.full(msg.n, 100.0, np.float32),
-                                     mac=None, signer=None, sig=None, envelope=None)
+                                     **_unsigned(msg))
                 attacker.put(keys.transitions("a0"), encode(_sign(forged, cert_only, seq), "a0", seq))
                 sent_b.append(seq)
                 time.sleep(2.0)
@@ -220,8 +225,7 @@ def test_secure_a0_certificate_without_its_key_forges_nothing_a_second_signer_ra
             with watch.lock:
                 msg, acked = watch.batch, watch.acked
             assert acked >= FORGE_FROM, acked
-            again = msg.replace(reward=np.full(msg.n, 100.0, np.float32), mac=None, signer=None, sig=None,
-                                envelope=None)
+            again = msg.replace(reward=np.full(msg.n, 100.0, np.float32), **_unsigned(msg))
             t0 = time.monotonic()
             attacker.put(keys.transitions("a0"), encode(_sign(again, copy, acked), "a0", acked))
             rc = _ended(up, 60)

@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 import launch
-from helpers import read_json, wait_for
+from helpers import actor_signer, read_json, wait_for
 from launch import FAST, Launcher
 
 pytestmark = pytest.mark.integration
@@ -127,12 +127,13 @@ def _paced(seconds: float, per_s: float):
 
 def _attack(up: Launcher, watch: Watch, keys, ep: str, task: str) -> dict:
     """The four attacks in sequence; per phase: (start, end) and what was sent."""
-    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery import data_keys
     from khgrl.common.wire.messages import Control, Transitions
     from khgrl.common.wire.protocol import decode, encode
 
     template = decode(Transitions, watch.batches[-1])
-    key = run_key.load(up.run_dir)  # the worst case: the attackers hold the run's key (as every actor process)
+    # the worst case: the attackers hold the run's key and each its own role key (as every actor process)
+    signers = {a: actor_signer(up.run_dir, a) for a in ATTACKERS}
     sessions = {a: _session(up.run_dir, f"actor-{a}", ep) for a in ATTACKERS}
     phases: dict[str, dict] = {}
     try:
@@ -140,7 +141,8 @@ def _attack(up: Launcher, watch: Watch, keys, ep: str, task: str) -> dict:
         gen = _big_batches(template, "f1", task)
         n = 0
         for seq in _paced(VOLUME_S, 100):  # in order, seq 0, 1, 2, ...
-            sessions["f1"].put(keys.transitions("f1"), encode(run_key.sign_batch(next(gen), key, seq), "f1", seq))
+            batch = data_keys.sign_batch(next(gen), signers["f1"], seq)
+            sessions["f1"].put(keys.transitions("f1"), encode(batch, "f1", seq))
             n += 1
         phases["volume"] = {"t": (t0, time.monotonic()), "sent": n}
 
@@ -148,7 +150,8 @@ def _attack(up: Launcher, watch: Watch, keys, ep: str, task: str) -> dict:
         gen = _big_batches(template, "f2", task)
         n = 0
         for i in _paced(HELD_S, 100):  # seq >= 1: never in order
-            sessions["f2"].put(keys.transitions("f2"), encode(run_key.sign_batch(next(gen), key, 1 + i), "f2", 1 + i))
+            batch = data_keys.sign_batch(next(gen), signers["f2"], 1 + i)
+            sessions["f2"].put(keys.transitions("f2"), encode(batch, "f2", 1 + i))
             n += 1
         phases["held"] = {"t": (t0, time.monotonic()), "sent": n}
 
@@ -162,7 +165,7 @@ def _attack(up: Launcher, watch: Watch, keys, ep: str, task: str) -> dict:
             done += len(fresh)
             for payload in fresh:  # a0's batch, republished as f3's
                 m = decode(Transitions, payload).replace(actor="f3", stream="f3-replay", base_seq=0, envelope=None)
-                sessions["f3"].put(keys.transitions("f3"), encode(run_key.sign_batch(m, key, n), "f3", n))
+                sessions["f3"].put(keys.transitions("f3"), encode(data_keys.sign_batch(m, signers["f3"], n), "f3", n))
                 n += 1
             time.sleep(0.02)
         phases["replay"] = {"t": (t0, time.monotonic()), "sent": n}

@@ -1,14 +1,16 @@
 """Split brain is noticed, not frozen; plain-mode forgeries harm no actor (issue 21, point 3). Real processes.
 
-* ``--secure``, holding ``actor-a0``'s certificate while a0 runs: right after a0 publishes batch h, one batch on
-  a0's key with a0's stream id and seq h + 1. The learner stores it as a0's, so every later ack claims more than
-  a0 sent. a0 says in one line that another process publishes as it (its id, the stream id), puts that in its
-  status and exits 4; ``khgrl up`` ends the run with that line (exit 1). (Before: a0 froze in its flow-control
-  wait and the run never ended.)
+* ``--secure``, holding ``actor-a0``'s certificate and a copy of a0's role key while a0 runs (without the key the
+  learner refuses the batch: test_attack_roles.py): right after a0 publishes batch h, one batch on a0's key with
+  a0's stream id and seq h + 1. The learner stores it as a0's, so every later ack claims more than a0 sent. a0 says
+  in one line that another process publishes as it (its id, the stream id), puts that in its status and exits 4;
+  ``khgrl up`` ends the run with that line (exit 1) -- or, when a0's own batch h + 1 reaches the learner first, the
+  learner's split-brain alarm (two different batches signed by actor:a0 for one seq) ends it. (Before: a0 froze in
+  its flow-control wait and the run never ended.)
 * ``--secure``, holding the learner's certificate: a second ``khgrl learner`` with the live learner's id refuses to
   start (exit 2, one line); an impostor that ignores this -- its own liveliness token, acks and weights of its own
-  epoch, signed with the run's key -- is raised by the actor in its status, and ``khgrl up`` ends the run with that
-  line (exit 1). (Before: the second learner started; the run went on with two learners.)
+  epoch, signed with the run's key and a copy of the learner's role key -- is raised by the actor in its status,
+  and ``khgrl up`` ends the run with that line (exit 1). (Before: the second learner started; the run went on with two learners.)
 * Plain mode, hand-started processes with ``RUN_DIR/run.key``: (b) a fake learner liveliness token with a task
   queryable answering another task -- both actors ignore that learner and run on (before: both exited 2); (c) a
   forged ``superseded`` ack -- refused, a0 runs on (before: exit 2); (a) a forged ack whose ``durable`` is a0's
@@ -58,13 +60,16 @@ FORGE_FROM = 10  # KGRL's learning_starts 64 = 8 batches of 8
 
 @pytest.mark.timeout(600)
 def test_another_process_publishing_as_a0_stops_it_and_ends_the_run(tmp_path):
-    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery import data_keys, run_key
+    from khgrl.common.delivery.data_keys import DataKeys
+    from khgrl.common.delivery.role_keys import load_private
     from khgrl.common.wire.messages import Transitions
     from khgrl.common.wire.protocol import Keys, decode, encode
 
     up, runtime = _secure_run(tmp_path, "split", "5")
     keys = Keys(runtime["run"])
-    key = run_key.load(up.run_dir)
+    # a copy of a0's role key and the run's key: without them the learner refuses the batch (test_attack_roles.py)
+    copy = DataKeys(run=run_key.load(up.run_dir), kid="actor:a0", private=load_private(up.run_dir, "actor:a0"))
     watcher = _session(up.run_dir, "monitor", runtime["endpoint"])
     attacker = _session(up.run_dir, "actor-a0", runtime["endpoint"])
     forged: dict = {"armed": True, "sent": []}
@@ -75,8 +80,8 @@ def test_another_process_publishing_as_a0_stops_it_and_ends_the_run(tmp_path):
         if forged["armed"] and msg.envelope.seq >= FORGE_FROM:  # (past learning_starts: a0 waits after each batch)
             forged["armed"] = False
             seq = msg.envelope.seq + 1
-            forged_batch = msg.replace(first_step=msg.first_step + msg.n)  # signed: the attacker holds the run's key
-            attacker.put(keys.transitions("a0"), encode(run_key.sign_batch(forged_batch, key, seq), "a0", seq))
+            forged_batch = msg.replace(first_step=msg.first_step + msg.n, mac=None, signer=None, sig=None)
+            attacker.put(keys.transitions("a0"), encode(data_keys.sign_batch(forged_batch, copy, seq), "a0", seq))
             forged["sent"].append((time.monotonic(), seq))
 
     sub = watcher.declare_subscriber(keys.transitions("a0"), on_batch)
@@ -96,12 +101,15 @@ def test_another_process_publishing_as_a0_stops_it_and_ends_the_run(tmp_path):
     stream = forged["stream"]
     line = f"another process publishes as actor a0 with this process's stream id {stream}"
     assert rc == 1, f"khgrl up exited {rc}\n{up.stdout[-2000:]}\n{up.stderr[-2000:]}"
-    assert f"khgrl up: error: actor a0: {line}" in up.stderr, up.stderr[-3000:]
     summary = read_json(up.run_dir / "summary.json")
-    assert summary["exit_codes"]["a0"] == 4 and line in summary["error"], summary["error"]
-    assert "a0" not in summary["failed"] or summary["exit_codes"]["a0"] == 4
-    log = (up.run_dir / "actor-a0" / "actor.log").read_text()
-    assert line in log and "this one stops" in log
+    if "khgrl up: error: learner learner: split brain" in up.stderr:  # a0's own batch h + 1 reached the learner
+        assert "two different batches signed by actor:a0" in summary["error"], summary["error"]  # before the acks
+    else:
+        assert f"khgrl up: error: actor a0: {line}" in up.stderr, up.stderr[-3000:]
+        assert summary["exit_codes"]["a0"] == 4 and line in summary["error"], summary["error"]
+        assert "a0" not in summary["failed"] or summary["exit_codes"]["a0"] == 4
+        log = (up.run_dir / "actor-a0" / "actor.log").read_text()
+        assert line in log and "this one stops" in log
     print(f"split brain: forged batches {forged['sent'][-1][1]} ({len(forged['sent'])} tries); khgrl up ended "
           f"{ended - forged['sent'][-1][0]:.1f} s after the last")
 
@@ -116,7 +124,9 @@ def _wait(up: Launcher, seconds: float) -> bool:
 
 @pytest.mark.timeout(600)
 def test_one_learner_per_run_a_second_is_refused_an_impostor_ends_the_run(tmp_path):
-    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery import data_keys, run_key
+    from khgrl.common.delivery.data_keys import DataKeys
+    from khgrl.common.delivery.role_keys import load_private
     from khgrl.common.wire.messages import Ack, Transitions, Weights
     from khgrl.common.wire.protocol import Keys, decode, encode
 
@@ -138,7 +148,8 @@ def test_one_learner_per_run_a_second_is_refused_an_impostor_ends_the_run(tmp_pa
         seen: dict = {}
         sub = impostor.declare_subscriber(
             keys.transitions("a0"), lambda s: seen.update(stream=decode(Transitions, s.payload.to_bytes()).stream))
-        key = run_key.load(up.run_dir)  # the worst case: it holds the run's key too
+        key = run_key.load(up.run_dir)  # the worst case: it holds the run's key and a copy of the learner's role key
+        stolen = DataKeys(run=key, kid="learner:learner", private=load_private(up.run_dir, "learner:learner"))
         real = [decode(Weights, r.ok.payload.to_bytes()) for r in impostor.get(keys.weights, timeout=5.0) if r.ok]
         assert real and key is not None
         wait_for(lambda: "stream" in seen, 30, "a batch of a0")
@@ -148,10 +159,10 @@ def test_one_learner_per_run_a_second_is_refused_an_impostor_ends_the_run(tmp_pa
             i = 0
             while up.proc.poll() is None and time.monotonic() - t0 < 60:
                 w = Weights(version=3, trained={"a0": 0}, tensors=real[0].tensors, epoch="impostor")
-                impostor.put(keys.weights, encode(run_key.sign(w, key), "learner", 10**6 + i))
+                impostor.put(keys.weights, encode(data_keys.sign(w, stolen), "learner", 10**6 + i))
                 ack = Ack(actor="a0", received=-1, durable=-1, trained=0, version=3, epoch="impostor",
                           stream=seen["stream"])
-                impostor.put(keys.ack("a0"), encode(run_key.sign(ack, key), "learner", 10**6 + i))
+                impostor.put(keys.ack("a0"), encode(data_keys.sign(ack, stolen), "learner", 10**6 + i))
                 i += 1
                 time.sleep(0.25)
             rc = _ended(up, 30)

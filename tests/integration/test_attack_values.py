@@ -25,7 +25,7 @@ import time
 import numpy as np
 import pytest
 
-from helpers import ProcGroup, pid_alive, read_json, wait_for
+from helpers import ProcGroup, actor_signer, pid_alive, read_json, wait_for
 from launch import KGRL, Launcher, _run
 
 pytestmark = pytest.mark.integration
@@ -48,7 +48,7 @@ def _batch(task, seq: int, *, reward: float = 0.0, obs: float | None = None, dig
     an actor process holds it); without ``digest``: its map without the task field (which ``encode`` refuses to
     make)."""
     import msgpack
-    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery import data_keys
     from khgrl.common.wire.messages import Transitions
     from khgrl.common.wire.protocol import encode
 
@@ -59,7 +59,7 @@ def _batch(task, seq: int, *, reward: float = 0.0, obs: float | None = None, dig
                       action=np.zeros((n, task.out_dim), np.float32), reward=np.full(n, reward, np.float32),
                       terminated=z, truncated=z, intervened=z, clipped=z, base_seq=0, stream="x9stream",
                       task=task.digest)
-    payload = encode(run_key.sign_batch(msg, key, seq), "x9", seq)
+    payload = encode(data_keys.sign_batch(msg, key, seq), "x9", seq)
     if digest:
         return payload
     m = msgpack.unpackb(payload, raw=False)
@@ -71,14 +71,13 @@ def _attack(up: Launcher, runtime: dict, task) -> tuple[list, int]:
     """(a), (b), (c) from actor-x9's session; returns the learner's status infos seen meanwhile and how many
     extreme batches were sent. Asserts the learner is alive after two training iterations that follow (a) (before
     the fix the first one made the policy NaN and the learner exit 1)."""
-    from khgrl.common.delivery import run_key
     from khgrl.common.wire.messages import Control, Status
     from khgrl.common.wire.protocol import Keys, decode, encode
 
     keys = Keys(runtime["run"])
     infos: list = []
     s = _session(up.run_dir, "actor-x9", runtime["endpoint"])
-    key = run_key.load(up.run_dir)  # the worst case: x9 holds the run's key (as every actor process of the run)
+    key = actor_signer(up.run_dir, "x9")  # the worst case: x9 holds the run's key and its own role key, as an actor
     sub = s.declare_subscriber(keys.status("learner"), lambda m: infos.append(decode(Status, m.payload.to_bytes())))
     try:
         wait_for(lambda: infos, 120, "the learner's status", interval=0.2)
