@@ -10,7 +10,8 @@
 * ``--secure``, holding the learner's certificate: a second ``khgrl learner`` with the live learner's id refuses to
   start (exit 2, one line); an impostor that ignores this -- its own liveliness token, acks and weights of its own
   epoch, signed with the run's key and a copy of the learner's role key -- is raised by the actor in its status,
-  and ``khgrl up`` ends the run with that line (exit 1). (Before: the second learner started; the run went on with two learners.)
+  and ``khgrl up`` ends the run with that line (exit 1). (Before: the second learner started; the run went on with
+  two learners.)
 * Plain mode, hand-started processes with ``RUN_DIR/run.key``: (b) a fake learner liveliness token with a task
   queryable answering another task -- both actors ignore that learner and run on (before: both exited 2); (c) a
   forged ``superseded`` ack -- refused, a0 runs on (before: exit 2); (a) a forged ack whose ``durable`` is a0's
