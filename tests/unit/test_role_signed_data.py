@@ -167,3 +167,18 @@ def test_the_actor_stream_signs_each_batch_and_each_re_send(task, run, tmp_path)
     assert [m.envelope.seq for m in got] == [0, 1, 2, 1, 2] and all(m.signer == "actor:a0" for m in got)
     assert all(data_keys.check(m, learner) is None for m in got)
     assert [m.base_seq for m in got[1:]] == [1, 1, 1, 1]  # re-stamped and signed again
+
+
+def test_the_learner_alarm_ends_the_run_like_an_actor_alarm(task, run, tmp_path, capsys):
+    from khgrl.common.wire.messages import Status
+    from khgrl.deploy import outcome
+
+    a0 = _keys(run, "actor", "a0")
+    loop = _loop(tmp_path, task, _keys(run, "learner", "l0"))
+    loop.receive("transitions", KEYS.transitions("a0"), _signed(task, 0, a0))
+    loop.receive("transitions", KEYS.transitions("a0"), _signed(task, 0, a0, reward=np.ones(8, np.float32)))
+    status = decode(Status, encode(Status(role="learner", info=loop.info()), "l0", 0))  # (the alarm on the wire)
+    out = outcome.Outcome()
+    outcome.actor_alarm(out, status, "status/learner/l0")
+    assert out.error.startswith("learner l0: split brain: two different batches signed by actor:a0"), out.error
+    assert "ending the run" in capsys.readouterr().err
