@@ -4,12 +4,13 @@ named (the run's key, a certificate, one role's private key) and signs as a real
 * Plain mode, hand-started learner and actors a0, a1 with ``RUN_DIR/run.key`` and role keys: an attacker holding
   a1's private key and the run's key publishes weights of a higher version and a ``superseded`` ack to a0, both
   with the right ``mac`` and a1's signature. a0 refuses both (counted: ``weights`` and ``ack`` rejects), keeps
-  weights version 0 and finishes its episodes (exit 0). (Before, on main: the run's ``mac`` was all a0 checked, so
-  it loaded the forged weights and stopped at the forged ``superseded`` ack, exit 2.)
+  weights version 0 and finishes its episodes (exit 0). (Before, run against main at d3c852b: the run's ``mac`` was
+  all a0 checked, so it took both and stopped at the forged ``superseded`` ack, exit 4: "the learner took another
+  stream of actor a0 after this one".)
 * ``--secure`` with a0's certificate (not a0's role key) and the run's key: (b) batches on a0's stream with a0's
   stream id and the next seqs, with the right ``mac``. The learner refuses each (``sig`` rejects), stores none, and
-  a0 runs on undisturbed. (Before: the learner stored the forged batch as a0's; a0 saw acks beyond what it sent
-  and exited 4, "another process publishes as actor a0".) (c) Then with a copy of a0's role key (two processes
+  a0 runs on undisturbed. (Before, against main: the learner stored the forged batches as a0's; a0 saw acks up to
+  seq 12 when it had sent 10 and exited 4, and the run ended with "another process publishes as actor a0".) (c) Then with a copy of a0's role key (two processes
   sign as a0): a different batch for a (stream, seq) the learner already acked. The learner keeps the first,
   refuses this one (``conflict``) and raises the split-brain alarm in its status; ``khgrl up`` ends the run with
   that line (exit 1). (Before: taken silently as a duplicate; the run went on to exit 0.)
@@ -124,7 +125,7 @@ def test_plain_mode_an_actor_key_makes_no_weights_or_acks_that_a0_takes(tmp_path
                     s.put(keys.ack("a0"), encode(_sign(ack, attacker), "learner", 10**6 + i))
                     time.sleep(0.5)
                 time.sleep(2.0)
-                assert actors[0].poll() is None, actors[0].tail()  # (before: exit 2 at the superseded ack)
+                assert actors[0].poll() is None, actors[0].tail()  # (before: exit 4 at the superseded ack)
                 for a in actors:
                     assert a.wait(240) == 0, a.tail()
                 stop = ControlSigner.load(run_dir, OPERATOR)  # (the run has role keys: control is signed)
