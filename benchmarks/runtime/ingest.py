@@ -15,7 +15,7 @@ __all__ = ["measure_ingest"]
 
 def measure_ingest(procs: BenchProcs, ep: str, work: Path, *, n: int, batch: int, inflight: int,
                    checkpoint_every: int, seed: int, report: Callable[[int, int], None], journal: bool = False,
-                   buffer_size: int | None = None) -> dict:
+                   buffer_size: int | None = None, signed: bool = False) -> dict:
     """Publish ``n`` transitions to a fresh learner and time them from the first put to the last ack (with the
     journal: also to the ack saying the last batch durable, ``durable_s``).
 
@@ -31,10 +31,12 @@ def measure_ingest(procs: BenchProcs, ep: str, work: Path, *, n: int, batch: int
     :param journal: the learner journals (``--journal``; else ``--no-journal``)
     :param buffer_size: the learner's replay buffer (None: its default); with the journal a full checkpoint
         comes each time the journal holds this many transitions
+    :param signed: the run has its key and role keys (as ``khgrl up`` makes them): every batch carries the run key's
+        ``mac`` and the actor's Ed25519 signature, and the learner checks both
     """
-    tag = f"ingest-{'journal' if journal else 'ckpt'}{checkpoint_every}"
+    tag = f"ingest-{'journal' if journal else 'ckpt'}{checkpoint_every}{'-signed' if signed else ''}"
     run = run_id(tag)
-    payloads = batches(n, batch, seed)
+    payloads = batches(n, batch, seed, _signer(work / tag) if signed else None)
     extra = ["--buffer-size", str(buffer_size)] if buffer_size else []
     # the learner is told the batch size this process publishes: its lead cap (max_lead + 2 batches) then holds a
     # batch (with the default 8 it was 24 transitions and every 256-transition batch was refused as over_lead)
@@ -62,3 +64,15 @@ def measure_ingest(procs: BenchProcs, ep: str, work: Path, *, n: int, batch: int
             "durable_transitions_per_s": n / durable_s if durable_s else None, "resends": res["resends"],
             "learner_ingested": info.ingested, "learner_duplicates": info.duplicates.get(BENCH_ACTOR, 0),
             "learner_checkpoints": info.checkpoints, "learner_iterations": info.iterations}
+
+
+def _signer(run_dir: Path):
+    """The run key and role keys of a run in ``run_dir`` (learner ``learner``, :data:`BENCH_ACTOR`); returns what the
+    actor signs with."""
+    from khgrl.common.delivery import run_key
+    from khgrl.common.delivery.data_keys import DataKeys
+    from khgrl.common.delivery.role_keys import make_run_keys
+
+    run_key.create(run_dir, fresh=True)
+    make_run_keys(run_dir, [("learner", "learner"), ("actor", BENCH_ACTOR)], fresh=True)
+    return DataKeys.of_run(run_dir, "actor", BENCH_ACTOR)

@@ -31,13 +31,17 @@ def passage_digest() -> str:
     return check_task(RunConfig()).digest
 
 
-def batches(n: int, batch: int, seed: int) -> list[bytes]:
-    """``n`` valid transitions as encoded batches seq 0, 1, ... (encoded before any timing starts).
+def batches(n: int, batch: int, seed: int, keys=None) -> list[bytes]:
+    """``n`` valid transitions as encoded batches seq 0, 1, ... (encoded and signed before any timing starts).
 
     :param n: transitions
     :param batch: transitions per batch
     :param seed: seed of the random contents
+    :param keys: what :data:`BENCH_ACTOR` signs with (:class:`~khgrl.common.delivery.data_keys.DataKeys`; None:
+        unsigned)
     """
+    from khgrl.common.delivery.data_keys import sign_batch
+
     rng = np.random.default_rng(seed)
     stream = secrets.token_hex(6)
     out = []
@@ -51,7 +55,7 @@ def batches(n: int, batch: int, seed: int) -> list[bytes]:
                           action=rng.uniform(-1, 1, (m, ACT_DIM)).astype(np.float32),
                           reward=rng.standard_normal(m).astype(np.float32), terminated=zeros, truncated=trunc,
                           intervened=zeros, clipped=zeros, stream=stream, base_seq=0, task=passage_digest())
-        out.append(encode(msg, BENCH_ACTOR, seq))
+        out.append(encode(sign_batch(msg, keys, seq), BENCH_ACTOR, seq))
     return out
 
 

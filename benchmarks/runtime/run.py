@@ -61,7 +61,7 @@ class _Stages:
     def __init__(self, sizes: Sizes, procs: BenchProcs, work: Path, progress, record: dict) -> None:
         self.s, self.procs, self.work, self.progress, self.record = sizes, procs, work, progress, record
         self.results = record["results"]
-        names = (["ingest", "ingest_journal", "ingest_ckpt", "train", "actor"]
+        names = (["ingest", "ingest_signed", "ingest_journal", "ingest_ckpt", "train", "actor"]
                  + (["actor_rt"] if sizes.rt_priority else []) + ["reference"]
                  + (["kill_resume"] if sizes.loss_check else []))
         self.overall = progress.add_task("[bold]overall", total=len(names), info="")
@@ -91,6 +91,7 @@ class _Stages:
         s = self.s
         n = s.ingest_transitions
         stages = (("ingest", n, 0, False, None, "no durability"),
+                  ("ingest_signed", n, 0, False, None, "no durability, signed per role"),
                   # the journal's schedule: a full checkpoint each time it holds a replay buffer's worth; a buffer of
                   # n/2 puts two in this run, one mid-way (per transition as many buffer bytes as the default 200k
                   # buffer's, and more model saves)
@@ -98,9 +99,11 @@ class _Stages:
                   ("ingest_ckpt", s.ingest_checkpoint_transitions, 2000, False, None,
                    "no journal, full checkpoint every 2000"))
         for key, count, every, journal, buffer, what in stages:
+            signed = key == "ingest_signed"
             task = self._task(key, f"1. ingest {count} transitions ({what})", count)
             res = measure_ingest(self.procs, ep, self.work, n=count, batch=s.batch, inflight=s.inflight,
                                  checkpoint_every=every, seed=s.seed, journal=journal, buffer_size=buffer,
+                                 signed=signed,
                                  report=lambda k, n_, t=task: self.progress.update(t, completed=k, info=f"{k}/{n_}"))
             self.results[key] = res
             rate = res["durable_transitions_per_s"] or res["transitions_per_s"]

@@ -22,6 +22,10 @@ def _ingest_rows(table, r: dict, batch: int, inflight: int) -> None:
     base = ing["transitions_per_s"]
     table.add_row("1. learner ingest, no durability", f"{base:,.0f} transitions/s", "",
                   f"{ing['transitions']} in {ing['elapsed_s']:.2f} s, batches of {batch}, ≤ {inflight} unacked")
+    if "ingest_signed" in r:
+        rate = r["ingest_signed"]["transitions_per_s"]
+        table.add_row("1. … signed per role (run-key mac + Ed25519)", f"{rate:,.0f} transitions/s", f"{base:,.0f} /s",
+                      f"{rate / base:.0%} (the learner checks each batch's mac and actor signature)")
     if "ingest_journal" in r:
         ij = r["ingest_journal"]
         rate = ij["durable_transitions_per_s"]

@@ -10,10 +10,11 @@ named (the run's key, a certificate, one role's private key) and signs as a real
 * ``--secure`` with a0's certificate (not a0's role key) and the run's key: (b) batches on a0's stream with a0's
   stream id and the next seqs, with the right ``mac``. The learner refuses each (``sig`` rejects), stores none, and
   a0 runs on undisturbed. (Before, against main: the learner stored the forged batches as a0's; a0 saw acks up to
-  seq 12 when it had sent 10 and exited 4, and the run ended with "another process publishes as actor a0".) (c) Then with a copy of a0's role key (two processes
-  sign as a0): a different batch for a (stream, seq) the learner already acked. The learner keeps the first,
-  refuses this one (``conflict``) and raises the split-brain alarm in its status; ``khgrl up`` ends the run with
-  that line (exit 1). (Before: taken silently as a duplicate; the run went on to exit 0.)
+  seq 12 when it had sent 10 and exited 4, and the run ended with "another process publishes as actor a0".)
+  (c) Then with a copy of a0's role key (two processes sign as a0): a different batch for a (stream, seq) the
+  learner already acked. The learner keeps the first, refuses this one (``conflict``) and raises the split-brain
+  alarm in its status; ``khgrl up`` ends the run with that line (exit 1). (Before: main never gets here, (b) ended
+  its run; by its code a second batch for a received seq is dropped as a duplicate without a word.)
 """
 
 from __future__ import annotations
