@@ -27,7 +27,7 @@ def test_bench_runtime_quick_runs_to_the_end(tmp_path):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     record = json.loads(out.read_text())
     res = record["results"]
-    for key in ("ingest", "ingest_journal", "ingest_ckpt"):  # every transition stored, none refused
+    for key in ("ingest", "ingest_signed", "ingest_journal", "ingest_ckpt"):  # every transition stored, none refused
         assert res[key]["learner_ingested"] == res[key]["transitions"] == 4096, res[key]
         assert res[key]["transitions_per_s"] > 0
     assert res["ingest_journal"]["durable_transitions_per_s"] > 0 and res["ingest_journal"]["learner_checkpoints"] >= 1
