@@ -163,7 +163,7 @@ class ActorDelivery:
         if not self.must_wait():
             return None
         t0 = time.monotonic()
-        self.waits.waits += 1
+        self.waits.waits += int(not self.inbound.paused)  # flow control's waits (a hold is the safety layer's count)
         w, s = self.weights, self.stream
         while not self.flag and self.must_wait():
             if self.on_hold is not None:
