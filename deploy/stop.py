@@ -22,7 +22,8 @@ command, and the run's supervisor keeps what it hears. ``--now`` with no actor a
 that file or by the supervisor's heartbeat. The path to the first ``--now`` message is lean (no numpy, nothing but
 Zenoh and msgpack loaded before it goes out): keystroke to held in README, "On a real robot".
 
-Exit codes: 0 every actor confirmed (the e-stop: or the run's state recorded while no actor is alive); 1 no router, no
+Exit codes: 0 every actor confirmed (the e-stop: or the run's state recorded while no actor is alive); 1 the run has
+ended (RUN_DIR/summary.json: said at once, the e-stop state still written), no router, no
 actor alive, nothing waiting for ready, or an actor did not confirm within ``--timeout`` (named); 2 a bad argument (no
 such run directory).
 """
@@ -226,6 +227,22 @@ def _no_actor(session, keys: Keys, command: str, recorded: Path | None, run: str
     return 1
 
 
+def _ended(run_dir: str | None, recorded: Path | None) -> str:
+    """Why nothing answers, when RUN_DIR says the run is over (``RUN_DIR/summary.json``: ``khgrl up`` wrote it as
+    the run ended): the run ended, not "the router is unreachable"; "" when RUN_DIR does not say so."""
+    try:
+        summary = json.loads((Path(run_dir) / "summary.json").read_text()) if run_dir else None
+    except (OSError, ValueError):
+        summary = None
+    if not isinstance(summary, dict):
+        return ""
+    wall = summary.get("wall_time_s")
+    said = f"run {summary.get('run')} has ended ({summary.get('ended', 'finished')}"
+    said += f" after {wall:.0f} s" if isinstance(wall, (int, float)) else ""
+    kept = f"; the e-stop state is kept in {recorded} for a --resume" if recorded else ""
+    return f"{said}; {Path(run_dir) / 'summary.json'}): no process to stop{kept}"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     return _send(args, "estop" if args.now else "release" if args.release else "stop")
@@ -251,6 +268,9 @@ def _send(args: argparse.Namespace, command: str) -> int:
         print(f"{prog}: warning: no operator key (RUN_DIR/keys/operator-launcher.key or --key): the command goes "
               f"unsigned, and the actors of a run with role keys refuse it", file=sys.stderr)
     recorded = _record(args, command, prog)
+    if ended := _ended(args.run_dir, recorded):  # (--resume moves summary.json aside before anything starts)
+        print(f"{prog}: {ended}", file=sys.stderr)
+        return 1
     try:
         session = open_client(connect, timeout=5.0, zenoh_config=conf)
     except ConnectionError as exc:

@@ -36,3 +36,24 @@ def test_a_missing_run_directory_is_one_line_and_exit_2(tmp_path, capsys):
     assert main([str(tmp_path / "nope")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "does not exist" in err
+
+
+def test_a_run_that_has_ended_is_said_so_rather_than_blaming_the_router(tmp_path, capsys):
+    """A tired user's ``khgrl stop RUN_DIR --now`` after the run ended: before this test the line was "no Zenoh
+    router reachable at ..." after 5 s (true, but the router is gone because the run is over). Now: the run has
+    ended, as summary.json says, and the e-stop state is still written for a --resume (one line, exit 1, at once)."""
+    import json
+    import socket
+
+    from khgrl.common.config.settings import resolve, write_run_config
+
+    with socket.socket() as s:  # a port nobody listens on: the run's router is gone
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = resolve(overrides={"run_dir": str(tmp_path)})
+    write_run_config(tmp_path, cfg, {"run": "r1", "endpoint": f"tcp/127.0.0.1:{port}"})
+    (tmp_path / "summary.json").write_text(json.dumps({"run": "r1", "ended": "finished", "wall_time_s": 42.0}))
+    assert main([str(tmp_path), "--now"]) == 1
+    err = capsys.readouterr().err
+    assert "run r1 has ended (finished after 42 s" in err and "router" not in err, err
+    assert "estop.json" in err and (tmp_path / "estop.json").is_file()
