@@ -4,8 +4,8 @@ real processes and every command the robot's driver gets; and the live run is no
 One ``khgrl up`` of the passage world behind a driver that logs each command (``tests/driver_log_task.py``) at 20 Hz
 with ``--rate-limit on --reset-path on``, the scripted human in lock-step in episode 1, and a correction timeout of
 3 s. Simulation mode, so that every kind of hold happens (a robot does not wait for the learner). While it runs,
-``khgrl up --overwrite`` on its directory must be refused and ``khgrl ready`` must say that nothing waited. Then the
-test drives:
+``khgrl up --overwrite`` on its directory must be refused, ``khgrl ready`` must say that nothing waited, and
+``khgrl export``, ``view`` and ``eval`` must refuse the live run. Then the test drives:
 
 1. the scripted human SIGSTOPped: the actor waits for its word; then ``khgrl stop --now``. The e-stop must hold the
    robot at once, not after the wait (which goes on after the release, until the actor gives up on the client).
@@ -106,6 +106,8 @@ def limits_run(tmp_path_factory):
     try:
         pids = up.children(90)
         wait_for(lambda: _steps(log_path) > 20, 120, "the actor's first steps")
+        events["readers"] = {cmd: _khgrl(*cmd.split(), str(up.run_dir)) for cmd in  # (eval: before the first
+                             ("eval", f"export --lerobot {tmp / 'export'}", f"view --out {tmp / 'x.rrd'}")}  # model)
         events["overwrite"] = subprocess.run([*UP, "--run-dir", str(up.run_dir), "--overwrite", *ARGS], cwd=REPO,
                                              env=env, capture_output=True, text=True, timeout=120)
         events["ready"] = _khgrl("ready", str(up.run_dir))
@@ -143,7 +145,7 @@ def limits_run(tmp_path_factory):
     from driver_log_task import read_log
 
     summary = read_json(up.run_dir / "actor-a0" / "summary.json")
-    return {"log": read_log(log_path), "summary": summary, "events": events, "run_dir": up.run_dir}
+    return {"log": read_log(log_path), "summary": summary, "events": events, "run_dir": up.run_dir, "tmp": tmp}
 
 
 def _endpoint(run_dir) -> tuple[str, str]:
@@ -177,6 +179,17 @@ def test_a_live_run_is_not_overwritten_and_ready_says_nothing_waited(limits_run)
     assert limits_run["events"]["intact"]  # the run went on, its files in place (it then ended with exit 0)
     assert ready.returncode == 1 and "nothing was waiting for ready" in ready.stderr, ready.stdout + ready.stderr
     assert "a0: not waiting for ready" in ready.stdout and "confirmed" not in ready.stdout, ready.stdout
+
+
+def test_the_tools_for_a_finished_run_refuse_a_live_one(limits_run):
+    """Issue 36's friction: ``khgrl export`` and ``khgrl view`` of a run still running succeeded silently with the
+    half-written files, and ``khgrl eval`` blamed a missing checkpoint. Each is one line naming the live run, exit 2
+    (eval: the run has no checkpoint yet when it is asked), and nothing is written."""
+    for cmd, done in limits_run["events"]["readers"].items():
+        assert done.returncode == 2, (cmd, done.stdout, done.stderr)
+        assert "is still running" in done.stderr and "launcher (pid" in done.stderr, (cmd, done.stderr)
+        assert len(done.stderr.strip().splitlines()) == 1, (cmd, done.stderr)
+    assert not (limits_run["tmp"] / "export").exists() and not (limits_run["tmp"] / "x.rrd").exists()
 
 
 def test_every_command_the_driver_gets_is_within_both_limits_after_every_kind_of_hold(limits_run):

@@ -47,6 +47,8 @@ def test_training_iterations_reuse_freed_memory():
     assert res["kept"] is True
     # glibc's defaults: the tensors of every iteration are mapped and faulted in anew (~10,000 pages); kept: a few
     # (the heap still grows now and then to a new peak: one iteration in five may fault its new pages in, so the
-    # typical iteration -- the median -- is compared)
-    assert min(res["before"]) > 2000, res
-    assert sorted(res["after"])[2] < min(res["before"]) / 10, res
+    # typical iteration -- the median -- is compared, before as after: a loaded machine once gave one iteration of
+    # 911 faults among 9,808 and 13,101 before)
+    typical = sorted(res["before"])[1]
+    assert typical > 2000, res
+    assert sorted(res["after"])[2] < typical / 10, res
