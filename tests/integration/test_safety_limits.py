@@ -80,6 +80,16 @@ def _moving(log_path, n: int = 5, timeout: float = 30.0) -> None:
     wait_for(lambda: _steps(log_path) >= start + n, timeout, f"{n} more steps")
 
 
+def _stalled(log_path, quiet: float = 1.0, timeout: float = 60.0) -> None:
+    """Wait until the driver gets no step for ``quiet`` seconds (the actor has used its lead and holds)."""
+    last, since, end = _steps(log_path), time.monotonic(), time.monotonic() + timeout
+    while time.monotonic() - since < quiet:
+        assert time.monotonic() < end, f"the actor never held in {timeout:g} s"
+        time.sleep(0.1)
+        if (n := _steps(log_path)) != last:
+            last, since = n, time.monotonic()
+
+
 def _estop(run_dir, seconds: float) -> tuple[float, float]:
     """Press the e-stop, hold ``seconds``, release; (when it was confirmed held, when the release began)."""
     press = _khgrl("stop", str(run_dir), "--now")
@@ -129,8 +139,8 @@ def limits_run(tmp_path_factory):
         human.wait(10)
         time.sleep(TIMEOUT)
         _moving(log_path)
-        os.kill(pids["learner"], signal.SIGSTOP)  # 4. the wait for the learner
-        time.sleep(2.0)
+        os.kill(pids["learner"], signal.SIGSTOP)  # 4. the wait for the learner: until the lead cap holds the actor
+        _stalled(log_path)
         os.kill(pids["learner"], signal.SIGCONT)
         _moving(log_path)
         os.kill(pids["a0"], signal.SIGSTOP)  # 5. a stalled control loop
