@@ -17,6 +17,10 @@
   forged ``superseded`` ack -- refused, a0 runs on (before: exit 2); (a) a forged ack whose ``durable`` is a0's
   highest sent seq, then a learner kill and resume -- refused, nothing lost (before: a0 dropped its outbox and the
   transitions after the learner's checkpoint were lost). The run then ends by itself, each transition stored once.
+  The run has role keys, as ``khgrl up`` makes them (issue 34, point 3): (d) first, holding a1's private key and the
+  run's key, weights of a higher version and a ``superseded`` ack to a0, both with the right ``mac`` and a1's
+  signature -- a0 refuses both (``weights`` and ``ack`` rejects) and keeps weights version 0. (Before, against main
+  at d3c852b: the ``mac`` was all a0 checked; it took both and stopped at the forged ack, exit 4.)
 """
 
 from __future__ import annotations
@@ -185,22 +189,53 @@ def test_one_learner_per_run_a_second_is_refused_an_impostor_ends_the_run(tmp_pa
 
 # ------------------------------------------------------------------------------------ plain mode
 # no training (learning_starts beyond the run): the attacks need acks, not weights, and the run stays cheap
-PLAIN = ["--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "100000", "--rate", "50", "--episodes", "2"]
+PLAIN = ["--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "100000", "--rate", "50", "--episodes", "3"]
+
+
+FORGED_VERSION = 5  # within the gate's slack of plausible versions: only the signature can refuse it
+
+
+def _forge_as_a1(s, keys, run_dir, seen: dict) -> None:
+    """Weights of a higher version and a ``superseded`` ack to a0, each with the run's ``mac`` and a1's signature
+    (what a process holding a1's private key and the run's key can make)."""
+    import numpy as np
+    from khgrl.common.delivery import data_keys, run_key
+    from khgrl.common.delivery.data_keys import DataKeys
+    from khgrl.common.delivery.role_keys import load_private
+    from khgrl.common.wire.messages import Weights
+    from khgrl.common.wire.protocol import decode, encode
+
+    a1 = DataKeys(run=run_key.load(run_dir), kid="actor:a1", private=load_private(run_dir, "actor:a1"))
+    real = [decode(Weights, r.ok.payload.to_bytes()) for r in s.get(keys.weights, timeout=5.0) if r.ok]
+    assert real, "no weights from the learner's queryable"
+    w = Weights(version=real[0].version + FORGED_VERSION, trained=dict(real[0].trained),
+                tensors={n: np.zeros_like(t) for n, t in real[0].tensors.items()}, epoch=real[0].epoch)
+    ack = seen["ack"].replace(received=-1, durable=-1, superseded=True, stream=seen["stream"], envelope=None,
+                              mac=None, signer=None, sig=None)
+    for i in range(3):
+        s.put(keys.weights, encode(data_keys.sign(w, a1), "learner", 10**6 + i))
+        time.sleep(0.3)
+        s.put(keys.ack("a0"), encode(data_keys.sign(ack, a1), "learner", 10**6 + i))
+        time.sleep(0.5)
 
 
 @pytest.mark.timeout(400)
-def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_path):
+def test_plain_mode_forged_acks_weights_and_a_learner_of_another_task_harm_no_actor(tmp_path):
     from khgrl.benchmarks.scale import provenance_check
     from khgrl.common.delivery import run_key
+    from khgrl.common.delivery.control_sign import OPERATOR, ControlSigner
+    from khgrl.common.delivery.role_keys import make_run_keys
     from khgrl.common.delivery.task_link import TaskAnnouncer, fetch_tasks
     from khgrl.common.delivery.transport import open_client
-    from khgrl.common.wire.messages import Ack, Control, Status, Transitions
+    from khgrl.common.wire.messages import Ack, Status, Transitions
     from khgrl.common.wire.protocol import Keys, decode, encode
 
     run, run_dir = unique_run("split"), tmp_path / "run"
     keys = Keys(run)
-    run_key.create(run_dir)  # as khgrl up does; hand-started processes read it from their --run-dir
-    seen: dict = {"received": {}}
+    run_key.create(run_dir)  # as khgrl up does; hand-started processes read them from their --run-dir
+    make_run_keys(run_dir, [("learner", "learner"), ("actor", "a0"), ("actor", "a1")], fresh=True)
+    operator = ControlSigner.load(run_dir, OPERATOR)  # (the run has role keys: control is signed)
+    seen: dict = {"received": {}, "wv": 0}
 
     def on_ack(sample) -> None:
         msg = decode(Ack, sample.payload.to_bytes())
@@ -214,6 +249,8 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
     def on_status(sample) -> None:
         info = decode(Status, sample.payload.to_bytes()).info
         seen["received"][info.id] = info.received
+        if info.id == "a0":
+            seen["wv"] = max(seen["wv"], info.weights_version)
 
     learner_args = ["--learning-starts", "100000", "--checkpoint-every", "0"]
     with ProcGroup(tmp_path) as g:
@@ -227,9 +264,12 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
             try:
                 wait_for(lambda: "ack" in seen and min(seen["received"].get(a, -1) for a in ("a0", "a1")) >= 1, 120,
                          "both actors acked", procs=[learner, *actors])
-                s.put(keys.control("learner"), encode(Control(command="checkpoint"), "tester", 0))
+                s.put(keys.control("learner"), operator.payload(keys.control("learner"), "checkpoint", "tester", 0))
                 wait_for(lambda: seen["ack"].durable >= 1, 60, "a0's batches durable (journal or checkpoint)",
                          procs=[learner, *actors])
+                _forge_as_a1(s, keys, run_dir, seen)  # (d) weights and a superseded ack with a1's key
+                time.sleep(2.0)
+                assert actors[0].poll() is None, actors[0].tail()  # (before: exit 4 at the superseded ack)
                 # (b) a learner of another task: a task queryable first, then its liveliness token
                 real = fetch_tasks(s, keys, "learner", timeout=5.0)["learner"]
                 fake_task = TaskAnnouncer(s, keys, "learner", "evil", dataclasses.replace(real, name="other"))
@@ -237,7 +277,7 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
                 time.sleep(3.0)
                 assert all(a.poll() is None for a in actors), [a.tail() for a in actors]
                 # (c) a forged superseded ack
-                ack = dataclasses.replace(seen["ack"], **({"mac": None} if hasattr(seen["ack"], "mac") else {}))
+                ack = dataclasses.replace(seen["ack"], mac=None)
                 for i in range(3):
                     s.put(keys.ack("a0"), encode(ack.replace(received=-1, durable=-1, superseded=True,
                                                              stream=seen["stream"]), "learner", 10**6 + i))
@@ -248,11 +288,13 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
                 s.put(keys.ack("a0"), encode(ack.replace(received=h, durable=h, stream=seen["stream"]), "learner",
                                              2 * 10**6))
                 time.sleep(0.3)
+                assert all(a.poll() is None for a in actors), "the actors ended before the learner's kill"
                 learner.kill()
                 learner = g.learner(run, ep, *learner_args, "--resume")
                 for a in actors:
                     assert a.wait(240) == 0, a.tail()
-                s.put(keys.control("learner"), encode(Control(command="stop"), "tester", 1))
+                wait_for(lambda: "learner ready" in learner.text(), 60, "the resumed learner ready", procs=[learner])
+                s.put(keys.control("learner"), operator.payload(keys.control("learner"), "stop", "tester", 1))
                 assert learner.wait(60) == 0, learner.tail()
                 fake_token.undeclare()
                 fake_task.undeclare()
@@ -265,8 +307,12 @@ def test_plain_mode_forged_acks_and_a_learner_of_another_task_harm_no_actor(tmp_
         log = (run_dir / f"actor-{a}" / "actor.log").read_text()
         assert "ignoring learner khgrl/" in log and "/alive/learner/evil/e666" in log
     summary = read_json(run_dir / "actor-a0" / "summary.json")
-    assert summary["episodes"] == 2 and summary["rejects"]["ack"] >= 4, summary["rejects"]
-    assert "ack without a mac" in (run_dir / "actor-a0" / "actor.log").read_text()
+    rejects = summary["rejects"]
+    print(f"plain mode: a0 rejects {rejects}, weights version seen {seen['wv']}, episodes {summary['episodes']}")
+    assert summary["episodes"] == 3 and rejects.get("ack", 0) >= 7 and rejects.get("weights", 0) >= 3, rejects
+    assert seen["wv"] == 0, seen["wv"]  # the forged version was never loaded
+    log = (run_dir / "actor-a0" / "actor.log").read_text()
+    assert "ack without a mac" in log and "signed by 'actor:a1', not by a learner" in log, log[-3000:]
     check = provenance_check(run_dir)
     assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] > 0, check
 
