@@ -17,6 +17,8 @@ logged as such (a warning with its sender and key). Any human-input client may p
 only the actors it is assigned to and ends unless renewed within
 ``human_pause_s`` (:class:`~khgrl.actor.human_limits.HumanPauses`); a correction the arbiter refuses (a client not
 assigned to this actor, P_h far outside the workspace) is counted and logged as a rejected message.
+
+One module of ~330 lines on purpose: one class, the actor's handling of every inbound message kind between steps.
 """
 
 from __future__ import annotations

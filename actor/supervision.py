@@ -2,7 +2,7 @@
 somebody can stop it.
 
 The run's supervisor -- ``khgrl up``, or ``khgrl supervise RUN_DIR`` for processes started by hand
-(:mod:`khgrl.deploy.supervise`) -- publishes a heartbeat on ``control/actor`` every ``heartbeat_s``, which carries
+(:mod:`khgrl.deploy.run.supervise`) -- publishes a heartbeat on ``control/actor`` every ``heartbeat_s``, which carries
 the run's e-stop state (``heartbeat``: released, ``heartbeat-estop``: pressed). With supervision on (``--supervision``,
 on in robot mode):
 

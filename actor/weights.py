@@ -3,7 +3,11 @@ thread, validate them against the local actor network, admit them by learner epo
 :class:`~khgrl.common.delivery.trust.WeightsGate`, when one is installed: the control loop installs it), and swap them
 into the
 policy between steps (a ``load_state_dict``, no stall). Also counts how far the loaded weights lag behind the
-transitions taken."""
+transitions taken.
+
+One module of ~310 lines on purpose: receiving, checking and loading the learner's weights: one path from the wire
+to the policy.
+"""
 
 from __future__ import annotations
 

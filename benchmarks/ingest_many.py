@@ -76,7 +76,7 @@ def _as_actor(payload: bytes, actor: str, decode, encode) -> bytes:
 
 def _secure_files(work_dir: Path, ep: str, senders: int) -> dict[str, Path]:
     """A CA, certificates for the router, the learner and each sender, and their Zenoh configurations."""
-    from khgrl.deploy.secure import issue_identities, write_configs
+    from khgrl.deploy.run.secure import issue_identities, write_configs
 
     ids = [("router", None), ("learner", None), *(("actor", f"s{i}") for i in range(senders))]
     d = issue_identities(work_dir / f"certs-{os.getpid()}-{time.time_ns()}", ids)

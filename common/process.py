@@ -13,7 +13,7 @@ from pathlib import Path
 
 __all__ = ["StopFlag", "install_stop_handlers", "die_with_parent", "setup_process_logging", "PARENT_ENV"]
 
-PARENT_ENV = "KHGRL_PARENT_PID"  # set by khgrl.deploy.supervisor for the processes it starts
+PARENT_ENV = "KHGRL_PARENT_PID"  # set by khgrl.deploy.run.supervisor for the processes it starts
 _PR_SET_PDEATHSIG = 1
 
 

@@ -1,6 +1,6 @@
 """What a run looks like in Rerun (https://rerun.io, ``rerun-sdk`` 0.41): one module that logs a task's scene, an
 episode's start, a step and an episode's end, used by the actor's live view (:mod:`khgrl.actor.viewer`, ``khgrl up
---view rerun``) and by ``khgrl view RUN_DIR`` (:mod:`khgrl.deploy.view_cmd`), so both give the same entities.
+--view rerun``) and by ``khgrl view RUN_DIR`` (:mod:`khgrl.deploy.tools.view_cmd`), so both give the same entities.
 
 Entities (positions in the task's command coordinates; a 2-D task at z = 0, an O > 3 task's first 3 outputs):
 
@@ -39,8 +39,8 @@ Rerun adds ``log_time`` (wall clock) to everything. One recording per run: appli
 the run id, whichever processes log into it.
 
 One module of ~330 lines on purpose: the one definition of the entities both the live view and ``khgrl view``
-log, so that the two cannot drift apart; the sink and the command are :mod:`~khgrl.deploy.view_sink` and
-:mod:`~khgrl.deploy.view_cmd`.
+log, so that the two cannot drift apart; the sink and the command are :mod:`~khgrl.deploy.run.view_sink` and
+:mod:`~khgrl.deploy.tools.view_cmd`.
 """
 
 from __future__ import annotations

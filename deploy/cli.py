@@ -76,20 +76,23 @@ def _cmd_reference(args: argparse.Namespace) -> int:
 # Commands that are whole programs with their own argument parsers (each has --help):
 # name -> (module, function, one-line help)
 PROCESS_COMMANDS = {
-    "up": ("khgrl.deploy.launcher", "main", "launch router, learner, actor(s) and human-input process locally"),
-    "router": ("khgrl.deploy.router", "main", "a Zenoh router (zenoh-python in router mode)"),
+    "up": ("khgrl.deploy.run.launcher", "main", "launch router, learner, actor(s) and human-input process locally"),
+    "router": ("khgrl.deploy.run.router", "main", "a Zenoh router (zenoh-python in router mode)"),
     "learner": ("khgrl.learner.main", "main", "the learner process (TQC, replay buffer from the transition stream)"),
     "actor": ("khgrl.actor.main", "main", "an actor process (environment loop, KGRL mapping, corrections)"),
     "human": ("khgrl.human_bridge.main", "main",
               "a human-input process (scripted, gui, keyboard, gamepad, spacemouse or replay)"),
-    "experiment": ("khgrl.deploy.experiment", "main", "methods x scenarios x seeds through the real system, resumable"),
-    "report": ("khgrl.deploy.report", "main", "per-episode results of runs: figure and markdown table"),
-    "stop": ("khgrl.deploy.stop", "main", "stop a run, or press / release its e-stop (--now, --release)"),
-    "supervise": ("khgrl.deploy.supervise", "main",
+    "experiment": ("khgrl.deploy.experiments.experiment", "main",
+                   "methods x scenarios x seeds through the real system, resumable"),
+    "report": ("khgrl.deploy.experiments.report", "main", "per-episode results of runs: figure and markdown table"),
+    "stop": ("khgrl.deploy.run.stop", "main", "stop a run, or press / release its e-stop (--now, --release)"),
+    "supervise": ("khgrl.deploy.run.supervise", "main",
                   "supervise a run's actors: the heartbeat without which a robot holds (processes started by hand)"),
-    "view": ("khgrl.deploy.view_cmd", "main", "a finished run in Rerun: an .rrd recording (--out) or the viewer"),
-    "ready": ("khgrl.deploy.stop", "ready_main", "the robot is ready: the next episode may start (--confirm-reset)"),
-    "keys": ("khgrl.deploy.keys_cmd", "main", "the run's signing keys, one per process (for hand-started processes)"),
+    "view": ("khgrl.deploy.tools.view_cmd", "main", "a finished run in Rerun: an .rrd recording (--out) or the viewer"),
+    "ready": ("khgrl.deploy.run.stop", "ready_main",
+              "the robot is ready: the next episode may start (--confirm-reset)"),
+    "keys": ("khgrl.deploy.run.keys_cmd", "main",
+             "the run's signing keys, one per process (for hand-started processes)"),
     # by name: the benchmarks drive the deployment tools (benchmarks imports deploy, not the other way round)
     "bench": ("khgrl.benchmarks.cli", "main", "benchmarks that print numbers (khgrl bench --help)"),
 }
@@ -158,14 +161,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_demos(sub)
     _add_kmp(sub)
     _add_reference(sub)
-    from khgrl.deploy.evaluate import add_parser as _add_eval
+    from khgrl.deploy.tools.evaluate import add_parser as _add_eval
 
     _add_eval(sub)
-    from khgrl.deploy.export import add_parser as _add_export
+    from khgrl.deploy.tools.export import add_parser as _add_export
 
     _add_export(sub)
-    from khgrl.deploy.certs import add_parser as _add_certs
-    from khgrl.deploy.secure import add_configs_parser
+    from khgrl.deploy.run.certs_cmd import add_parser as _add_certs
+    from khgrl.deploy.run.secure import add_configs_parser
 
     add_configs_parser(_add_certs(sub))
     return parser

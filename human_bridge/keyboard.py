@@ -17,6 +17,9 @@ stays in the workspace box; the hold logic (one correction per frame, the releas
 :class:`~khgrl.human_bridge.velocity.VelocityHold`. The window and the loop (:class:`PadClient`, :func:`run_pad`) are
 shared with ``khgrl human gamepad`` (:mod:`khgrl.human_bridge.gamepad`). Without a usable display the client exits
 with code 3 and one line (see :func:`khgrl.human_bridge.gui.main.display_problem`).
+
+One module of ~330 lines on purpose: the keyboard and gamepad clients share one device loop; a device is one small
+class.
 """
 
 from __future__ import annotations

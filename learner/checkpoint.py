@@ -34,6 +34,9 @@ Disk faults (a full, read-only or unwritable directory): a failed save removes i
 leaves the previous checkpoint as it was; :class:`SaveFaults` keeps the reason, counts the failures (journal writes
 too), logs them (not every retry) and says when to retry (exponential backoff). A learner started anew removes the
 temporary directories that killed learners left behind (:func:`remove_stale_temps`).
+
+One module of ~380 lines on purpose: writing and reading one checkpoint format (atomic swap, fsync, stale
+temporaries, disk faults) must stay in one place so that both sides agree.
 """
 
 from __future__ import annotations

@@ -25,6 +25,9 @@ Snapshots: before a full snapshot (:func:`~khgrl.learner.checkpoint.save_checkpo
 snapshot records (``journal.next`` in its ``state.json``); once the snapshot is in place the segments before it are
 deleted (:meth:`Journal.snapshot_saved`). A resumed learner loads the snapshot and replays the records of the
 segments from that index on (:func:`khgrl.learner.journal_scan.read_records`).
+
+One module of ~320 lines on purpose: the journal's record format, its writer and its reader must stay in one file;
+scanning and damage are apart (journal_scan, journal_loss).
 """
 
 from __future__ import annotations

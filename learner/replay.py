@@ -20,6 +20,9 @@ rail-berkeley/hil-serl@5d02aed:examples/train_rlpd.py:288-302): a share ``prior_
 the *prior* slots -- those stored with ``intervened`` = 1: the human's interventions and takeovers and the
 demonstrations the actor replays as intervened transitions -- and the rest uniformly from all slots (HIL-SERL
 stores an intervention in both its buffers, train_rlpd.py:198-201: all slots are the online data).
+
+One module of ~350 lines on purpose: one buffer class, SB3's ReplayBuffer with the learner's per-slot bookkeeping,
+which every sampling mode reads.
 """
 
 from __future__ import annotations

@@ -9,6 +9,9 @@ uniform`` the buffer draws the random numbers SB3's own does, so a seeded model 
 passes ``replay_buffer_kwargs={"prior_fraction": 0.5}`` (RLPD's symmetric sampling,
 :mod:`khgrl.learner.replay`). The actors get the policy's ``actor`` network (its ``state_dict``); an actor builds
 the same policy class on the CPU and loads them into its ``actor``.
+
+One module of ~330 lines on purpose: the whole adapter between the learner-algorithm interface and SB3's off-policy
+classes, used by every algorithm.
 """
 
 from __future__ import annotations

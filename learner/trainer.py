@@ -16,6 +16,9 @@ so non-finite weights are never published or checkpointed (status ``rollbacks``)
 
 In ``robot`` mode (actors never wait) there is no schedule: :meth:`Trainer.train_now` trains on everything
 stored so far whenever the learner is free, and the status reports the update-to-data ratio achieved.
+
+One module of ~310 lines on purpose: the algorithm's construction and its training schedule, which share the replay
+buffer and the version counter.
 """
 
 from __future__ import annotations

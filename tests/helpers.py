@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from khgrl.common.delivery.transport import free_port
-from khgrl.deploy.supervisor import Proc, ProcessGroup
+from khgrl.deploy.run.supervisor import Proc, ProcessGroup
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -89,7 +89,8 @@ def read_json(path: str | Path) -> Any:
 
 
 class ProcGroup(ProcessGroup):
-    """The supervisor of ``khgrl up`` (khgrl.deploy.supervisor) with shortcuts for KhGRL processes: starts them under
+    """The supervisor of ``khgrl up`` (khgrl.deploy.run.supervisor) with shortcuts for KhGRL processes: starts
+    them under
     ``base`` (logs in ``base/logs``) and kills leftovers by PID on exit."""
 
     def __init__(self, base: str | Path) -> None:
@@ -105,7 +106,7 @@ class ProcGroup(ProcessGroup):
     def router(self, endpoint: str | None = None, timeout: float = 30.0) -> str:
         """Start a router; returns its endpoint once it accepts TCP connections."""
         endpoint = endpoint or free_endpoint()
-        p = self.start("router", python_main("khgrl.deploy.router") + ["--listen", endpoint])
+        p = self.start("router", python_main("khgrl.deploy.run.router") + ["--listen", endpoint])
         host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
 
         def up() -> bool:
@@ -134,7 +135,7 @@ class ProcGroup(ProcessGroup):
     def supervise(self, run: str, endpoint: str, run_dir: str | Path | None = None) -> Proc:
         """``khgrl supervise``: the heartbeat without which an actor in robot mode holds (keeping the e-stop state in
         ``run_dir``)."""
-        return self.start("supervise", python_main("khgrl.deploy.supervise") + [
+        return self.start("supervise", python_main("khgrl.deploy.run.supervise") + [
             "--run", run, "--connect", endpoint, "--state-dir", str(Path(run_dir or self.base / "run"))])
 
     def human(self, run: str, endpoint: str, *extra: str) -> Proc:

@@ -1,7 +1,7 @@
 """Runtime of the distributed system (``khgrl bench runtime``): what the Zenoh split costs and buys.
 
 Every measurement runs real processes (a router, learners, actors: ``khgrl ...`` subprocesses under one
-:class:`khgrl.deploy.supervisor.ProcessGroup`, stopped at the end) on this machine, in ONE benchmark run, one after
+:class:`khgrl.deploy.run.supervisor.ProcessGroup`, stopped at the end) on this machine, in ONE benchmark run, one after
 the other, so the ratios are taken under the same load:
 
 1. **ingest** (:mod:`.ingest`): transitions per second a learner (``--learning-starts`` 10^9: it never trains)

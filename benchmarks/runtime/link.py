@@ -16,7 +16,7 @@ from khgrl.common.delivery.transport import Inbox, undeclare_all
 from khgrl.common.tasks.spaces import ACT_DIM, OBS_DIM
 from khgrl.common.wire.messages import Ack, Control, Status, Transitions
 from khgrl.common.wire.protocol import Keys, ProtocolError, decode, encode
-from khgrl.deploy.supervisor import Proc
+from khgrl.deploy.run.supervisor import Proc
 
 __all__ = ["batches", "Link", "passage_digest"]
 
@@ -26,7 +26,7 @@ def passage_digest() -> str:
     """The task digest of the benchmark learner's task (the passage world, as :func:`procs.passage_task_file`
     writes it): every batch must carry it."""
     from khgrl.common.config.settings import RunConfig
-    from khgrl.deploy.preflight import check_task
+    from khgrl.deploy.run.preflight import check_task
 
     return check_task(RunConfig()).digest
 

@@ -1,4 +1,4 @@
-"""The benchmark's processes: KhGRL commands under one :class:`khgrl.deploy.supervisor.ProcessGroup`, and waiting
+"""The benchmark's processes: KhGRL commands under one :class:`khgrl.deploy.run.supervisor.ProcessGroup`, and waiting
 for conditions while watching them."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Any, Callable
 import numpy as np
 from khgrl.common.config.settings import TQCSettings
 from khgrl.common.delivery.transport import free_port, wait_reachable
-from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
+from khgrl.deploy.run.supervisor import Proc, ProcessGroup, khgrl_argv
 
 __all__ = ["REPO", "TRAIN_FREQ", "BENCH_ACTOR", "BenchProcs", "wait_until", "run_id", "pct", "load",
            "passage_task_file", "task_file"]
@@ -87,7 +87,7 @@ def task_file(run_dir: Path, overrides: dict | None = None) -> None:
     """
     from khgrl.common.config.settings import resolve
     from khgrl.common.delivery.task_link import TASK_FILE, save_task
-    from khgrl.deploy.preflight import check_task
+    from khgrl.deploy.run.preflight import check_task
 
     path = Path(run_dir) / "learner" / TASK_FILE
     if not path.exists():

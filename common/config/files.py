@@ -14,7 +14,7 @@ __all__ = ["read_table", "load_file", "to_toml", "write_run_config"]
 
 def read_table(path: str | Path) -> dict:
     """A settings file as a table: TOML (``.toml``) or JSON (``.json``); errors name the file. The one reader of
-    settings files (run configs here, experiment grids in :mod:`khgrl.deploy.experiment`)."""
+    settings files (run configs here, experiment grids in :mod:`khgrl.deploy.experiments.experiment`)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"config file {path} does not exist")

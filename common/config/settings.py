@@ -17,6 +17,9 @@ and validates the result. ``khgrl up`` writes the resolved configuration into th
 and ``config.json`` with the run's runtime facts: run id, router endpoint, actor ids); every child process reads
 that file instead of a hand-built argv, and ``khgrl up --config RUN_DIR/config.toml`` runs the same configuration
 again.
+
+One module of ~360 lines on purpose: the dataclasses and the flags built from them must stay together: a flag is a
+field.
 """
 
 from __future__ import annotations

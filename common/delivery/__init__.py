@@ -17,6 +17,6 @@ ZENOH_MODULES = (
     "common/delivery/transport.py",  # sessions, the inbox and ring buffers
     "common/delivery/declare.py",  # publishers, subscribers, queryables, tokens, queries, with QoS in words
     "common/delivery/zenoh_config.py",  # the configuration a process connects with
-    "deploy/router.py",  # the router process (reads its access-control setting)
+    "deploy/run/router.py",  # the router process (reads its access-control setting)
     "deploy/examples/drag_client.py",  # a third-party client, written as a user would: Zenoh directly
 )

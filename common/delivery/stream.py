@@ -21,6 +21,9 @@ record in ``stream.json``). An ack that says the stream was *superseded* (the le
 of this actor id) makes :attr:`TransitionStream.superseded` say why; the loop then stops.
 
 No Zenoh here: batches go out through the ``publish`` callable (tests pass a list's ``append``).
+
+One module of ~340 lines on purpose: one class, the actor's side of the stream, whose cutting, keeping and re-
+sending share the same batches.
 """
 
 from __future__ import annotations

@@ -8,6 +8,9 @@ rejoined automatically. Multicast scouting is always off and every endpoint expl
 Rules every process follows (measured pitfalls): one session per process, opened in ``main()`` and closed with
 a ``with`` block (a callback subscriber left open hangs interpreter exit); processes are spawned, never forked
 after ``zenoh.open()``; every ``get`` has a timeout; callbacks only hand bytes to an :class:`Inbox`.
+
+One module of ~320 lines on purpose: everything that opens a Zenoh session (configurations, interruptible open, the
+inbox) in one place.
 """
 
 from __future__ import annotations

@@ -24,6 +24,9 @@ The policy observes the environment's observation, the phase s and the robot's d
 (clipped to [-1, 1]); the reward is the environment's plus the action cost r_a = -``action_cost`` |P_t - eta0_t|^2
 (eq. 7). :func:`load_task` turns a spec (``passage:high_cov`` or ``my_package.my_module:make_task``) into a
 checked task; every mistake in a task definition is one :class:`TaskError` naming what is wrong.
+
+One module of ~310 lines on purpose: the task author's whole API in one file: the Task, its shapes, loading a task
+by name.
 """
 
 from __future__ import annotations

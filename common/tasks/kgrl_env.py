@@ -33,6 +33,9 @@ the projector, the band, eqs. 5-6 and the action cost follow the adapted model f
 scale L stays a function of the phase: it scales the null-space action about whatever mean the episode has.
 :meth:`KGRLEnv.reset_episode` resets episode ``e`` of a run to the scene :func:`~khgrl.common.tasks.scene.scene_seed`
 gives.
+
+One module of ~370 lines on purpose: one Gymnasium environment, the KGRL mapping of a task; its reset and step share
+the KMP's state.
 """
 
 from __future__ import annotations

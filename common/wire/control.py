@@ -4,7 +4,7 @@ starts fast (README, "On a real robot"). The bytes are exactly :func:`khgrl.comm
 :class:`~khgrl.common.wire.messages.Control` (tests/unit/test_supervision_parts.py checks it).
 
 Besides the commands of :data:`~khgrl.common.wire.messages.COMMANDS` that a person gives, the supervisor's heartbeat
-(:mod:`khgrl.deploy.supervise`) is a control message on ``control/actor``: ``heartbeat`` while the run's e-stop is
+(:mod:`khgrl.deploy.run.supervise`) is a control message on ``control/actor``: ``heartbeat`` while the run's e-stop is
 released, ``heartbeat-estop`` while it is pressed.
 """
 

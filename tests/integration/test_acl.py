@@ -10,8 +10,8 @@ import time
 import pytest
 from khgrl.common.delivery.transport import _open, free_port
 from khgrl.common.delivery.zenoh_config import build_config
-from khgrl.deploy import certs
-from khgrl.deploy.secure import issue_identities, write_configs
+from khgrl.deploy.run import certs
+from khgrl.deploy.run.secure import issue_identities, write_configs
 
 pytestmark = pytest.mark.integration
 

@@ -2,7 +2,7 @@
 under ``khgrl up --secure``, and a0 does not notice.
 
 ``khgrl up`` is started with four extra actor ids (``f1`` .. ``f4``) among the identities it issues certificates
-for (``khgrl.deploy.secure.EXTRA_IDS``, as for ``human-user`` and ``monitor``), so the router lets each of them
+for (``khgrl.deploy.run.secure.EXTRA_IDS``, as for ``human-user`` and ``monitor``), so the router lets each of them
 publish on its own actor keys, as it would let any actor of the run; it starts only a0.
 One run, a quiet phase, then four attacks in sequence while a0 runs (each from its own identity, with valid content
 shaped like a0's own batches):
@@ -42,7 +42,8 @@ ARGS = [*FAST, "--method", "kgrl", "--human", "none", "--episodes", "2", "--rate
 QUIET_S, VOLUME_S, HELD_S, REPLAY_S, FLOOD_S = 5.0, 6.0, 4.0, 5.0, 3.0  # a0: about 500 steps at 10 Hz
 BIG = 4096  # the largest batch the protocol takes
 # khgrl up, with certificates also for the attackers' actor ids (made by the run's CA, like every other identity)
-UP_WITH_ATTACKERS = [sys.executable, "-c", "import sys; from khgrl.deploy import secure, cli; "
+UP_WITH_ATTACKERS = [sys.executable, "-c", "import sys; from khgrl.deploy import cli; "
+                     "from khgrl.deploy.run import secure; "
                      f"secure.EXTRA_IDS = (*secure.EXTRA_IDS, *[('actor', a) for a in {ATTACKERS!r}]); "
                      "sys.exit(cli.main(sys.argv[1:]))", "up"]
 

@@ -136,7 +136,7 @@ def _resumed_learner_is_healthy(tmp_path, run_dir, run: str, total: int) -> None
 def test_extreme_values_from_an_authenticated_actor_are_refused(tmp_path):
     from khgrl.benchmarks.scale import provenance_check
     from khgrl.common.delivery.task_link import load_task_file
-    from khgrl.deploy.secure import issue_identities
+    from khgrl.deploy.run.secure import issue_identities
 
     run_dir = tmp_path / "run"
     part1 = _run(run_dir, *ARGS, "--episodes", "1", timeout=400)

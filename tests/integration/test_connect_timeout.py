@@ -1,7 +1,7 @@
 """``--connect-timeout`` on every process (issue 20, newcomer defect 5): ``khgrl actor --connect tcp/...`` against a
 TLS router used to hang without a word (Zenoh retries a handshake the router never completes). Each process --
 actor, learner, a human-input client -- is started for real against a real router that speaks only ``tls/``
-(certificates from :func:`khgrl.deploy.secure.issue_identities`), and against a port nobody listens on: it must
+(certificates from :func:`khgrl.deploy.run.secure.issue_identities`), and against a port nobody listens on: it must
 exit with code 1 within its connect timeout (plus its start-up), with one error line naming the endpoint and the
 flag.
 """
@@ -13,8 +13,8 @@ import time
 
 import pytest
 from khgrl.common.delivery.transport import free_port, wait_reachable
-from khgrl.deploy.secure import issue_identities, write_configs
-from khgrl.deploy.supervisor import khgrl_argv
+from khgrl.deploy.run.secure import issue_identities, write_configs
+from khgrl.deploy.run.supervisor import khgrl_argv
 
 pytestmark = pytest.mark.integration
 

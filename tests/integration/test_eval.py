@@ -1,4 +1,4 @@
-"""``khgrl eval`` (deploy/evaluate.py) and the example task (deploy/examples/own_task.py).
+"""``khgrl eval`` (deploy/tools/evaluate.py) and the example task (deploy/examples/own_task.py).
 
 Most tests evaluate a run directory made here without processes: a ``config.json`` naming the example task
 and a learner checkpoint holding an untrained TQC on the task's spaces (the same ``model.zip`` layout the
@@ -22,8 +22,8 @@ from khgrl.common.kmp.scale import ScaleModel
 from khgrl.common.tasks.api import load_task
 from khgrl.common.tasks.kgrl_env import KGRLEnv
 from khgrl.deploy.cli import main as khgrl
-from khgrl.deploy.evaluate import EvalError, evaluate, free_path
 from khgrl.deploy.examples.own_task import BOX_HIGH, BOX_LOW, GOAL, PointRobot3D, box_entry, lift_over_box, make_task
+from khgrl.deploy.tools.evaluate import EvalError, evaluate, free_path
 
 from helpers import REPO, kill_pids, pid_alive, read_json
 

@@ -7,7 +7,7 @@ import subprocess
 import sys
 
 import pytest
-from khgrl.deploy.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
+from khgrl.deploy.experiments.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
 
 from helpers import REPO
 
@@ -56,7 +56,7 @@ def test_run_argv_is_a_valid_khgrl_up_command(tmp_path):
     """The command of a distributed run resolves (khgrl up's parser and common.config.settings) to the planned run."""
     from khgrl.common.config.settings import resolve
     from khgrl.deploy.cli import build_parser as cli_parser
-    from khgrl.deploy.launcher import build_parser
+    from khgrl.deploy.run.launcher import build_parser
 
     cfg = ExperimentConfig(seeds=[3], scenarios=["low_cov"], episodes=7, human_episodes=[2, 3], timeout=99)
     for spec in plan_runs(cfg):
@@ -78,7 +78,7 @@ def test_run_argv_is_a_valid_khgrl_up_command(tmp_path):
 def test_tasks_replace_scenarios_in_the_plan_and_the_commands(tmp_path):
     """``tasks``: one run per task, method and seed, named after the task; each command is ``khgrl up --task``."""
     from khgrl.common.config.settings import resolve
-    from khgrl.deploy.launcher import build_parser
+    from khgrl.deploy.run.launcher import build_parser
 
     cfg = ExperimentConfig(seeds=[1], tasks=["fetch:control", "khgrl.deploy.examples.own_task:make_task"], episodes=3,
                            human_episodes=[2])

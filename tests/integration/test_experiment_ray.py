@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 from khgrl.common.delivery.transport import free_port
-from khgrl.deploy.experiment import ExperimentConfig, run_is_done
+from khgrl.deploy.experiments.experiment import ExperimentConfig, run_is_done
 
 from helpers import REPO
 

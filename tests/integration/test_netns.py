@@ -127,7 +127,7 @@ def _write_run(run_dir: Path, run: str, endpoint: str) -> Path:
     """``RUN_DIR/config.json`` and the learner's task file, as ``khgrl up`` writes them; returns config.json."""
     from khgrl.common.config.settings import RunConfig, SafetySettings, StreamSettings, TQCSettings, write_run_config
     from khgrl.common.delivery.task_link import TASK_FILE, save_task
-    from khgrl.deploy.preflight import check_task
+    from khgrl.deploy.run.preflight import check_task
 
     cfg = RunConfig(scenario="low_cov", method="khgrl", episodes=1000, seed=0, run_dir=str(run_dir), run=run,
                     actors=len(ACTORS), human="scripted", human_episodes=(1,), connect=endpoint, rate=RATE,
@@ -146,7 +146,7 @@ def _write_run(run_dir: Path, run: str, endpoint: str) -> Path:
 def _certificates(d: Path, router_addr: str, endpoint: str) -> dict[str, Path]:
     """A CA, the router's certificate for its address and one per process, and every Zenoh configuration (the
     README's steps 1-2): {common name: configuration file}."""
-    from khgrl.deploy.secure import issue_identities, write_configs
+    from khgrl.deploy.run.secure import issue_identities, write_configs
 
     ids = [("router", None), ("learner", None), ("human", "scripted"), ("monitor", None),
            *(("actor", a) for a in ACTORS)]
@@ -174,7 +174,7 @@ def net():
 @pytest.mark.timeout(420)
 def test_loss_and_a_10s_outage_lose_nothing_and_the_actor_reconnects(net, tmp_path):
     from khgrl.benchmarks.scale import provenance_check
-    from khgrl.deploy.supervisor import khgrl_argv
+    from khgrl.deploy.run.supervisor import khgrl_argv
 
     t_start = time.monotonic()
     run, run_dir = unique_run("netns"), tmp_path / "run"

@@ -100,7 +100,7 @@ def test_eval_on_a_hand_started_run_and_on_its_actor_folder_uses_the_learned_sca
     assert "task point-3d" in out.out and "scale learned by actor-a0" in out.out and "warning" not in out.out, out.out
     assert (run_dir / "eval" / "eval.csv").is_file()
     # the actor folder (what a user tried instead) is the same run and actor, its settings the same file
-    from khgrl.deploy.evaluate import find_run, read_config
+    from khgrl.deploy.tools.evaluate import find_run, read_config
 
     assert find_run(run_dir / "actor-a0") == (run_dir, "a0")
     assert read_config(run_dir, "a0")[2] == run_dir / "actor-a0" / "config.json"

@@ -30,7 +30,7 @@ def test_a_ray_worker_runs_a_task_module_from_the_heads_directory(tmp_path):
     worker's environment only: ``task 'scene_point_task:make_task': no module named scene_point_task``. (The
     command here imports the task module as ``khgrl up --task`` does and prints an episode line, so that the test
     takes seconds; test_experiment_ray.py runs whole ``khgrl up`` runs on a real cluster.)"""
-    from khgrl.deploy.ray_worker import khgrl_identity, run_on_worker
+    from khgrl.deploy.experiments.ray_worker import khgrl_identity, run_on_worker
 
     head = tmp_path / "head"
     head.mkdir()

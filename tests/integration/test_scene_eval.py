@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 from khgrl.common.tasks.scene import scene_seed
-from khgrl.deploy.intervals import rate_text
+from khgrl.deploy.tools.intervals import rate_text
 
 from helpers import REPO, kill_pids, pid_alive, read_json
 

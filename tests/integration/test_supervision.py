@@ -213,7 +213,7 @@ def test_robot_held_without_supervision_and_the_estop_state_outlives_actors(tmp_
         rig = Rig(g, tmp_path)
         g.learner(rig.run, rig.ep, "--mode", "robot", "--learning-starts", "64", "--checkpoint-every", "0",
                   run_dir=rig.run_dir)
-        sup = g.start("supervise", python_main("khgrl.deploy.supervise") + [
+        sup = g.start("supervise", python_main("khgrl.deploy.run.supervise") + [
             "--run", rig.run, "--connect", rig.ep, "--state-dir", str(rig.run_dir)])
         wait_for(lambda: "a heartbeat every" in sup.tail(), 60, "khgrl supervise", procs=[sup])
         _no_actor_then_start(rig)

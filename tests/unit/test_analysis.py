@@ -1,4 +1,5 @@
-"""khgrl.deploy.analysis: the learning criteria, the cross-seed tables and figures of ``khgrl report EXP``."""
+"""khgrl.deploy.experiments.analysis: the learning criteria, the cross-seed tables and figures of ``khgrl
+report EXP``."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from khgrl.deploy.analysis import analyse, find_runs, stable_success, zero_cost_from
+from khgrl.deploy.experiments.analysis import analyse, find_runs, stable_success, zero_cost_from
 
 FIELDS = ["episode", "steps", "ret", "success", "failure", "action_cost", "obstacle_cost", "passage_cost",
           "obstacle_steps", "interventions", "intervention_steps", "clipped_steps", "projected_steps", "mean_abs_xi_h",
@@ -89,7 +90,7 @@ def test_analyse_writes_tables_and_figures(tmp_path):
 
 
 def test_report_cli_dispatches_and_rejects_mixed_input(tmp_path, capsys):
-    from khgrl.deploy.report import main
+    from khgrl.deploy.experiments.report import main
 
     exp = tmp_path / "exp"
     _write_run(exp / "high_cov-kgrl-seed0", [False, True], [0.0, 0.0])
@@ -137,7 +138,7 @@ def test_task_runs_report_every_output_and_the_evaluation(tmp_path):
 
 
 def test_median_over_seeds_with_never():
-    from khgrl.deploy.summary_table import fmt_episode, median_text
+    from khgrl.deploy.experiments.summary_table import fmt_episode, median_text
 
     assert median_text([3, 5, None], 60) == "5"
     assert median_text([None, None, 22, 2], 60) == "22–never"  # between an episode and 'never': a range

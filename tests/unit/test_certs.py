@@ -1,4 +1,4 @@
-"""deploy/certs.py: the CA and identity certificates (files, permissions, names, extensions, chains), their
+"""deploy/run/certs.py: the CA and identity certificates (files, permissions, names, extensions, chains), their
 refusals, the ``khgrl certs`` command, and a real Zenoh router on loopback with mutual TLS that lets an issued
 certificate in and keeps out a client with another CA's certificate or with none."""
 
@@ -17,8 +17,8 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from cryptography.x509.verification import PolicyBuilder, Store
 from khgrl.common.delivery.transport import free_port
-from khgrl.deploy import certs
 from khgrl.deploy.cli import main as khgrl
+from khgrl.deploy.run import certs
 
 
 def _cert(path: Path) -> x509.Certificate:

@@ -138,7 +138,7 @@ def test_open_learner_cleans_the_checkpoint_dir_and_resumes_from_it(tmp_path):
 
 
 def test_khgrl_up_resume_looks_in_the_checkpoint_dir(tmp_path):
-    from khgrl.deploy.rundir import has_checkpoint
+    from khgrl.deploy.run.rundir import has_checkpoint
 
     save_checkpoint(tmp_path / "data", _FakeModel(), {"mark": 1})
     assert not has_checkpoint(tmp_path / "run") and has_checkpoint(tmp_path / "run", str(tmp_path / "data"))
@@ -222,7 +222,7 @@ def test_loop_survives_a_failing_checkpoint_and_recovers(tmp_path, monkeypatch):
         loop.checkpoint()
 
 
-# ------------------------------------------------------------------------------------ deploy/progress.py
+# ------------------------------------------------------------------------------------ deploy/run/progress.py
 def _learner_info(**kw) -> LearnerInfo:
     base = dict(id="learner", epoch="e", ingested=120, iterations=15, gradient_steps=96, grad_steps_per_s=12.4,
                 version=3, pending_iterations=0, queue_depth=0, rejects={}, paused=False, checkpoints=2,
@@ -232,7 +232,7 @@ def _learner_info(**kw) -> LearnerInfo:
 
 
 def test_progress_view_shows_a_failing_checkpoint(capsys):
-    from khgrl.deploy.progress import ProgressView
+    from khgrl.deploy.run.progress import ProgressView
     from rich.console import Console
 
     failing = _learner_info(checkpoint_error="EROFS Read-only file system: /data/[x]", checkpoint_failures=3)

@@ -62,13 +62,14 @@ def test_process_commands_run_the_process_modules():
     from khgrl.deploy.cli import PROCESS_COMMANDS
 
     assert {k: v[:2] for k, v in PROCESS_COMMANDS.items()} == {
-        "up": ("khgrl.deploy.launcher", "main"), "router": ("khgrl.deploy.router", "main"),
+        "up": ("khgrl.deploy.run.launcher", "main"), "router": ("khgrl.deploy.run.router", "main"),
         "learner": ("khgrl.learner.main", "main"),
         "actor": ("khgrl.actor.main", "main"), "human": ("khgrl.human_bridge.main", "main"),
-        "experiment": ("khgrl.deploy.experiment", "main"), "report": ("khgrl.deploy.report", "main"),
-        "stop": ("khgrl.deploy.stop", "main"), "ready": ("khgrl.deploy.stop", "ready_main"),
-        "view": ("khgrl.deploy.view_cmd", "main"), "keys": ("khgrl.deploy.keys_cmd", "main"),
-        "bench": ("khgrl.benchmarks.cli", "main"), "supervise": ("khgrl.deploy.supervise", "main")}
+        "experiment": ("khgrl.deploy.experiments.experiment", "main"),
+        "report": ("khgrl.deploy.experiments.report", "main"),
+        "stop": ("khgrl.deploy.run.stop", "main"), "ready": ("khgrl.deploy.run.stop", "ready_main"),
+        "view": ("khgrl.deploy.tools.view_cmd", "main"), "keys": ("khgrl.deploy.run.keys_cmd", "main"),
+        "bench": ("khgrl.benchmarks.cli", "main"), "supervise": ("khgrl.deploy.run.supervise", "main")}
 
 
 def _leaf_parsers(parser: argparse.ArgumentParser, prefix=()):

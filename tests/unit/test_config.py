@@ -157,7 +157,7 @@ def _process_parsers() -> dict[str, list[argparse.ArgumentParser]]:
     """Each command's real parser(s): khgrl up, learner, actor, every khgrl human client, reference."""
     from khgrl.actor.main import build_parser as actor
     from khgrl.deploy.cli import build_parser as khgrl
-    from khgrl.deploy.launcher import build_parser as up
+    from khgrl.deploy.run.launcher import build_parser as up
     from khgrl.human_bridge.main import build_parser as human
     from khgrl.learner.main import build_parser as learner
 
@@ -203,7 +203,7 @@ def test_every_human_client_is_a_choice_of_up_and_replay_runs_from_the_config(tm
     """HUMANS (khgrl up --human) lists every client of khgrl human; --human replay takes --replay FILE, which the
     replay client reads from the run's config.json (khgrl up starts it with --config only)."""
     from khgrl.common.config.settings import HUMANS
-    from khgrl.deploy.launcher import build_parser as up
+    from khgrl.deploy.run.launcher import build_parser as up
     from khgrl.human_bridge.main import CLIENTS
     from khgrl.human_bridge.main import build_parser as human
 

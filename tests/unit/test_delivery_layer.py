@@ -43,7 +43,7 @@ def test_only_the_listed_modules_import_zenoh():
 def test_the_processes_declare_nothing_on_a_zenoh_session_themselves():
     """The actor, learner, human-input clients and launcher declare through the delivery layer."""
     for path, tree in _sources().items():
-        if path.startswith(("actor/", "learner/", "human_bridge/")) or path == "deploy/launcher.py":
+        if path.startswith(("actor/", "learner/", "human_bridge/")) or path == "deploy/run/launcher.py":
             assert not _attribute_calls(tree, ZENOH_CALLS), f"{path} declares on a Zenoh session"
 
 

@@ -109,8 +109,8 @@ def test_hil_serl_implies_its_recipe_unless_set():
 
 
 def test_experiment_runs_the_new_methods_with_their_flags():
-    from khgrl.deploy.experiment import load_config, plan_runs, run_argv
-    from khgrl.deploy.run_results import RUN_NAME
+    from khgrl.deploy.experiments.experiment import load_config, plan_runs, run_argv
+    from khgrl.deploy.experiments.run_results import RUN_NAME
 
     cfg = load_config(None, {"tasks": ["fetch:moved"], "methods": ["khgrl_rlpd", "hil-serl"], "seeds": [0]})
     argv = {s.method: run_argv(s, cfg, Path("x")) for s in plan_runs(cfg)}

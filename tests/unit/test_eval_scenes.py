@@ -1,5 +1,6 @@
-"""``khgrl eval --scenes K`` (deploy/eval_scenes.py), the Wilson interval (deploy/intervals.py) and how
-``khgrl report`` shows an evaluation over scenes or of one fixed scene (deploy/summary_table.py).
+"""``khgrl eval --scenes K`` (deploy/tools/eval_scenes.py), the Wilson interval
+(deploy/tools/intervals.py) and how
+``khgrl report`` shows an evaluation over scenes or of one fixed scene (deploy/experiments/summary_table.py).
 
 The evaluations run without processes on a run directory made here: a ``config.json`` naming the task and an
 untrained TQC checkpoint on its spaces (the learner's ``model.zip`` layout). The varying task is
@@ -20,9 +21,9 @@ from khgrl.common.tasks.api import load_task
 from khgrl.common.tasks.kgrl_env import KGRLEnv
 from khgrl.common.tasks.scene import scene_seed
 from khgrl.deploy.cli import main as khgrl
-from khgrl.deploy.eval_scenes import FIXED_SCENE_NOTE
-from khgrl.deploy.evaluate import evaluate
-from khgrl.deploy.intervals import rate_text, wilson_interval
+from khgrl.deploy.tools.eval_scenes import FIXED_SCENE_NOTE
+from khgrl.deploy.tools.evaluate import evaluate
+from khgrl.deploy.tools.intervals import rate_text, wilson_interval
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # the GIF's renderer (pygame, offscreen)
 
@@ -171,8 +172,8 @@ EPISODE_FIELDS = ["episode", "steps", "ret", "success", "failure", "action_cost"
 def _experiment_run(run: Path, outcomes: list[bool], varies: bool | None, task: str | None = None) -> None:
     """A run of 3 episodes with an evaluation: a scenes CSV (``varies`` True/False) or, with ``varies`` None, an
     eval.csv; ``task``: a config.json naming it."""
-    from khgrl.deploy.eval_inputs import EpisodeResult
-    from khgrl.deploy.eval_scenes import write_scenes_csv
+    from khgrl.deploy.tools.eval_inputs import EpisodeResult
+    from khgrl.deploy.tools.eval_scenes import write_scenes_csv
 
     (run / "actor-a0").mkdir(parents=True)
     with open(run / "actor-a0" / "episodes.csv", "w", newline="") as fh:
@@ -201,7 +202,7 @@ def _experiment_run(run: Path, outcomes: list[bool], varies: bool | None, task: 
 
 
 def test_report_shows_scenes_with_wilson_intervals_and_labels_one_scene(tmp_path):
-    from khgrl.deploy.analysis import analyse
+    from khgrl.deploy.experiments.analysis import analyse
 
     exp = tmp_path / "exp"
     _experiment_run(exp / "pts-khgrl-seed0", [True] * 8 + [False] * 2, True)
@@ -228,7 +229,7 @@ def test_report_shows_scenes_with_wilson_intervals_and_labels_one_scene(tmp_path
 
 
 def test_scene_caption():
-    from khgrl.deploy.eval_scenes import scene_caption
+    from khgrl.deploy.tools.eval_scenes import scene_caption
 
     assert scene_caption(2, 8, {"goal_x": 0.8661, "goal_y": 0.385}) == "scene 2/8  goal_x=0.866  goal_y=0.385"
     assert scene_caption(1, 3, {}) == "scene 1/3"

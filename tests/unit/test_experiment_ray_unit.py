@@ -11,10 +11,10 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-from khgrl.deploy.experiment import ExperimentConfig, load_config
-from khgrl.deploy.experiment_progress import Progress, last_line
-from khgrl.deploy.experiment_ray import RayRunner, unpack_run
-from khgrl.deploy.ray_worker import check_identity, khgrl_identity, pack_run
+from khgrl.deploy.experiments.experiment import ExperimentConfig, load_config
+from khgrl.deploy.experiments.experiment_progress import Progress, last_line
+from khgrl.deploy.experiments.experiment_ray import RayRunner, unpack_run
+from khgrl.deploy.experiments.ray_worker import check_identity, khgrl_identity, pack_run
 
 
 def _run_folder(root: Path) -> Path:

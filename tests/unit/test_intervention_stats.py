@@ -13,7 +13,7 @@ def _episode(actor, episode, **stats) -> EpisodeReport:
 
 
 def test_progress_view_counts_interventions_clipping_and_xi(capsys):
-    from khgrl.deploy.progress import ProgressView
+    from khgrl.deploy.run.progress import ProgressView
     from rich.console import Console
 
     view = ProgressView(["a0"], 3, enabled=False)
@@ -39,7 +39,7 @@ def test_progress_view_counts_interventions_clipping_and_xi(capsys):
 
 
 def test_progress_view_survives_odd_but_valid_stats(capsys):
-    from khgrl.deploy.progress import ProgressView
+    from khgrl.deploy.run.progress import ProgressView
 
     view = ProgressView([], 2, enabled=False)
     view.episode(_episode("x", 1))  # only the episode number
@@ -49,7 +49,7 @@ def test_progress_view_survives_odd_but_valid_stats(capsys):
 
 
 def test_progress_view_reads_the_learner_status_through_its_typed_info():
-    from khgrl.deploy.progress import ProgressView
+    from khgrl.deploy.run.progress import ProgressView
 
     view = ProgressView(["a0"], 2, enabled=False)
     assert view.caption() == "learner: waiting"

@@ -21,8 +21,8 @@ from khgrl.common.tasks.world import build_task_world
 from khgrl.common.wire.messages import EpisodeReport, Frame
 from khgrl.common.wire.protocol import ProtocolError, decode, encode
 from khgrl.deploy.examples.own_task import make_task as own_task
-from khgrl.deploy.outcome import Outcome
-from khgrl.deploy.progress import ProgressView
+from khgrl.deploy.run.outcome import Outcome
+from khgrl.deploy.run.progress import ProgressView
 
 from helpers import REPO, RecordingPublisher
 
@@ -66,7 +66,7 @@ def test_the_live_table_fits_80_columns_with_every_header_word_whole():
 
 # ---------------------------------------------------------------------------- 2. "interrupted" said
 def test_the_last_line_says_how_the_run_ended():
-    from khgrl.deploy.outcome import ending, final_line
+    from khgrl.deploy.run.outcome import ending, final_line
 
     flag = StopFlag()
     assert ending(Outcome(), flag) == "finished"

@@ -173,7 +173,7 @@ def test_the_learner_builds_and_loads_its_buffer_with_the_runs_sampling(tmp_path
 
 
 def test_the_scalar_log_and_the_status_report_the_prior_data(tmp_path):
-    from khgrl.deploy.progress import ProgressView
+    from khgrl.deploy.run.progress import ProgressView
     from khgrl.learner.resume import open_learner
 
     rlpd = TQCSettings(**{**SMALL.__dict__, "sampling": "rlpd"})

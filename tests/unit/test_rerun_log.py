@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from khgrl.common.rerun_log import VIEW_ENV, RunLogger, ViewTarget, band_edges, band_half, open_recording, to3
-from khgrl.deploy.view_sink import parse_view
+from khgrl.deploy.run.view_sink import parse_view
 
 rerun = pytest.importorskip("rerun", reason="the view needs rerun-sdk (pip install -e '.[test]' has it)")
 
@@ -65,7 +65,7 @@ def test_native_viewer_needs_a_display(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_up_help_shows_the_view_flags_and_defaults() -> None:
-    from khgrl.deploy.launcher import build_parser
+    from khgrl.deploy.run.launcher import build_parser
 
     text = build_parser().format_help()
     assert "--view SPEC" in text and "(default: none)" in text and "--view-camera-every" in text
@@ -82,7 +82,7 @@ def test_view_target_travels_in_the_environment() -> None:
 
 
 def test_view_command_refuses_an_existing_file(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from khgrl.deploy.view_cmd import main
+    from khgrl.deploy.tools.view_cmd import main
 
     run = tmp_path / "run"
     (run / "actor-a0" / "steps").mkdir(parents=True)
@@ -155,7 +155,7 @@ def test_live_view_survives_its_own_errors(tmp_path: Path, monkeypatch: pytest.M
 def test_the_web_viewer_ends_with_the_run(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     """``--view rerun:web``: Rerun's real web-viewer sink starts and serves, and is stopped when the run's view
     closes. Before (issue 36): it stayed after the run ("kill PID"), a server left behind."""
-    from khgrl.deploy.view_sink import RunView
+    from khgrl.deploy.run.view_sink import RunView
 
     view = RunView(parse_view("rerun:web"), run_id="r", log_dir=tmp_path)
     with view:

@@ -171,7 +171,7 @@ def test_the_actor_stream_signs_each_batch_and_each_re_send(task, run, tmp_path)
 
 def test_the_learner_alarm_ends_the_run_like_an_actor_alarm(task, run, tmp_path, capsys):
     from khgrl.common.wire.messages import Status
-    from khgrl.deploy import outcome
+    from khgrl.deploy.run import outcome
 
     a0 = _keys(run, "actor", "a0")
     loop = _loop(tmp_path, task, _keys(run, "learner", "l0"))

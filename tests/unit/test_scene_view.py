@@ -189,9 +189,9 @@ def test_gif_frames_draw_each_episodes_adapted_mean(reach: KGRLEnv) -> None:
 
 
 def test_the_eval_gif_recorder_shows_each_scene(reach: KGRLEnv) -> None:
-    """``khgrl eval --gif`` (deploy/gif.py, unchanged) gets each episode's scene through frame_from_env."""
+    """``khgrl eval --gif`` (deploy/tools/gif.py, unchanged) gets each episode's scene through frame_from_env."""
     from khgrl.common.tasks.render_parts import COLORS
-    from khgrl.deploy.gif import GifRecorder
+    from khgrl.deploy.tools.gif import GifRecorder
 
     gif = GifRecorder(reach)
     ends = []

@@ -1,9 +1,9 @@
-"""``khgrl stop`` / ``khgrl ready`` (deploy/stop.py): what confirms a command, and where the run is found."""
+"""``khgrl stop`` / ``khgrl ready`` (deploy/run/stop.py): what confirms a command, and where the run is found."""
 
 from __future__ import annotations
 
 import pytest
-from khgrl.deploy.stop import _confirmed, build_parser, main, target
+from khgrl.deploy.run.stop import _confirmed, build_parser, main, target
 
 
 def test_a_command_is_confirmed_by_the_actors_status_after_it_or_by_the_actor_gone():

@@ -1,5 +1,6 @@
 """The code's shape, checked: one installed package (``khgrl``) whose subpackages are the top-level folders, no
-import cycles between first-party modules nor between packages, no module over 400 lines."""
+import cycles between first-party modules nor between packages, no module over 400 lines, and one over 300 says at its
+top why it is one module."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 PACKAGES = ("common", "actor", "learner", "human_bridge", "deploy", "benchmarks")  # mapped to khgrl.<folder>
 MAX_LINES = 400
+REASON_LINES = 300  # above this, the module's docstring says why it is one module: "One module of ~N lines on purpose:"
 
 
 def _modules(examples: bool = False) -> dict[str, Path]:
@@ -148,5 +150,22 @@ def test_the_cycle_check_finds_a_cycle():
 
 @pytest.mark.parametrize("name", sorted(_modules()))
 def test_module_is_small(name):
-    n = len(_modules()[name].read_text().splitlines())
+    text = _modules()[name].read_text()
+    n = len(text.splitlines())
     assert n <= MAX_LINES, f"{name}: {n} lines (at most {MAX_LINES})"
+    if n > REASON_LINES:
+        doc = ast.get_docstring(ast.parse(text)) or ""
+        assert "lines on purpose:" in doc, f"{name}: {n} lines, and its docstring does not say why it is one module"
+
+
+ROOMS = ("run", "tools", "experiments")  # deploy/'s rooms: each imports only the rooms before it
+
+
+def test_the_rooms_of_deploy_import_only_the_rooms_before_them():
+    """deploy/ is three rooms (a run's life, tools on a finished run, experiments) and ``cli.py`` above them; a
+    reader of ``deploy/run/`` needs nothing from the others, a reader of ``tools/`` only ``run/``."""
+    room = {name: name.split(".")[2] for name in _modules() if name.count(".") >= 3
+            and name.startswith("khgrl.deploy.") and name.split(".")[2] in ROOMS}
+    bad = [f"{a} -> {b}" for a, deps in _graph().items() if a in room for b in deps
+           if b in room and ROOMS.index(room[b]) > ROOMS.index(room[a])]
+    assert set(room.values()) == set(ROOMS) and not bad, bad

@@ -90,7 +90,7 @@ def test_khgrl_stop_loads_nothing_heavy_before_its_message():
     import sys
 
     heavy = ("numpy", "khgrl.common.config.settings", "khgrl.common.wire.protocol", "khgrl.common.wire.messages")
-    code = ("import sys, khgrl.deploy.cli, khgrl.deploy.stop, khgrl.common.delivery.transport, "
+    code = ("import sys, khgrl.deploy.cli, khgrl.deploy.run.stop, khgrl.common.delivery.transport, "
             f"khgrl.common.delivery.declare; print([m for m in {heavy!r} if m in sys.modules])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -8,8 +8,8 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from khgrl.deploy.intervals import wilson_interval
-from khgrl.deploy.run_results import METHOD_LABEL, STABLE_WINDOW, RunResult
+from khgrl.deploy.experiments.run_results import METHOD_LABEL, STABLE_WINDOW, RunResult
+from khgrl.deploy.tools.intervals import wilson_interval
 
 __all__ = ["summary_markdown", "median_text", "fmt_episode", "eval_cell"]
 

@@ -1,4 +1,5 @@
-"""The pieces of ``khgrl eval`` (:mod:`khgrl.deploy.evaluate`): what it reads (the run's settings, checkpoint, task
+"""The pieces of ``khgrl eval`` (:mod:`khgrl.deploy.tools.evaluate`): what it reads (the run's settings,
+checkpoint, task
 and learned scale), where it writes (:func:`free_path`) and one deterministic rollout (:func:`run_episode`)."""
 
 from __future__ import annotations

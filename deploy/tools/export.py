@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 from khgrl.common.lerobot.library import ACTION, DONE, INTERVENTION, REWARD, STATE
-from khgrl.deploy.rundir import still_running
+from khgrl.deploy.run.rundir import still_running
 
 __all__ = ["add_parser", "export_run", "FEATURES", "DEFAULT_FPS"]
 
@@ -110,7 +110,7 @@ def export_run(run_dir: str | Path, out: str | Path, *, fps: int | None = None, 
     :raises FileExistsError: ``out`` exists and not ``overwrite``.
     """
     from khgrl.common.lerobot.writer import Episode, write_dataset
-    from khgrl.deploy.eval_inputs import EvalError, read_config
+    from khgrl.deploy.tools.eval_inputs import EvalError, read_config
 
     from khgrl import __version__
 

@@ -17,7 +17,7 @@ from typing import Any
 
 from khgrl.common.config.settings import HUMAN_METHODS
 from khgrl.common.delivery.acl import Identity, access_control
-from khgrl.deploy import certs
+from khgrl.deploy.run import certs
 
 __all__ = ["SecureRun", "router_settings", "client_settings", "write_configs", "prepare_secure_run",
            "add_configs_parser", "run_identities", "issue_identities"]

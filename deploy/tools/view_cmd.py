@@ -26,7 +26,7 @@ from typing import Any
 
 from khgrl.common.rerun_log import RunLogger, blueprint, has_display, import_rerun, open_recording
 from khgrl.common.step_records import actor_dirs, read_steps
-from khgrl.deploy.rundir import still_running
+from khgrl.deploy.run.rundir import still_running
 
 __all__ = ["main", "build_parser", "log_run", "episode_results"]
 
@@ -112,7 +112,7 @@ def log_run(run_dir: Path, rec: Any, world: Any) -> dict[str, int]:
 
 def _world(run_dir: Path) -> tuple[Any, str]:
     from khgrl.common.tasks.world import build_task_world
-    from khgrl.deploy.eval_inputs import load_run_task, read_config
+    from khgrl.deploy.tools.eval_inputs import load_run_task, read_config
 
     cfg, runtime, _ = read_config(run_dir)
     task, _ = load_run_task(cfg, runtime.get("cwd"))

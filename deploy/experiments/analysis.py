@@ -13,8 +13,9 @@ An experiment directory holds one run directory per (scenario, method, seed), na
 * ``summary.md``       the tables: per method and scenario, and KhGRL vs KGRL with a rank test
 
 The learning criteria of one run (first success, stable success, zero obstacle cost from, ...) and the reading
-of run directories are in ``deploy/run_results.py``, the figures in ``deploy/figures.py``, the markdown tables in
-``deploy/summary_table.py``; this module puts them together and writes the CSV files.
+of run directories are in ``deploy/experiments/run_results.py``, the figures in
+``deploy/experiments/figures.py``, the markdown tables in
+``deploy/experiments/summary_table.py``; this module puts them together and writes the CSV files.
 """
 
 from __future__ import annotations
@@ -25,8 +26,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
-from khgrl.deploy.figures import axis_names, figure_name, plot_learning, plot_scale
-from khgrl.deploy.run_results import (
+from khgrl.deploy.experiments.figures import axis_names, figure_name, plot_learning, plot_scale
+from khgrl.deploy.experiments.run_results import (
     METHOD_LABEL,
     STABLE_WINDOW,
     RunResult,
@@ -39,7 +40,7 @@ from khgrl.deploy.run_results import (
     summarize_run,
     zero_cost_from,
 )
-from khgrl.deploy.summary_table import summary_markdown
+from khgrl.deploy.experiments.summary_table import summary_markdown
 
 __all__ = ["RunResult", "find_runs", "load_run", "stable_success", "zero_cost_from", "analyse", "STABLE_WINDOW"]
 

@@ -12,13 +12,14 @@ std on stdout, a CSV (``RUN_DIR/eval/eval.csv`` by default; never overwritten: `
 (no ``Scene``) the output adds that the episodes are one deterministic rollout repeated, not a success rate over
 scenes.
 
-``--scenes K`` (:mod:`khgrl.deploy.eval_scenes`): K seeded scenes instead (scene k reset with
+``--scenes K`` (:mod:`khgrl.deploy.tools.eval_scenes`): K seeded scenes instead (scene k reset with
 ``scene_seed(SEED, k, stream="eval")``): the success rate with its 95 % Wilson interval, a per-scene CSV with each
 scene's placement (``RUN_DIR/eval/scenes.csv``) and with ``--gif`` the first ``--gif-scenes`` scenes one after
 another. A missing or unusable run directory, checkpoint or task is one line and exit 2.
 
 One module of ~320 lines on purpose: the command and its rollouts; its inputs (run directory, checkpoint,
-task, scale) are :mod:`~khgrl.deploy.eval_inputs`, the scenes and their CSV :mod:`~khgrl.deploy.eval_scenes`.
+task, scale) are :mod:`~khgrl.deploy.tools.eval_inputs`, the scenes and their CSV
+:mod:`~khgrl.deploy.tools.eval_scenes`.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from khgrl.deploy.eval_inputs import (
+from khgrl.deploy.run.rundir import still_running
+from khgrl.deploy.tools.eval_inputs import (
     EpisodeResult,
     EvalError,
     checkpoint_algo,
@@ -46,7 +48,7 @@ from khgrl.deploy.eval_inputs import (
     run_episode,
     trained,
 )
-from khgrl.deploy.eval_scenes import (
+from khgrl.deploy.tools.eval_scenes import (
     FIXED_SCENE_NOTE,
     GIF_SCENES_MAX_FRAMES,
     SCENES_CSV,
@@ -55,7 +57,6 @@ from khgrl.deploy.eval_scenes import (
     scene_placement,
     write_scenes_csv,
 )
-from khgrl.deploy.rundir import still_running
 
 __all__ = ["EvalError", "EpisodeResult", "Evaluation", "evaluate", "add_parser", "free_path", "report", "find_run",
            "read_config"]
@@ -117,7 +118,7 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     :param csv_path: the CSV (None: RUN_DIR/eval/eval.csv, with ``scenes`` RUN_DIR/eval/scenes.csv); an existing
         file is not overwritten.
     :param actor: the actor whose learned exploration scale is used (None: a0, or the actor folder's).
-    :param scenes: evaluate on this many seeded scenes (:mod:`khgrl.deploy.eval_scenes`; None: ``episodes``).
+    :param scenes: evaluate on this many seeded scenes (:mod:`khgrl.deploy.tools.eval_scenes`; None: ``episodes``).
     :param gif_scenes: scenes the GIF shows one after another.
     :param adapt: refit the KMP through each scene's via-points at reset (a task with a varying scene and
         via-points; None: as the run did, its ``--adapt/--no-adapt``).
@@ -179,7 +180,7 @@ def _rollouts(result: Evaluation, env: Any, policy: Any, task: Any, count: int, 
     """Run the episodes (or scenes) into ``result``; the GIF recorder of the first ``result.gif_scenes`` of them
     (None: no GIF)."""
     from khgrl.common.tasks.scene import scene_seed
-    from khgrl.deploy.gif import GifRecorder
+    from khgrl.deploy.tools.gif import GifRecorder
 
     gif_count = result.gif_scenes
     frames = GIF_MAX_FRAMES if not result.scenes else GIF_SCENES_MAX_FRAMES

@@ -175,7 +175,7 @@ def load_evaluation(run_dir: Path) -> tuple[str, int, int]:
 
     :param run_dir: the run directory.
     """
-    from khgrl.deploy.eval_scenes import SCENES_CSV, read_scenes_csv
+    from khgrl.deploy.tools.eval_scenes import SCENES_CSV, read_scenes_csv
 
     scenes = Path(run_dir) / "eval" / SCENES_CSV
     if scenes.exists():

@@ -1,7 +1,7 @@
 """``khgrl report``: results of runs or of whole experiments.
 
 * Experiment directories (``khgrl experiment`` output: run directories named ``<scenario>-<method>-seed<S>``):
-  statistics across seeds, Fig. 4-6 and the data behind them (:mod:`khgrl.deploy.analysis`), written to
+  statistics across seeds, Fig. 4-6 and the data behind them (:mod:`khgrl.deploy.experiments.analysis`), written to
   ``--out`` (default ``EXP/report``).
 * Run directories of ``khgrl reference`` (``RUN/episodes.csv``) or ``khgrl up`` (``RUN/actor-<id>/episodes.csv``,
   one series per actor): per-episode curves in one figure and a markdown table.
@@ -106,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"experiments: only these scenarios ({', '.join(SCENARIOS)}) or task labels (fetch_moved, "
                         "...) (default: all)")
     args = p.parse_args(argv)
-    from khgrl.deploy.analysis import analyse, find_runs
+    from khgrl.deploy.experiments.analysis import analyse, find_runs
 
     missing = [r for r in args.runs if not Path(r).is_dir()]
     if missing:

@@ -42,8 +42,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
-from khgrl.deploy.experiment_progress import last_line
-from khgrl.deploy.ray_worker import EPISODE_LINE, khgrl_identity, run_on_worker
+from khgrl.deploy.experiments.experiment_progress import last_line
+from khgrl.deploy.experiments.ray_worker import EPISODE_LINE, khgrl_identity, run_on_worker
 
 __all__ = ["EPISODE_LINE", "DEFAULT_CPUS", "check_ray_settings", "add_ray_arguments", "import_ray", "unpack_run",
            "RayRunner"]
@@ -130,7 +130,8 @@ def unpack_run(data: bytes, dest: Path, accept: Callable[[Path], bool] | None = 
 
 
 class Runner(Protocol):
-    """What :class:`RayRunner` uses of the experiment's local runner (``khgrl.deploy.experiment._Runner``)."""
+    """What :class:`RayRunner` uses of the experiment's local runner
+    (``khgrl.deploy.experiments.experiment._Runner``)."""
 
     cfg: Any
     out: Path

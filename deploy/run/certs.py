@@ -35,11 +35,13 @@ below)::
     chmod 600 ca.key actor-a0.key
     # the router: CN router, SAN with every name/address clients use, e.g.
     #   subjectAltName=DNS:router,IP:127.0.0.1,DNS:localhost,IP:192.168.1.10,DNS:gpu-box.lab
+
+One module of ~340 lines on purpose: a sixth of it is the docstring's openssl recipe for people with their own
+PKI; the rest makes and reads one directory of certificates (its command line: :mod:`~khgrl.deploy.run.certs_cmd`).
 """
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import ipaddress
 import os
@@ -58,7 +60,7 @@ from khgrl.common.delivery.acl import cn_for as _cn_of
 from khgrl.common.wire.checks import ident as _check_id
 
 __all__ = ["ROLES", "CertError", "Identity", "init_ca", "issue", "identities", "common_name", "cn_for",
-           "parse_cn", "expires", "tls_settings", "add_parser"]
+           "parse_cn", "expires", "tls_settings", "load_cert"]
 
 CA_CERT, CA_KEY = "ca.pem", "ca.key"
 DEFAULT_HOSTS = ("127.0.0.1", "localhost")
@@ -109,7 +111,11 @@ def parse_cn(cn: str) -> tuple[str, str]:
     return role, ident
 
 
-def _load_cert(path: Path):
+def load_cert(path: Path):
+    """The X.509 certificate in the PEM file ``path`` (:class:`CertError` if it is not one).
+
+    :param path: the file.
+    """
     try:
         return x509.load_pem_x509_certificate(Path(path).read_bytes())
     except ValueError as exc:
@@ -125,12 +131,12 @@ def _cn(cert) -> str:
 
 def common_name(path: str | os.PathLike) -> str:
     """The common name (CN) of the PEM certificate at ``path``."""
-    return _cn(_load_cert(Path(path)))
+    return _cn(load_cert(Path(path)))
 
 
 def expires(path: str | os.PathLike) -> dt.datetime:
     """When the PEM certificate at ``path`` stops being valid (UTC)."""
-    return _load_cert(Path(path)).not_valid_after_utc
+    return load_cert(Path(path)).not_valid_after_utc
 
 
 def _secure_dir(path: Path) -> None:
@@ -222,7 +228,7 @@ def _load_ca(d: Path):
         key = ser.load_pem_private_key(key_path.read_bytes(), password=None)
     except (ValueError, TypeError) as exc:
         raise CertError(f"{key_path}: cannot read the CA key ({exc})") from None
-    return _load_cert(cert_path), key
+    return load_cert(cert_path), key
 
 
 def _sans(cn: str, hosts: Sequence[str]) -> list:
@@ -277,7 +283,7 @@ def issue(dir: str | os.PathLike, role: str, ident: str | None = None, *, hosts:
 
 def _identity(path: Path, ca) -> Identity | None:
     try:
-        cert = _load_cert(path)
+        cert = load_cert(path)
         bc = cert.extensions.get_extension_for_class(x509.BasicConstraints).value
         role, ident = parse_cn(_cn(cert))
     except (CertError, x509.ExtensionNotFound):
@@ -303,7 +309,7 @@ def identities(dir: str | os.PathLike) -> list[Identity]:
     d = Path(dir)
     if not d.is_dir():
         raise CertError(f"{d}: no such directory")
-    ca = _load_cert(d / CA_CERT) if (d / CA_CERT).is_file() else None
+    ca = load_cert(d / CA_CERT) if (d / CA_CERT).is_file() else None
     found = [i for p in sorted(d.glob("*.pem")) if p.name != CA_CERT and (i := _identity(p, ca)) is not None]
     return sorted(found, key=lambda i: (ROLES.index(i.role), i.id))
 
@@ -334,66 +340,3 @@ def tls_settings(dir_or_paths: str | os.PathLike | tuple, cn: str | None = None,
     return {"root_ca_certificate": str(ca.resolve()), "enable_mtls": True,
             f"{side}_certificate": str(cert.resolve()), f"{side}_private_key": str(key.resolve()),
             "verify_name_on_connect": True}
-
-
-# ---- khgrl certs
-
-
-def _cmd_init(args: argparse.Namespace) -> int:
-    cert, key = init_ca(args.dir, days=args.days, force=args.force)
-    print(f"CA {common_name(cert)!r} in {cert} (key {key}, keep it private), valid until {expires(cert):%Y-%m-%d}")
-    return 0
-
-
-def _cmd_issue(args: argparse.Namespace) -> int:
-    cert, key = issue(args.dir, args.role, args.id, hosts=args.host or (), days=args.days, force=args.force)
-    print(f"{common_name(cert)}: {cert} and {key}, valid until {expires(cert):%Y-%m-%d}")
-    return 0
-
-
-def _cmd_list(args: argparse.Namespace) -> int:
-    rows = [("ROLE", "ID", "CN", "EXPIRES", "KEY", "NAMES")]
-    for i in identities(args.dir):
-        cert = _load_cert(i.cert)
-        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-        names = ",".join(str(n.value) for n in san)
-        rows.append((i.role, i.id, i.cn, f"{expires(i.cert):%Y-%m-%d}", "yes" if i.key else "no", names))
-    widths = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
-    for r in rows:
-        print("  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip())
-    if len(rows) == 1:
-        print(f"(no identities in {args.dir})")
-    return 0
-
-
-def add_parser(sub: Any) -> Any:
-    """Register ``khgrl certs`` on the subcommands ``sub`` of the ``khgrl`` parser; returns its own subcommands
-    (where :mod:`khgrl.deploy.secure` adds ``configs``).
-
-    :param sub: the ``add_subparsers()`` object.
-    """
-    top = sub.add_parser("certs", help="certificates for mutual TLS: a CA, one key + certificate per identity")
-    certs = top.add_subparsers(dest="action", required=True, metavar="ACTION")
-    p = certs.add_parser("init", help="make a CA in DIR (ca.pem, ca.key; DIR mode 0700, key mode 0600)")
-    p.add_argument("dir", metavar="DIR", help="certificate directory (created if missing)")
-    p.add_argument("--days", type=int, default=DEFAULT_DAYS, help="validity in days (default: %(default)s)")
-    p.add_argument("--force", action="store_true", help="replace an existing CA (default: refuse)")
-    p.set_defaults(func=_cmd_init)
-    p = certs.add_parser("issue", help="make DIR/<cn>.pem and DIR/<cn>.key (unencrypted PKCS#8, mode 0600) for one "
-                                       "identity, signed by the CA in DIR; cn = ROLE-ID, or ROLE when ID is ROLE")
-    p.add_argument("dir", metavar="DIR", help="certificate directory with the CA")
-    p.add_argument("--role", required=True, help=f"one of: {', '.join(ROLES)} (required)")
-    p.add_argument("--id", default=None,
-                   help="process id: 1-64 printable ASCII characters, no / * $ ? # or space (default: the role, "
-                        "e.g. 'learner')")
-    p.add_argument("--host", action="append", default=None, metavar="H",
-                   help="router only, repeatable: an IP address or DNS name clients connect to "
-                        f"(default: {' and '.join(DEFAULT_HOSTS)})")
-    p.add_argument("--days", type=int, default=DEFAULT_DAYS,
-                   help="validity in days, cut to the CA's (default: %(default)s)")
-    p.add_argument("--force", action="store_true", help="replace an existing identity (default: refuse)")
-    p.set_defaults(func=_cmd_issue)
-    p = certs.add_parser("list", help="the identities whose certificates are in DIR, with expiry")
-    p.add_argument("dir", metavar="DIR", help="certificate directory")
-    p.set_defaults(func=_cmd_list)
-    return certs

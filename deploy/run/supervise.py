@@ -194,7 +194,7 @@ def _period(args: argparse.Namespace) -> float:
 def main(argv: list[str] | None = None) -> int:
     from khgrl.common.delivery.transport import open_client
     from khgrl.common.process import StopFlag, install_stop_handlers
-    from khgrl.deploy.stop import target
+    from khgrl.deploy.run.stop import target
 
     args = build_parser().parse_args(argv)
     try:

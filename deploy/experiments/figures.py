@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from khgrl.deploy.run_results import METHOD_LABEL, episode_matrix, human_episodes
+from khgrl.deploy.experiments.run_results import METHOD_LABEL, episode_matrix, human_episodes
 
 __all__ = ["FIGURE", "METHOD_COLOR", "figure_name", "plot_learning", "plot_scale", "axis_names"]
 

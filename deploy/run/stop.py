@@ -16,7 +16,7 @@ live actor's status confirms it (held by the e-stop, no longer held by it, no lo
 ``khgrl ready`` is sent only when an actor's status says it waits for ready; the others are named, and when none waits
 it says so and sends nothing (exit 1).
 
-The e-stop is the run's one state (:mod:`khgrl.deploy.supervise`): ``--now`` and ``--release`` with RUN_DIR (and no
+The e-stop is the run's one state (:mod:`khgrl.deploy.run.supervise`): ``--now`` and ``--release`` with RUN_DIR (and no
 ``--actor``) first write it to ``RUN_DIR/estop.json``, where an actor that starts or restarts reads it before its first
 command, and the run's supervisor keeps what it hears. ``--now`` with no actor alive still presses it: confirmed by
 that file or by the supervisor's heartbeat. The path to the first ``--now`` message is lean (no numpy, nothing but
@@ -26,6 +26,9 @@ Exit codes: 0 every actor confirmed (the e-stop: or the run's state recorded whi
 ended (RUN_DIR/summary.json: said at once, the e-stop state still written), no router, no
 actor alive, nothing waiting for ready, or an actor did not confirm within ``--timeout`` (named); 2 a bad argument (no
 such run directory).
+
+One module of ~310 lines on purpose: khgrl stop and khgrl ready share the same way to reach the actors and confirm
+what they did.
 """
 
 from __future__ import annotations

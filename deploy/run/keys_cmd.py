@@ -45,7 +45,7 @@ def wanted(args: argparse.Namespace) -> list[str]:
 
     :param args: the parsed arguments.
     """
-    from khgrl.deploy.secure import run_identities
+    from khgrl.deploy.run.secure import run_identities
 
     ids = [("learner", i) for i in args.learner or ["learner"]]
     config = Path(args.run_dir) / "config.json"

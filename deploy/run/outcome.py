@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 from khgrl.common.delivery.actor_guard import SPLIT_EXIT
 from khgrl.common.process import StopFlag
-from khgrl.deploy.supervisor import Proc, ProcessGroup
+from khgrl.deploy.run.supervisor import Proc, ProcessGroup
 
 __all__ = ["Outcome", "write_summary", "report_failures", "exit_code", "ending", "final_line", "actor_alarm",
            "process_error"]

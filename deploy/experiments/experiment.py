@@ -16,11 +16,11 @@ Resumable: a run whose directory holds a finished result (every process exited 0
 redone; any other run directory (an interrupted or failed run) is wiped and the run starts again from
 scratch, so no half-run is ever mixed into the results. ``OUT/experiment.json`` records the resolved
 configuration, the machine and every run's status and wall time; ``khgrl report OUT`` analyses it. With ``--ray
-ADDRESS`` the runs are Ray tasks on a cluster's workers instead (:mod:`khgrl.deploy.experiment_ray`).
+ADDRESS`` the runs are Ray tasks on a cluster's workers instead (:mod:`khgrl.deploy.experiments.experiment_ray`).
 
 One module of ~350 lines on purpose: the grid (configuration, plan, one run's command) and the local runner
-that walks it; the progress display is :mod:`~khgrl.deploy.experiment_progress`, Ray's runner
-:mod:`~khgrl.deploy.experiment_ray`.
+that walks it; the progress display is :mod:`~khgrl.deploy.experiments.experiment_progress`, Ray's runner
+:mod:`~khgrl.deploy.experiments.experiment_ray`.
 """
 
 from __future__ import annotations
@@ -42,9 +42,15 @@ from pathlib import Path
 
 from khgrl.common.config.settings import HUMAN_METHODS, PAPER_EPISODES, REFERENCE_METHODS, TQCSettings, read_table
 from khgrl.common.tasks.passage.scenarios import SCENARIOS
-from khgrl.deploy.experiment_progress import Progress, last_line
-from khgrl.deploy.experiment_ray import DEFAULT_CPUS, EPISODE_LINE, RayRunner, add_ray_arguments, check_ray_settings
-from khgrl.deploy.run_results import METHOD_LABEL
+from khgrl.deploy.experiments.experiment_progress import Progress, last_line
+from khgrl.deploy.experiments.experiment_ray import (
+    DEFAULT_CPUS,
+    EPISODE_LINE,
+    RayRunner,
+    add_ray_arguments,
+    check_ray_settings,
+)
+from khgrl.deploy.experiments.run_results import METHOD_LABEL
 
 __all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main",
            "build_parser"]

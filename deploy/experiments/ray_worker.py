@@ -1,4 +1,5 @@
-"""The worker's side of ``khgrl experiment --ray`` (:mod:`khgrl.deploy.experiment_ray`): the Ray task that runs
+"""The worker's side of ``khgrl experiment --ray`` (:mod:`khgrl.deploy.experiments.experiment_ray`): the Ray
+task that runs
 one ``khgrl up`` in a scratch directory and sends the finished run folder back, and the check that the worker's
 khgrl is the head's."""
 

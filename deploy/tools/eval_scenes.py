@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 from khgrl.common.tasks.scene import MAX_PLACEMENT
-from khgrl.deploy.eval_inputs import EpisodeResult, EvalError
-from khgrl.deploy.intervals import rate_text
+from khgrl.deploy.tools.eval_inputs import EpisodeResult, EvalError
+from khgrl.deploy.tools.intervals import rate_text
 
 __all__ = ["FIXED_SCENE_NOTE", "SCENES_CSV", "scene_placement", "write_scenes_csv", "read_scenes_csv",
            "scene_lines", "scene_caption", "GIF_SCENES_MAX_FRAMES"]

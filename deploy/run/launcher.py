@@ -3,21 +3,25 @@ client, each its own OS process reading the run's resolved configuration (``RUN_
 live progress view, stopped cleanly when the actors finish, on Ctrl-C/SIGTERM, on a stop command, at
 ``--timeout``, or when a process fails (reported with its exit code and the tail of its log).
 
-The run directory (layout: :mod:`khgrl.deploy.rundir`) is refused if it already holds a run, unless ``--resume``
+The run directory (layout: :mod:`khgrl.deploy.run.rundir`) is refused if it already holds a run, unless ``--resume``
 (continue it: episode numbering, episodes.csv, corrections.csv and the learner's checkpoint carry on) or
-``--overwrite`` (delete the earlier run first). Children are spawned by :class:`khgrl.deploy.supervisor.ProcessGroup`
+``--overwrite`` (delete the earlier run first). Children are spawned by
+:class:`khgrl.deploy.run.supervisor.ProcessGroup`
 and die with the launcher (parent-death signal), even if it is killed. ``--secure`` runs everything over mutual
-TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mod:`khgrl.deploy.secure`);
+TLS with access control per process (certificates made in ``RUN_DIR/certs``: :mod:`khgrl.deploy.run.secure`);
 ``--zenoh-config FILE`` gives every process a Zenoh configuration file.
 
 ``RUN_DIR/run.key`` gets a new secret first (0600; kept on ``--resume``): the learner signs acks and weights with it,
 actors check them (:mod:`khgrl.common.delivery.run_key`), and ``RUN_DIR/keys`` a signing key per process (control:
 :mod:`khgrl.common.delivery.control_auth`). An actor's alarm in its status (another process publishes as it, two
-learners) ends the run with that line as its error (:mod:`khgrl.deploy.outcome`). In robot mode it supervises
-(:mod:`khgrl.deploy.supervise`).
+learners) ends the run with that line as its error (:mod:`khgrl.deploy.run.outcome`). In robot mode it supervises
+(:mod:`khgrl.deploy.run.supervise`).
 
 Exit codes: 0 the actors finished; 1 a process failed, an actor's alarm, the router was unreachable, ``--timeout``
 or a stop command from elsewhere; 2 a bad configuration or run directory; 128 + signal number on SIGINT/SIGTERM.
+
+One module of ~390 lines on purpose: the command's parser, the plan of a run and the run itself read top to bottom
+as one story; its parts with another job are already apart (preflight, rundir, outcome, progress, supervise).
 """
 
 from __future__ import annotations
@@ -41,15 +45,15 @@ from khgrl.common.process import StopFlag, install_stop_handlers
 from khgrl.common.wire.control import HEARTBEATS
 from khgrl.common.wire.messages import Control, EpisodeReport, Status
 from khgrl.common.wire.protocol import LAUNCHER, Keys, ProtocolError, RejectCounter, decode
-from khgrl.deploy import outcome, rundir
-from khgrl.deploy.outcome import Outcome, ending, exit_code, final_line, report_failures, write_summary
-from khgrl.deploy.preflight import check_task
-from khgrl.deploy.progress import ProgressView
-from khgrl.deploy.rundir import RunDirError
-from khgrl.deploy.secure import SecureRun, prepare_secure_run, run_identities
-from khgrl.deploy.supervise import run_supervisor
-from khgrl.deploy.supervisor import Proc, ProcessGroup, khgrl_argv
-from khgrl.deploy.view_sink import RunView, add_view_flags, run_view
+from khgrl.deploy.run import outcome, rundir
+from khgrl.deploy.run.outcome import Outcome, ending, exit_code, final_line, report_failures, write_summary
+from khgrl.deploy.run.preflight import check_task
+from khgrl.deploy.run.progress import ProgressView
+from khgrl.deploy.run.rundir import RunDirError
+from khgrl.deploy.run.secure import SecureRun, prepare_secure_run, run_identities
+from khgrl.deploy.run.supervise import run_supervisor
+from khgrl.deploy.run.supervisor import Proc, ProcessGroup, khgrl_argv
+from khgrl.deploy.run.view_sink import RunView, add_view_flags, run_view
 from khgrl.learner.algorithm import check_algorithm
 
 __all__ = ["main", "build_parser", "RunPlan", "plan_run"]
@@ -84,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a Zenoh configuration (JSON5) for the router and every process, merged under KhGRL's "
                           "required settings; examples in deploy/zenoh/ (default: $ZENOH_CONFIG if set, else none)")
     add_config_flags(p)
-    add_view_flags(p)  # --view, --view-camera-every (deploy/view_sink.py)
+    add_view_flags(p)  # --view, --view-camera-every (deploy/run/view_sink.py)
     return p
 
 
