@@ -182,7 +182,8 @@ class ActorLoop:
         elif ep.segment:
             p.scale.refit(ep.segment, self.episode)
             ep.segment = []
-        p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]))
+        p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]),
+                     None if physical else p.arbiter.word)  # (a human's signed word vouches for the row)
         p.steps.step(obs, info, env, reward, terminated, truncated, p_h, physical)
         t = int(info["t"])
         if iv and p_h is not None:
