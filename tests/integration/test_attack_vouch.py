@@ -76,7 +76,7 @@ def _f1_batches(watch: _Watch) -> list:
     for m in human:
         reward = m.reward.copy()
         reward[0] = np.nextafter(reward[0], np.float32(np.inf))
-        out.append(dict(obs=m.obs, next_obs=m.next_obs, action=m.action, reward=reward, vouch=getattr(m, "vouch", 0)))
+        out.append(dict(obs=m.obs, next_obs=m.next_obs, action=m.action, reward=reward, vouch=getattr(m, "vouch", None)))
     return out
 
 
@@ -93,7 +93,7 @@ def _publish_f1(session, keys, run_dir, watch: _Watch) -> int:
     for seq, fields in enumerate(_f1_batches(watch)):
         n = len(fields["reward"])
         vouch = fields.pop("vouch")
-        extra = {} if vouch == 0 else {"vouch": vouch}  # (main has no vouch field)
+        extra = {"vouch": vouch} if vouch else {}  # (main has no vouch field)
         msg = Transitions(actor="f1", first_step=N * seq, terminated=np.zeros(n, np.uint8),
                           truncated=np.zeros(n, np.uint8), intervened=np.ones(n, np.uint8),
                           clipped=np.zeros(n, np.uint8), base_seq=0, stream="f1-stream", task=task, **fields, **extra)
