@@ -13,9 +13,8 @@ Per control step:
    frame (``last`` on the episode's final one), and every ``batch`` transitions of the actor's running index
    (and at episode end) cut a batch (:class:`~khgrl.common.delivery.stream.TransitionStream`).
 The watchdog (:mod:`khgrl.actor.safety`) holds the robot, and says why, while the loop waits (the e-stop, a pause,
-the learner) or a holding human is silent. Before the first episode of a run with ``--sampling rlpd`` the
-demonstrations go out as prior transitions (:mod:`khgrl.actor.demos`). At the end the actor waits until the learner
-holds every batch in a checkpoint.
+the learner) or a holding human is silent. With ``--sampling rlpd`` the demonstrations go out first as prior
+transitions (:mod:`khgrl.actor.demos`). At the end the actor waits until the learner checkpoints every batch.
 """
 
 from __future__ import annotations
@@ -182,8 +181,8 @@ class ActorLoop:
         elif ep.segment:
             p.scale.refit(ep.segment, self.episode)
             ep.segment = []
-        p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]),
-                     None if physical else p.arbiter.word)  # (a human's signed word vouches for the row)
+        word = None if physical else p.arbiter.word  # (a human's signed correction vouches for the row)
+        p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]), word)
         p.steps.step(obs, info, env, reward, terminated, truncated, p_h, physical)
         t = int(info["t"])
         if iv and p_h is not None:
