@@ -20,12 +20,13 @@ import logging
 from typing import Any
 
 import numpy as np
-from khgrl.common.delivery.vouching import DEMO, FIRST_ACTOR
+from khgrl.common.delivery.vouching import DEMO
 
 __all__ = ["replay_demos", "replays_demos"]
 
 log = logging.getLogger("khgrl.actor")
 
+FIRST_ACTOR = "a0"
 
 
 def replays_demos(loop: Any) -> bool:

@@ -3,9 +3,8 @@
 Per control step:
 
 1. between steps, the delivery layer (:class:`~khgrl.common.delivery.actor_side.ActorDelivery`) services the inbox
-   -- acks, corrections, learner liveliness, control, handled by :class:`~khgrl.actor.inbound.Inbound` -- swaps in
-   new admitted policy weights, and holds the step back while the actor is too far ahead of the learner (flow
-   control: ``max_lead``) or paused;
+   -- acks, corrections, learner liveliness, control: :class:`~khgrl.actor.inbound.Inbound` -- swaps in new admitted
+   policy weights, and holds the step back while the actor is too far ahead of the learner (``max_lead``) or paused;
 2. pace to ``rate`` (:class:`~khgrl.actor.pacing.Pacer`), choose the action (uniform random, seeded, for the first
    ``learning_starts`` transitions of the run, as SB3 does; then ``policy.predict(obs, deterministic=False)``),
    apply the arbitrated correction (``env.set_correction``), step;
@@ -13,8 +12,9 @@ Per control step:
    frame (``last`` on the episode's final one), and every ``batch`` transitions of the actor's running index
    (and at episode end) cut a batch (:class:`~khgrl.common.delivery.stream.TransitionStream`).
 The watchdog (:mod:`khgrl.actor.safety`) holds the robot, and says why, while the loop waits (the e-stop, a pause,
-the learner) or a holding human is silent. With ``--sampling rlpd`` the demonstrations go out first as prior
-transitions (:mod:`khgrl.actor.demos`). At the end the actor waits until the learner checkpoints every batch.
+the learner) or a holding human is silent. Before the first episode of a run with ``--sampling rlpd`` the
+demonstrations go out as prior transitions (:mod:`khgrl.actor.demos`). At the end the actor waits until the learner
+holds every batch in a checkpoint.
 """
 
 from __future__ import annotations

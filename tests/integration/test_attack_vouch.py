@@ -76,7 +76,8 @@ def _f1_batches(watch: _Watch) -> list:
     for m in human:
         reward = m.reward.copy()
         reward[0] = np.nextafter(reward[0], np.float32(np.inf))
-        out.append(dict(obs=m.obs, next_obs=m.next_obs, action=m.action, reward=reward, vouch=getattr(m, "vouch", None)))
+        out.append(dict(obs=m.obs, next_obs=m.next_obs, action=m.action, reward=reward,
+                        vouch=getattr(m, "vouch", None)))
     return out
 
 

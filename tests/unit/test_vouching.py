@@ -237,3 +237,10 @@ def test_the_learner_stores_forged_flags_as_ordinary_data_and_refuses_replayed_w
     assert rb.prior_slots() == 8 and trainer.total == 16  # a0's 8 vouched rows; f1's 8 as ordinary data
     assert ing.results["unvouched"] == 8 and ing.results["replayed"] == 1
     assert ing.rejects.by_kind()["unvouched"] == 1 and ing.vouching.counts["vouched"] == 8
+
+
+def test_the_learner_takes_demonstrations_from_the_actor_that_replays_them():
+    from khgrl.actor import demos
+    from khgrl.common.delivery import vouching
+
+    assert vouching.FIRST_ACTOR == demos.FIRST_ACTOR
