@@ -244,3 +244,10 @@ def test_the_learner_takes_demonstrations_from_the_actor_that_replays_them():
     from khgrl.common.delivery import vouching
 
     assert vouching.FIRST_ACTOR == demos.FIRST_ACTOR
+
+
+def test_khgrl_bench_vouch_runs_and_vouches_for_every_row(tmp_path):
+    from khgrl.benchmarks.vouch import run_vouch_benchmark
+
+    res = run_vouch_benchmark(rows=4, repeats=1, out=str(tmp_path / "v.json"))
+    assert res["vouched"] == 4 and 60 < res["wire_bytes_per_row"] < 130 and (tmp_path / "v.json").is_file()
