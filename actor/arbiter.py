@@ -71,6 +71,7 @@ class CorrectionArbiter:
         self._not_waited: dict[str, int] = {}  # lock-step client -> last episode it is not waited for
         self.holder: str | None = None
         self.p_h: np.ndarray | None = None
+        self.word: Correction | None = None  # the correction that set p_h (its signature vouches for the rows)
         self.deadline = 0.0
         self.heard = 0.0  # when the holder was last heard from (time.monotonic(), shifted by the actor's waits)
         self.lockstep: str | None = None  # client whose step-addressed word each step of this episode waits for
@@ -131,7 +132,7 @@ class CorrectionArbiter:
         if msg.episode is not None and msg.episode != episode:
             self.counts["stale_episode"] += 1
             return None
-        self._hold(msg.client, msg.p_h, arrival)
+        self._hold(msg, arrival)
         return None
 
     def _refusal(self, msg: Correction) -> str | None:
@@ -200,19 +201,20 @@ class CorrectionArbiter:
         self.lockstep = None
         self._addressed.clear()
 
-    def _hold(self, client: str, p_h, arrival: float) -> None:
+    def _hold(self, msg: Correction, arrival: float) -> None:
+        client = msg.client
         if self.holder is None:
             if not self.allowance.may_start(client, arrival - self._waited):
                 self.counts["holds_refused"] += 1
                 return
             self.holder = client
             self.counts["holds"] += 1
-        self.p_h = np.asarray(p_h, dtype=np.float64)
+        self.p_h, self.word = np.asarray(msg.p_h, dtype=np.float64), msg
         self.deadline, self.heard = arrival + self.timeout, arrival
         self.counts["applied"] += 1
 
     def _release(self) -> None:
-        self.holder, self.p_h = None, None
+        self.holder, self.p_h, self.word = None, None, None
         self.counts["releases"] += 1
 
     def extend(self, seconds: float) -> None:
@@ -260,12 +262,12 @@ class CorrectionArbiter:
                 del self._addressed[s]
             if msg is not None:
                 if msg.active:
-                    self._hold(msg.client, msg.p_h, now)
+                    self._hold(msg, now)
                 elif self.holder == msg.client:
                     self._release()
                 return self.p_h
         if self.holder is not None and now > self.deadline:
             log.info("correction client %s silent for > %.2f s: intervention ended", self.holder, self.timeout)
-            self.holder, self.p_h = None, None
+            self.holder, self.p_h, self.word = None, None, None
             self.counts["timeouts"] += 1
         return self.p_h

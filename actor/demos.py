@@ -20,6 +20,7 @@ import logging
 from typing import Any
 
 import numpy as np
+from khgrl.common.delivery.vouching import DEMO
 
 __all__ = ["replay_demos", "replays_demos"]
 
@@ -59,7 +60,8 @@ def replay_demos(loop: Any) -> int:
                 return sent
             env.set_correction(demo[min(env.t, len(demo) - 1)])
             next_obs, reward, terminated, truncated, info = env.step(rest)
-            p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, True, bool(info["clipped"]))
+            p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, True, bool(info["clipped"]),
+                         DEMO)  # (the run's own: the learner takes them as prior data from a0's first rows)
             sent += 1
             success = success or bool(info["success"])
             done = terminated or truncated

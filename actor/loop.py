@@ -3,9 +3,8 @@
 Per control step:
 
 1. between steps, the delivery layer (:class:`~khgrl.common.delivery.actor_side.ActorDelivery`) services the inbox
-   -- acks, corrections, learner liveliness, control, handled by :class:`~khgrl.actor.inbound.Inbound` -- swaps in
-   new admitted policy weights, and holds the step back while the actor is too far ahead of the learner (flow
-   control: ``max_lead``) or paused;
+   -- acks, corrections, learner liveliness, control: :class:`~khgrl.actor.inbound.Inbound` -- swaps in new admitted
+   policy weights, and holds the step back while the actor is too far ahead of the learner (``max_lead``) or paused;
 2. pace to ``rate`` (:class:`~khgrl.actor.pacing.Pacer`), choose the action (uniform random, seeded, for the first
    ``learning_starts`` transitions of the run, as SB3 does; then ``policy.predict(obs, deterministic=False)``),
    apply the arbitrated correction (``env.set_correction``), step;
@@ -182,7 +181,8 @@ class ActorLoop:
         elif ep.segment:
             p.scale.refit(ep.segment, self.episode)
             ep.segment = []
-        p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]))
+        word = None if physical else p.arbiter.word  # (a human's signed correction vouches for the row)
+        p.stream.add(obs, next_obs, info["action"], reward, terminated, truncated, iv, bool(info["clipped"]), word)
         p.steps.step(obs, info, env, reward, terminated, truncated, p_h, physical)
         t = int(info["t"])
         if iv and p_h is not None:

@@ -166,6 +166,12 @@ BENCHMARKS: dict[str, Benchmark] = {
                          "what khgrl stop's path pays once (import, key load)", (
         _flag("--messages", type=int, default=2000, help="messages per case (default: %(default)s)"),
         OUT)),
+    "vouch": Benchmark("khgrl.benchmarks.vouch", "run_vouch_benchmark",
+                       "human data vouched for: a client's signature per correction, the actor's evidence per row, the "
+                       "learner's check per intervened row (issue 34, point 6)", (
+        _flag("--rows", type=int, default=256, help="intervened rows per batch (default: %(default)s)"),
+        _flag("--repeats", type=int, default=20, help="timed batches per case (default: %(default)s)"),
+        OUT)),
     "queries": Benchmark("khgrl.benchmarks.queries", "run_queries_benchmark",
                          "the learner's gradient steps/s while a monitor floods the weights queryable", (
         _flag("--qps", type=float, default=1000.0, help="queries per second of the flood (default: %(default)s)"),

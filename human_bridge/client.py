@@ -24,6 +24,7 @@ from khgrl.common.delivery.declare import publisher, put, subscribe, token
 from khgrl.common.delivery.senders import HUMAN_COMMANDS
 from khgrl.common.delivery.task_link import fetch_task
 from khgrl.common.delivery.transport import Inbox, open_client, undeclare_all
+from khgrl.common.delivery.vouching import sign_correction
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import Control, Correction, EpisodeReport, Frame, HumanInfo, Message, Scale, Status
 from khgrl.common.wire.protocol import Keys, ProtocolError, RejectCounter, attribute_control, decode, encode
@@ -53,10 +54,13 @@ class CorrectionPublisher:
     :param session: the process's Zenoh session.
     :param keys: the run's key expressions.
     :param client: the client id (a key chunk).
+    :param private: the client's role key (``human:<client>``): each correction is signed with it, so the learner
+        takes the steps it drives as human data (None: unsigned, they become ordinary data where the run has role
+        keys; khgrl.common.delivery.vouching).
     """
 
-    def __init__(self, session, keys: Keys, client: str) -> None:
-        self.client = client
+    def __init__(self, session, keys: Keys, client: str, private=None) -> None:
+        self.client, self.private = client, private
         self.seq = 0
         self.sent = 0
         self.active: dict[str, bool] = {}  # actor -> whether our last word to it was a hold
@@ -79,7 +83,7 @@ class CorrectionPublisher:
         msg = Correction(client=self.client, actor=actor, active=active,
                          p_h=np.asarray(p_h, dtype=np.float64) if active else None,
                          episode=int(episode), t=int(t), step=None if step is None else int(step))
-        self._pub.put(encode(msg, self.client, self.seq))
+        self._pub.put(encode(sign_correction(msg, self.private, self.seq), self.client, self.seq))
         self.seq += 1
         self.sent += 1
         self.active[actor] = active
@@ -126,7 +130,7 @@ class HumanClient:
         self._decls.append(token(session, keys.alive("human", client)))
         self._status = publisher(session, keys.status("human", client), congestion="drop")
         self._decls.append(self._status)
-        self.pub = CorrectionPublisher(session, keys, client)
+        self.pub = CorrectionPublisher(session, keys, client, self.signer.key)
         self._status_seq = 0
         self._control_seq = 0
         self._t_status = time.monotonic()

@@ -24,12 +24,14 @@ REPLAY_TABLE = 65_536  # digests of the most recently stored batches (16 B each;
 # at the default 8 transitions a batch, 524,288 transitions, more than the replay buffer holds (200,000)
 REQUEST_EVERY_S = 2.0  # an actor asks at most every 5 s (stream.CHECKPOINT_REQUEST_EVERY_S): more is refused
 REQUEST_GAP_S = 1.0  # checkpoints asked for by actors: at most one per this (requests meanwhile wait for it)
-_ARRAYS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "intervened", "clipped")
+# the arrays a batch's digest covers: all but ``intervened`` (setting or clearing the flag does not make a replay new)
+_ARRAYS = ("obs", "next_obs", "action", "reward", "terminated", "truncated", "clipped")
 
 
 def batch_digest(msg: Transitions) -> bytes:
-    """A 16-byte BLAKE2b digest of a batch's content: its arrays (shapes, dtypes and bytes), not its envelope, actor
-    id, ``seq``, ``first_step`` or stream. About 2.5 ms per 4 MiB batch (docs/protocol.md, "Trust model").
+    """A 16-byte BLAKE2b digest of a batch's content: its arrays (shapes, dtypes and bytes) but ``intervened``, not
+    its envelope, actor id, ``seq``, ``first_step``, stream or ``vouch`` evidence. About 2.5 ms per 4 MiB batch
+    (docs/protocol.md, "Trust model").
 
     :param msg: the batch
     """
@@ -48,7 +50,9 @@ class ReplayGuard:
 
     Two honest actors produce byte-identical batches when a human drove every step of them the same way: a
     scripted human in a deterministic world corrects two actors identically (measured: 8 batches of a two-actor
-    run). Such a batch -- every transition ``intervened`` -- is therefore never taken for a replay. A batch with a
+    run). Such a batch -- every transition vouched for by a human's signed correction
+    (:mod:`~khgrl.common.delivery.vouching`; the flag alone is the sender's word) -- is therefore never taken for a
+    replay. A batch with a
     step of the policy differs between actors (each samples its actions with its own seed: actors ``a<i>`` get
     ``seed + i``, other ids a seed made from the id), so an identical one from another id is a replay: it is not
     stored, but its stream moves on as if it were (it is acked), so nothing waits.
@@ -61,13 +65,15 @@ class ReplayGuard:
         self.seen: OrderedDict[bytes, str] = OrderedDict()  # digest -> the actor that stored it
         self.replayed = 0
 
-    def check(self, msg: Transitions) -> tuple[bytes, str | None]:
+    def check(self, msg: Transitions, vouched: bool | None = None) -> tuple[bytes, str | None]:
         """The batch's digest, and the other actor id that stored the same content recently (None: none did).
 
         :param msg: the batch
+        :param vouched: whether a human vouched for every row (None: every row flagged ``intervened``, a run without
+            role keys)
         """
         digest = batch_digest(msg)
-        if np.all(msg.intervened):  # (human-driven steps may repeat exactly across actors: see the class)
+        if np.all(msg.intervened) if vouched is None else vouched:  # (human-driven steps may repeat: the class)
             return digest, None
         first = self.seen.get(digest)
         return digest, None if first == msg.actor else first

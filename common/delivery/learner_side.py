@@ -36,6 +36,7 @@ from khgrl.common.delivery.guards import ReplayGuard, RequestLimiter
 from khgrl.common.delivery.ingest import ActorStream, FairInbox, StreamTable
 from khgrl.common.delivery.learner_link import Publisher
 from khgrl.common.delivery.senders import owner, read_for_learner
+from khgrl.common.delivery.vouching import Vouching, demo_rows
 from khgrl.common.wire.bounds import check_bounds
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
 from khgrl.common.wire.descriptor import TaskDescriptor
@@ -88,6 +89,7 @@ class LearnerIngest:
         self.wake = threading.Event()  # set when there may be something to train
         self.lead_cap: int | None = None  # transitions of an actor not yet covered by trained weights (None: no cap)
         self.replay = ReplayGuard()
+        self.vouching = Vouching(key.public if data_keys.checking(key) else None)  # intervened rows need a human
         self.signed = SignedSeqs()  # (actor, stream, seq) -> what its actor signed: a second, different one alarms
         self.requests = RequestLimiter(self.admitted)
 
@@ -106,6 +108,7 @@ class LearnerIngest:
         """
         self.task = task
         self.dims = Dims(obs=task.obs_dim, out=task.out_dim)
+        self.vouching.demo_limit = demo_rows(task)
 
     # ------------------------------------------------------------------------------------ input
     def receive(self, kind: str, key: str, payload: bytes) -> None:
@@ -213,17 +216,25 @@ class LearnerIngest:
         """Store batches in order (call with :attr:`lock`); one whose content was stored recently is not (its
         stream moves past it)."""
         for batch in batches:
-            digest, first = self.replay.check(batch)
-            if first is not None:
+            verdict = self.vouching.judge(batch)
+            digest, first = self.replay.check(batch, verdict.all_vouched if self.vouching.enforced else None)
+            if first is not None or verdict.replay_of is not None:
                 st.stored(batch.first_step + batch.n - 1, 0)
                 self.replay.replayed += 1
                 self.results["replayed"] += 1
+                what = "identical to one" if first is not None else f"with {verdict.why}: a replay of a batch"
                 self.rejects.reject("replayed", f"actor/{batch.actor}", ProtocolError(
-                    f"batch identical to one of actor {first} stored recently: not stored again"))
+                    f"batch {what} of actor {first or verdict.replay_of} stored recently: not stored again"))
                 continue
-            self.store(batch, st, self.streams.positions)
+            if verdict.unvouched:
+                self.results["unvouched"] += verdict.unvouched
+                self.rejects.reject("unvouched", f"actor/{batch.actor}", ProtocolError(
+                    f"batch {batch.envelope.seq if batch.envelope else '?'}: {verdict.unvouched} rows flagged "
+                    f"intervened without a human's signature ({verdict.why}): stored as ordinary data"))
+            self.store(verdict.batch, st, self.streams.positions)
             st.mark()
             self.replay.stored(digest, batch.actor)
+            self.vouching.stored(verdict, batch.actor)
 
     def release(self) -> bool:
         """Store the deferred batches that fit their actors' room now (after training made room); whether any

@@ -121,6 +121,15 @@ def _array_part(arr: np.ndarray) -> tuple[str, list, Any]:
     return arr.dtype.str, list(arr.shape), arr.data.cast("B") if arr.size else b""
 
 
+def _vouch_part(vouch: Any) -> list:
+    """A batch's ``vouch`` evidence (khgrl.common.wire.batch) as one more head field: the hex BLAKE2b of its entries
+    as canonical JSON (signatures as hex); nothing without evidence (so a batch without it has the mac it had)."""
+    if vouch is None:
+        return []
+    entries = [[v.hex() if isinstance(v, bytes) else list(v) if isinstance(v, tuple) else v for v in e] for e in vouch]
+    return [hashlib.blake2b(_canonical(["vouch", entries]), digest_size=16).hexdigest()]
+
+
 def batch_mac(msg: Any, key: bytes, seq: int) -> bytes:
     """The ``mac`` of a ``transitions`` batch sent with envelope ``seq``: over actor, stream, seq, first_step,
     base_seq, task digest and the arrays (dtype, shape, bytes), its own ``mac`` left out.
@@ -129,7 +138,7 @@ def batch_mac(msg: Any, key: bytes, seq: int) -> bytes:
     :param key: the run's key.
     :param seq: the envelope's seq (the batch's number in its stream).
     """
-    head = [msg.actor, msg.stream, int(seq), msg.first_step, msg.base_seq, msg.task]
+    head = [msg.actor, msg.stream, int(seq), msg.first_step, msg.base_seq, msg.task, *_vouch_part(msg.vouch)]
     return _batch_digest(key, head, [_array_part(getattr(msg, n)) for n in BATCH_ARRAYS])
 
 
@@ -140,6 +149,7 @@ def wire_batch_mac(m: dict, key: bytes) -> bytes:
     :param key: the run's key.
     """
     head = [m.get(f) for f in ("actor", "stream", "seq", "first_step", "base_seq", "task")]
+    head += _vouch_part(m.get("vouch"))
     return _batch_digest(key, head, [(m[n]["dtype"], list(m[n]["shape"]), m[n]["data"]) for n in BATCH_ARRAYS])
 
 

@@ -36,6 +36,7 @@ from typing import Any, Callable
 import numpy as np
 from khgrl.common.delivery import data_keys
 from khgrl.common.delivery.outbox import Outbox
+from khgrl.common.delivery.vouching import evidence
 from khgrl.common.wire.bounds import check_bounds, limits
 from khgrl.common.wire.checks import ProtocolError, RejectCounter
 from khgrl.common.wire.messages import Ack, Transitions
@@ -94,6 +95,7 @@ class TransitionStream:
         self.max_published = self.next_seq - 1  # (a continued stream's earlier process published the rest)
         self.stalls = 0  # stall re-sends since the last ack progress (the backoff's exponent)
         self._buf: list[tuple] = []
+        self._words: list[Any] = []  # per collected transition, what drove it (vouching.evidence)
         self._buf_first = self.start_index
         self.journal = journal
         self.superseded: str | None = None  # why the learner no longer takes this stream
@@ -126,7 +128,7 @@ class TransitionStream:
 
     # ------------------------------------------------------------------ collecting
     def add(self, obs, next_obs, action, reward: float, terminated: bool, truncated: bool, intervened: bool,
-            clipped: bool) -> None:
+            clipped: bool, word: Any = None) -> None:
         """Collect one transition (it goes out with the next :meth:`cut`).
 
         :param obs: observation before the step.
@@ -137,10 +139,13 @@ class TransitionStream:
         :param truncated: episode ended at the horizon.
         :param intervened: a human correction drove the step.
         :param clipped: the human action was clipped to [-1, 1].
+        :param word: what drove an intervened step: the signed correction (its evidence goes out in the batch's
+            ``vouch``), :data:`~khgrl.common.delivery.vouching.DEMO` for a demonstration, None (no evidence).
         """
         if self.bounds is not None and self._out_of_bounds(obs, next_obs, action, reward):
             return
         self._buf.append((obs, next_obs, action, reward, terminated, truncated, intervened, clipped))
+        self._words.append(word if intervened else None)
         self.count += 1
 
     def _out_of_bounds(self, obs, next_obs, action, reward: float) -> bool:
@@ -178,14 +183,15 @@ class TransitionStream:
             action=np.asarray(cols[2], dtype=np.float32), reward=np.asarray(cols[3], dtype=np.float32),
             terminated=np.asarray(cols[4], dtype=np.uint8), truncated=np.asarray(cols[5], dtype=np.uint8),
             intervened=np.asarray(cols[6], dtype=np.uint8), clipped=np.asarray(cols[7], dtype=np.uint8),
-            base_seq=seq if oldest is None else oldest, stream=self.stream, task=self.task)
+            base_seq=seq if oldest is None else oldest, stream=self.stream, task=self.task,
+            vouch=tuple(e for i, w in enumerate(self._words) if (e := evidence(i, w)) is not None) or None)
         payload = encode(data_keys.sign_batch(batch, self.key, seq), self.actor, seq)
         newest = self.outbox.newest()
         if newest is None or newest <= self.received:
             self.last_progress = self.clock()  # nothing was waiting: the resend timer starts now
         self.outbox.add(seq, payload, len(self._buf))
         self.next_seq += 1
-        self._buf = []
+        self._buf, self._words = [], []
         self._buf_first = self.count
         if self.cursor == seq and self._in_window(seq):
             self._send(seq, payload)  # the usual case: straight out, as encoded

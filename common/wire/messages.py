@@ -6,132 +6,22 @@ Optional fields are ``None`` when absent (and are then left out of the payload).
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
-from khgrl.common.wire.checks import ProtocolError, exact_bytes, ident, opt, typ, unpack_array, vec
+from khgrl.common.wire.base import ANY_DIMS, MAC_BYTES, SIG_BYTES, Dims, Message, _any_vec, _mac, _sig, _vec
+from khgrl.common.wire.batch import MAX_BATCH, Transitions
+from khgrl.common.wire.checks import ProtocolError, ident, opt, typ, unpack_array, vec
 from khgrl.common.wire.descriptor import MAX_DIM, MAX_HORIZON, TaskDescriptor
 from khgrl.common.wire.status import _INFO, ActorInfo, HumanInfo, LearnerInfo, check_info
 
 __all__ = ["Dims", "ANY_DIMS", "Message", "TaskInfo", "Transitions", "Ack", "Weights", "Correction", "Frame", "Scale",
-           "EpisodeReport", "Status", "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS"]
+           "EpisodeReport", "Status", "ActorInfo", "LearnerInfo", "HumanInfo", "Control", "MAX_BATCH", "COMMANDS",
+           "MAC_BYTES", "SIG_BYTES"]
 
-MAX_BATCH = 4096  # transitions per batch message
 # e-stop; a person's ready; the supervisor's heartbeat (khgrl.common.wire.control: e-stop released / pressed)
 COMMANDS = ("pause", "resume", "stop", "checkpoint", "estop", "release", "ready", "heartbeat", "heartbeat-estop")
-
-
-@dataclass(frozen=True)
-class Dims:
-    """The sizes a receiver expects (from the run's task descriptor): the policy's observation, the command O
-    (= the policy's action) and the KMP grid's N. None: any size up to the protocol's bound, consistent within the
-    message."""
-
-    obs: int | None = None
-    out: int | None = None
-    horizon: int | None = None  # N, the KMP grid's points (a frame's scene arrays have N rows)
-
-
-ANY_DIMS = Dims()
-
-
-def _vec(name: str, value: Any, n: int | None) -> np.ndarray:
-    """A vector of ``n`` numbers, or (n None) of 1..MAX_DIM numbers."""
-    if n is None:
-        n = len(value) if isinstance(value, (list, tuple)) and 1 <= len(value) <= MAX_DIM else -1
-    return vec(name, value, n)
-
-
-def _any_vec(name: str, value: Any, most: int) -> np.ndarray:
-    """A vector of 1..``most`` finite numbers."""
-    n = len(value) if isinstance(value, (list, tuple)) and 1 <= len(value) <= most else -1
-    return vec(name, value, n)
-
-
-MAC_BYTES = 32  # the ``mac`` of acks, weights and transitions
-SIG_BYTES = 64  # the ``sig`` of control, acks, weights and transitions (Ed25519)
-
-
-_mac, _sig = exact_bytes(MAC_BYTES), exact_bytes(SIG_BYTES)
-
-
-@dataclass(frozen=True)
-class Message:
-    KIND: ClassVar[str] = ""
-    MAX_BYTES: ClassVar[int] = 4096
-    VECTORS: ClassVar[tuple[str, ...]] = ()  # fields sent as lists of numbers (the others' arrays as array maps)
-    envelope: Any = field(default=None, kw_only=True, compare=False, repr=False)
-
-    def replace(self, **changes):
-        return dataclasses.replace(self, **changes)
-
-    @classmethod
-    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS):
-        raise NotImplementedError
-
-
-_FLAG_FIELDS = ("terminated", "truncated", "intervened", "clipped")
-
-
-@dataclass(frozen=True, eq=False)
-class Transitions(Message):
-    """A batch of one actor's transitions, in order; ``seq`` (envelope) numbers the actor's batches."""
-
-    KIND: ClassVar[str] = "transitions"
-    MAX_BYTES: ClassVar[int] = 4 * 1024 * 1024
-    actor: str
-    first_step: int  # the actor's running index of the first transition
-    obs: np.ndarray  # (n, obs size) float32
-    next_obs: np.ndarray
-    action: np.ndarray  # (n, O) float32 in [-1, 1] (the human's a_h on intervened steps)
-    reward: np.ndarray  # (n,) float32
-    terminated: np.ndarray  # (n,) uint8 0/1
-    truncated: np.ndarray
-    intervened: np.ndarray
-    clipped: np.ndarray
-    base_seq: int | None = None  # the oldest batch the actor still holds
-    stream: str | None = None  # random id of the actor incarnation
-    task: str | None = None  # the digest of the actor's task descriptor: required on the wire
-    mac: bytes | None = None  # keyed BLAKE2b of the other fields and the envelope's seq under the run's key
-    signer: str | None = None  # the key id that signed it (``actor:<actor>``; khgrl.common.delivery.data_keys)
-    sig: bytes | None = None  # its Ed25519 signature
-
-    @property
-    def n(self) -> int:
-        return int(self.reward.shape[0])
-
-    @classmethod
-    def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Transitions":
-        spec = {"obs": ("<f4", (None, dims.obs)), "next_obs": ("<f4", (None, dims.obs)),
-                "action": ("<f4", (None, dims.out)), "reward": ("<f4", (None,))}
-        spec.update({f: ("|u1", (None,)) for f in _FLAG_FIELDS})
-        arrays = {name: unpack_array(m.get(name), name, dtype=dt, shape=shape) for name, (dt, shape) in spec.items()}
-        n = arrays["reward"].shape[0]
-        for name, arr in arrays.items():
-            if arr.shape[0] != n:
-                raise ProtocolError(f"{name}: {arr.shape[0]} rows, expected {n}")
-        if arrays["obs"].shape[1] != arrays["next_obs"].shape[1] or not 1 <= arrays["obs"].shape[1] <= 4 * MAX_DIM:
-            raise ProtocolError(f"obs/next_obs widths {arrays['obs'].shape[1]}/{arrays['next_obs'].shape[1]}")
-        if not 1 <= arrays["action"].shape[1] <= MAX_DIM:
-            raise ProtocolError(f"action width {arrays['action'].shape[1]} outside [1, {MAX_DIM}]")
-        if not 1 <= n <= MAX_BATCH:
-            raise ProtocolError(f"batch of {n} transitions outside [1, {MAX_BATCH}]")
-        if np.any(np.abs(arrays["action"]) > 1.0 + 1e-6):
-            raise ProtocolError("actions outside [-1, 1]")
-        for flag in _FLAG_FIELDS:
-            if np.any(arrays[flag] > 1):
-                raise ProtocolError(f"{flag}: flags must be 0/1")
-        base = opt(m, "base_seq", typ, int, low=0)
-        if base is not None and base > m.get("seq", 0):
-            raise ProtocolError(f"base_seq {base} > seq {m.get('seq')}")
-        actor, first = ident("actor", m.get("actor")), typ("first_step", m.get("first_step"), int, low=0)
-        if m.get("task") is None:
-            raise ProtocolError("task: missing (the digest of the actor's task descriptor is required)")
-        return cls(actor=actor, first_step=first, base_seq=base, stream=opt(m, "stream", ident),
-                   task=ident("task", m.get("task")), mac=opt(m, "mac", _mac), signer=opt(m, "signer", ident),
-                   sig=opt(m, "sig", _sig), **arrays)
 
 
 @dataclass(frozen=True)
@@ -209,6 +99,7 @@ class Correction(Message):
     episode: int | None = None  # the frame reacted to (for the record)
     t: int | None = None
     step: int | None = None  # step-addressed: for this step of ``episode`` (lock-step)
+    sig: bytes | None = None  # ``human:<client>``'s Ed25519 signature (khgrl.common.delivery.vouching)
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Correction":
@@ -218,7 +109,8 @@ class Correction(Message):
             raise ProtocolError("step: a step-addressed correction needs its episode")
         return cls(client=ident("client", m.get("client")), actor=ident("actor", m.get("actor")), active=active,
                    p_h=_vec("p_h", m.get("p_h"), dims.out) if active else None,
-                   episode=opt(m, "episode", typ, int, low=0), t=opt(m, "t", typ, int, low=0), step=step)
+                   episode=opt(m, "episode", typ, int, low=0), t=opt(m, "t", typ, int, low=0), step=step,
+                   sig=opt(m, "sig", _sig))
 
 
 @dataclass(frozen=True, eq=False)
