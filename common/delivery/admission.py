@@ -12,7 +12,7 @@ in order, never runs dry however fast it steps; what it spends is on re-sends an
 An honest actor has at most its window (64 batches by default) out beyond what was acked, within a member's burst.
 
 A batch over its sender's budget is refused (counted in the learner's rejects as ``over_budget``, logged at a
-bounded rate). Its sender is then *over budget* for :data:`PENALTY_S` seconds (:meth:`Admission.penalized`): the
+bounded rate). A member is then *over budget* for :data:`PENALTY_S` seconds (:meth:`Admission.penalized`): the
 learner stores nothing of it and drops what it holds for it (the held and deferred batches: an honest sender
 re-sends them), so a flood gets no share of training -- without this the batches let through by the refill, in
 order, were stored up to the lead cap and trained on like an honest actor's, which is what slowed the honest
@@ -153,14 +153,15 @@ class Admission:
                 entry[0].give(size)
 
     def penalized(self, sender: str) -> bool:
-        """Whether a batch of ``sender`` was refused in the last :data:`PENALTY_S` seconds (then the learner stores
-        nothing of it).
+        """Whether ``sender`` is a member and a batch of it was refused in the last :data:`PENALTY_S` seconds (then
+        the learner stores nothing of it). An id not stored yet is not: what its budget lets through is checked
+        as usual (and refused unless valid); once one of its batches is stored it is a member.
 
         :param sender: the actor id
         """
         with self._lock:
             t = self.refused_at.get(sender)
-            if t is None:
+            if t is None or not self.member(sender):
                 return False
             if self.clock() - t < PENALTY_S:
                 return True

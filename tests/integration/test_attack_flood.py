@@ -157,5 +157,7 @@ def test_a_flood_of_small_signed_batches_costs_the_honest_actor_little(tmp_path,
     assert acct["lost"] == 0 and acct["duplicated"] == 0 and acct["produced"] > 0, acct
     state = read_json(run_dir / "learner" / "checkpoint" / "state.json")
     assert state["actors"]["a0"]["ingested"] == acct["produced"], (state["actors"], acct)
-    lead_cap = 8 + template.n  # (--max-lead 8 plus a batch)
-    assert state["actors"].get(ATTACKER, {}).get("ingested", 0) <= lead_cap, state["actors"]
+    # f9 stores what its lead cap (--max-lead 8 plus a batch) and training let through while its first burst lasts
+    # (64 batches as a guest, then a member's: ~0.15 s at the flood's rate), then nothing (main: 13,122 batches
+    # dropped over the held-bytes caps, the rest stored at the lead cap's pace)
+    assert state["actors"].get(ATTACKER, {}).get("ingested", 0) <= 8 * template.n, state["actors"]

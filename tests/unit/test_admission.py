@@ -26,15 +26,19 @@ def _payload(seq: int, actor: str = "a0") -> bytes:
     return encode(m.replace(envelope=None), actor, seq)
 
 
-def test_a_guest_gets_its_burst_then_its_rate_and_a_refusal_penalizes_it():
+def test_a_sender_gets_its_burst_then_its_rate_and_a_refusal_penalizes_a_member():
     clock = Clock()
     refused: list = []
-    a = Admission(lambda s: False, lambda s, n: refused.append(s), clock=clock)
+    members: set = set()
+    a = Admission(members.__contains__, lambda s, n: refused.append(s), clock=clock)
     assert all(a.admit("x", 100) for _ in range(adm.GUEST_BURST))
-    assert not a.admit("x", 100) and refused == ["x"] and a.penalized("x")
+    assert not a.admit("x", 100) and refused == ["x"]
+    assert not a.penalized("x")  # (a guest is not: what gets through is checked as usual)
     assert a.admit("y", 100) and not a.penalized("y")  # (each sender its own bucket)
     clock.t += 1.0
     assert sum(a.admit("x", 100) for _ in range(50)) == int(adm.GUEST_RATE)
+    members.add("x")
+    assert a.penalized("x")  # (a member stores nothing for PENALTY_S after a refusal)
     clock.t += adm.PENALTY_S + 0.1
     assert not a.penalized("x")
 
