@@ -270,6 +270,22 @@ class StreamTable:
         st.held += 1
         return True
 
+    def drop_held(self, actor: str) -> int:
+        """Drop every batch held or deferred for ``actor`` (counted as dropped: the actor re-sends what it still
+        needs); how many.
+
+        :param actor: the actor id
+        """
+        st = self.streams.get(actor)
+        if st is None or not st.pending:
+            return 0
+        n = len(st.pending)
+        for seq in list(st.pending):
+            self._unhold(st, seq)
+        st.dropped_pending += n
+        self.dropped_pending += n
+        return n
+
     def _unhold(self, st: ActorStream, seq: int) -> Transitions:
         msg = st.pending.pop(seq)
         size = batch_bytes(msg)

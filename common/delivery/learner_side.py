@@ -30,6 +30,7 @@ from collections import Counter
 from typing import Any, Callable, Protocol
 
 from khgrl.common.delivery import data_keys
+from khgrl.common.delivery.admission import Admission
 from khgrl.common.delivery.batch_conflicts import SignedSeqs
 from khgrl.common.delivery.control_auth import ControlGate
 from khgrl.common.delivery.guards import ReplayGuard, RequestLimiter
@@ -92,6 +93,7 @@ class LearnerIngest:
         self.vouching = Vouching(key.public if data_keys.checking(key) else None)  # intervened rows need a human
         self.signed = SignedSeqs()  # (actor, stream, seq) -> what its actor signed: a second, different one alarms
         self.requests = RequestLimiter(self.admitted)
+        self.admission = Admission(self.admitted, self._over_budget)  # per-sender budgets, before decoding
 
     def admitted(self, actor: str) -> bool:
         """Whether the learner has stored batches of ``actor`` (its current stream).
@@ -100,6 +102,30 @@ class LearnerIngest:
         """
         st = self.streams.streams.get(actor)
         return st is not None and st.ingested > 0
+
+    def _over_budget(self, sender: str, size: int) -> None:
+        """A batch refused by :attr:`admission` (in a Zenoh callback): counted and logged (rate-limited)."""
+        self.rejects.reject("over_budget", f"actor/{sender}/transitions", ProtocolError(
+            f"actor {sender}: batches over its budget (refused before decoding; nothing of it is stored while it "
+            f"floods)"))
+
+    def _flooding(self, sender: str) -> None:
+        """A batch let through by the budget of a sender that is over it (one of its batches was refused just now:
+        :meth:`~khgrl.common.delivery.admission.Admission.penalized`): not decoded, and what is held for that sender
+        is dropped, so that a flood gets no share of training (the sender re-sends what it still needs)."""
+        with self.lock:
+            self.results["over_budget"] += 1
+            self.streams.drop_held(sender)
+        self._over_budget(sender, 0)
+
+    def admit(self, key: str, size: int) -> bool:
+        """The transitions subscriber's gate: whether a batch on ``key`` of ``size`` bytes is within its sender's
+        budget (:class:`~khgrl.common.delivery.admission.Admission`).
+
+        :param key: the key it came on
+        :param size: its payload bytes
+        """
+        return self.admission.admit(owner(key), size)
 
     def set_task(self, task: TaskDescriptor) -> None:
         """The run's task descriptor: batches are checked against its sizes and digest, acks carry its digest.
@@ -123,13 +149,17 @@ class LearnerIngest:
         with a value out of the task's bounds (:func:`~khgrl.common.wire.bounds.check_bounds`) is refused whole,
         counted as ``values`` in the rejects.
         """
+        if kind == "transitions" and self.admission.penalized(owner(key)):
+            self._flooding(owner(key))
+            return
         try:
             msg = read_for_learner(kind, key, payload, self.dims, self.task)
         except ProtocolError as exc:
             self.rejects.reject("control" if kind == "request" else kind, key, exc)
             return
         if isinstance(msg, Transitions):
-            self._take(msg, key)
+            if self._take(msg, key) == "accepted":
+                self.admission.refund(owner(key), len(payload))
             return
         if kind == "control":
             if why := self.control.check(msg, key):  # (unsigned, not the operator's, a replay)
@@ -145,10 +175,10 @@ class LearnerIngest:
             return
         self.on_control(msg)
 
-    def _take(self, msg: Transitions, key: str) -> None:
+    def _take(self, msg: Transitions, key: str) -> str:
         """A decoded batch: refused (counted, rate-limited log) without the right ``mac`` when this learner has the
         run's key -- before it is stored or its actor id admitted -- or with a value out of the task's bounds;
-        otherwise :meth:`offer` ed.
+        otherwise :meth:`offer` ed. Returns what became of it ('refused', or :meth:`offer`'s answer).
 
         :param msg: the batch
         :param key: the key it came on
@@ -158,17 +188,17 @@ class LearnerIngest:
             why = check(msg, self.key)
             if why is not None:
                 self.rejects.reject(kind, key, ProtocolError(f"actor {msg.actor} batch {seq}: {why}"))
-                return
+                return "refused"
         if data_keys.checking(self.key) and (why := self.signed.conflict(msg)) is not None:
             if self.signed.conflicts == 1:
                 log.error("%s", why)
             self.rejects.reject("conflict", key, ProtocolError(f"actor {msg.actor} batch {seq}: {why}"))
-            return
+            return "refused"
         reason = check_bounds(msg, self.task)  # finite, and within the task's value bounds
         if reason is not None:
             self.rejects.reject("values", key, ProtocolError(f"actor {msg.actor} batch {msg.envelope.seq}: {reason}"))
-            return
-        self.offer(msg)
+            return "refused"
+        return self.offer(msg)
 
     def forward_request(self) -> None:
         """Hand a taken checkpoint request to ``on_control`` once the gap since the last one has passed."""
@@ -238,11 +268,16 @@ class LearnerIngest:
 
     def release(self) -> bool:
         """Store the deferred batches that fit their actors' room now (after training made room); whether any
-        was. Call with :attr:`lock`."""
+        was; drop what is held for a sender over its budget (:meth:`_flooding`). Call with :attr:`lock`."""
         if self.lead_cap is None:
             return False
         moved = False
-        for st in [st for st in self.streams.streams.values() if st.next_seq in st.pending]:
+        for st in [st for st in self.streams.streams.values() if st.pending]:
+            if self.admission.penalized(st.actor):  # a flood: what it holds goes (see _flooding)
+                self.streams.drop_held(st.actor)
+                continue
+            if st.next_seq not in st.pending:
+                continue
             ready = self.streams.release(st.actor, self.room(st))
             if ready:
                 self._store(ready, st)
@@ -279,6 +314,8 @@ class LearnerIngest:
             (:class:`~khgrl.common.delivery.learner_link.LearnerLink`)
         """
         fair = self.inbox = FairInbox(inbox, self.streams.__contains__)
+        if hasattr(inbox, "gates"):  # (each batch passes its sender's budget before it is copied out of Zenoh)
+            inbox.gates["transitions"] = self.admit
         thread = threading.Thread(target=self._run, args=(fair,), name="ingest", daemon=True)
         thread.start()
         return thread

@@ -180,6 +180,9 @@ class Inbox:
         self.bytes = 0  # payload bytes waiting
         self.dropped: dict[str, int] = {}
         self.oversize: dict[str, int] = {}
+        # kind -> ``gate(key, size)``: whether a sample may be copied out of Zenoh and filed (the learner's
+        # per-sender budget, :class:`~khgrl.common.delivery.admission.Admission`); it counts what it refuses
+        self.gates: dict[str, Callable[[str, int], bool]] = {}
         self._lock = threading.Lock()
 
     @staticmethod
@@ -220,11 +223,15 @@ class Inbox:
         """
 
         def cb(sample) -> None:
-            if len(sample.payload) > max_bytes:
+            size = len(sample.payload)
+            if size > max_bytes:
                 with self._lock:
                     self.oversize[kind] = self.oversize.get(kind, 0) + 1
                 return
-            self.put((kind, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic()))
+            key, gate = str(sample.key_expr), self.gates.get(kind)
+            if gate is not None and not gate(key, size):
+                return
+            self.put((kind, key, sample.payload.to_bytes(), time.monotonic()))
 
         return cb
 
