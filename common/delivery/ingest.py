@@ -17,6 +17,9 @@ actors (:data:`PENDING_BYTES_TOTAL`); what is over the caps is dropped and count
 
 :class:`FairInbox` (:mod:`khgrl.common.delivery.fair_inbox`, re-exported here) takes the learner's messages in per
 actor (round robin), so that batches of actor ids the learner has not admitted yet cannot starve the admitted ones.
+
+One module of ~320 lines on purpose: the per-actor stream and the table of streams share one ordering rule (exactly
+once, in ``seq`` order) that a reader checks in one place.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ and checkpoint requests are limited (:class:`~khgrl.common.delivery.guards.Reque
 Unit tests drive it in one thread: :meth:`LearnerIngest.offer` with decoded batches, or
 :meth:`LearnerIngest.receive` with payload bytes.
 
-One module of ~300 lines on purpose: one class, the learner's receiving side, whose steps (decode, check, order,
+One module of ~360 lines on purpose: one class, the learner's receiving side, whose steps (decode, check, order,
 store, ack) share one lock and one set of counters.
 """
 

@@ -9,7 +9,7 @@ Rules every process follows (measured pitfalls): one session per process, opened
 a ``with`` block (a callback subscriber left open hangs interpreter exit); processes are spawned, never forked
 after ``zenoh.open()``; every ``get`` has a timeout; callbacks only hand bytes to an :class:`Inbox`.
 
-One module of ~320 lines on purpose: everything that opens a Zenoh session (configurations, interruptible open, the
+One module of ~330 lines on purpose: everything that opens a Zenoh session (configurations, interruptible open, the
 inbox) in one place.
 """
 
