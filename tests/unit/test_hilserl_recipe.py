@@ -4,6 +4,9 @@ the task-sized safety box."""
 
 from __future__ import annotations
 
+import functools
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -93,3 +96,104 @@ def test_the_recipe_presets_hil_serls_published_settings_unless_given():
     assert cited["settings"]["tqc.gamma"] == {"value": 0.97, "source": "examples/experiments/config.py:11, "
                                               "serl_launcher/serl_launcher/utils/launcher.py:84"}
     assert recipe_runtime(RunConfig()) == {}
+
+
+def test_the_finishing_human_holds_every_step_after_its_first_takeover_in_that_episode_only():
+    """--takeover finish: the guide helps at steps 3-5 only; the finishing human holds from step 3 to the
+    episode's end (the KMP mean where the guide has nothing), and starts each episode released again. Before:
+    the takeover let go after step 5."""
+    from khgrl.common.tasks.scripted_human import ScriptedHuman, ScriptedHumanConfig
+
+    def guide(mean, step):
+        return mean + 1.0 if 3 <= step <= 5 else None
+
+    def held(finish: bool, episode: int) -> list:
+        return [None if p is None else float(p[0]) for p in
+                (human.correction(episode, np.array([float(t)]), step=t) for t in range(9))]
+
+    human = ScriptedHuman(guide, ScriptedHumanConfig(episodes=(1, 2), finish=True))
+    assert held(True, 1) == [None, None, None, 4.0, 5.0, 6.0, 6.0, 7.0, 8.0]
+    assert held(True, 2)[:3] == [None, None, None]
+    human = ScriptedHuman(guide, ScriptedHumanConfig(episodes=(1,)))
+    assert held(False, 1)[5:] == [6.0, None, None, None]
+
+
+def test_task_box_is_the_points_bounding_box_plus_margin_inside_the_workspace():
+    from khgrl.actor.teach import task_box
+
+    low, high = task_box(np.array([[0.2, 0.5], [0.4, 0.9]]), np.zeros(2), np.ones(2), 0.1)
+    np.testing.assert_allclose(low, [0.1, 0.4])
+    np.testing.assert_allclose(high, [0.5, 1.0])  # (0.9 + 0.1 clipped to the workspace)
+
+
+class _Stream:
+    def __init__(self) -> None:
+        self.count, self.rows, self.cuts = 0, [], 0
+
+    def add(self, *row) -> None:
+        self.count += 1
+        self.rows.append(row)
+
+    def cut(self) -> None:
+        self.cuts += 1
+
+
+@functools.lru_cache(maxsize=1)
+def _world():
+    from khgrl.common.tasks.api import load_task
+    from khgrl.common.tasks.world import build_task_world
+
+    return build_task_world(load_task("passage:low_cov"))
+
+
+def _loop(tmp_path, actor: str = "a0", episode: int = 0, **hilserl):
+    from khgrl.common.config.settings import resolve
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
+
+    cfg = resolve(overrides={"recipe": "hil-serl", "task": "passage:low_cov", "run_dir": str(tmp_path),
+                             "hilserl": hilserl})
+    (tmp_path / f"actor-{actor}").mkdir(exist_ok=True)
+    env = KGRLEnv(world=_world(), seed=0, control="delta")
+    return SimpleNamespace(p=SimpleNamespace(env=env, stream=_Stream()), cfg=cfg, id=actor, episode=episode,
+                           service=lambda: None, rate_limit=lambda: None, flag=False, teacher=None)
+
+
+def test_the_teacher_sends_only_successful_demonstrations_in_the_runs_scenes_and_sets_the_task_box(tmp_path):
+    """The first actor's teacher records 3 successful passage:low_cov episodes under delta control and sends their
+    transitions as intervened (prior) data, each ending in the goal's reward; the delta box shrinks to the task's
+    and teacher.json keeps it for a resumed actor. The task's demonstrations are not replayed besides."""
+    from khgrl.actor.demos import replays_demos
+    from khgrl.actor.teach import TEACHER_FILE, prepare
+
+    loop = _loop(tmp_path, teacher_demos=3)
+    workspace = (loop.p.env.delta.low.copy(), loop.p.env.delta.high.copy())
+    sent = prepare(loop)
+    rows = loop.p.stream.rows
+    assert sent == len(rows) > 0 and loop.teacher["kept"] == 3 and loop.teacher["steps"] == sent
+    assert all(r[6] is True for r in rows)  # intervened: the learner's prior data
+    ends = [r for r in rows if r[4]]  # terminated: the goal reached (passage: success ends the episode)
+    assert len(ends) == 3 and all(r[3] > 100 for r in ends)
+    box = (loop.p.env.delta.low, loop.p.env.delta.high)
+    assert np.all(box[0] >= workspace[0]) and np.all(box[1] <= workspace[1])
+    assert np.any(box[0] > workspace[0]) or np.any(box[1] < workspace[1])  # smaller than the workspace
+    assert not replays_demos(SimpleNamespace(cfg=loop.cfg, id="a0", episode=0, p=SimpleNamespace(
+        stream=SimpleNamespace(count=0))))
+    resumed = _loop(tmp_path, episode=4, teacher_demos=3)
+    assert prepare(resumed) == 0 and resumed.p.stream.rows == []
+    np.testing.assert_allclose(resumed.p.env.delta.low, box[0])
+    assert (tmp_path / "actor-a0" / TEACHER_FILE).is_file()
+    other = _loop(tmp_path, actor="a1", teacher_demos=1)  # another actor: the box, nothing sent
+    assert prepare(other) == 0 and other.p.stream.rows == [] and other.teacher["kept"] == 1
+
+
+def test_without_a_teacher_the_workspace_box_stays_unless_the_task_box_is_asked_for(tmp_path):
+    from khgrl.actor.teach import prepare
+
+    loop = _loop(tmp_path, teacher_demos=0, safety_box="workspace")
+    low = loop.p.env.delta.low.copy()
+    assert prepare(loop) == 0 and loop.p.stream.rows == []
+    np.testing.assert_array_equal(loop.p.env.delta.low, low)
+    boxed = _loop(tmp_path, teacher_demos=0, safety_box="task", box_margin=0.0)
+    prepare(boxed)
+    demos = boxed.p.env.world.demos.reshape(-1, 2)
+    np.testing.assert_allclose(boxed.p.env.delta.low, np.maximum(demos.min(axis=0), low))
