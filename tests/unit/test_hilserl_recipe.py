@@ -197,3 +197,27 @@ def test_without_a_teacher_the_workspace_box_stays_unless_the_task_box_is_asked_
     prepare(boxed)
     demos = boxed.p.env.world.demos.reshape(-1, 2)
     np.testing.assert_allclose(boxed.p.env.delta.low, np.maximum(demos.min(axis=0), low))
+
+
+def test_the_experiment_arm_hil_serl_recipe_runs_khgrl_up_with_the_recipe(tmp_path):
+    """``khgrl experiment --methods hil-serl_recipe``: a khgrl up command that resolves to the recipe (HIL-SERL's
+    settings, the scripted human finishing its takeovers); its run directory is read back under that method, with
+    the demonstrations' steps (``demo_steps``)."""
+    import json
+
+    from khgrl.common.config.settings import resolve
+    from khgrl.deploy.experiment import ExperimentConfig, plan_runs, run_argv
+    from khgrl.deploy.launcher import build_parser
+    from khgrl.deploy.run_results import METHOD_LABEL, RUN_NAME, demo_steps
+
+    cfg = ExperimentConfig(seeds=[0], tasks=["passage:low_cov"], methods=["hil-serl_recipe"], episodes=3)
+    (spec,) = plan_runs(cfg)
+    argv = run_argv(spec, cfg, tmp_path / spec.name)
+    run = resolve(None, build_parser().parse_args(argv[argv.index("up") + 1:]))
+    assert (run.method, run.recipe, run.algo, run.takeover, run.tqc.gamma, run.human) == \
+        ("hil-serl", "hil-serl", "sac_cta", "finish", 0.97, "scripted")
+    assert RUN_NAME.match(spec.name)["method"] == "hil-serl_recipe" and "recipe" in METHOD_LABEL[spec.method]
+    (tmp_path / "actor-a0").mkdir()
+    assert demo_steps(tmp_path) is None
+    (tmp_path / "actor-a0" / "summary.json").write_text(json.dumps({"demo_transitions": 1165}))
+    assert demo_steps(tmp_path) == 1165
