@@ -1,10 +1,10 @@
 """HIL-SERL's recipe (``--recipe hil-serl``) in the real system: one ``khgrl up`` of the passage world (router,
-learner, actor, scripted human; real Zenoh on loopback) with 3 teacher demonstrations and human episodes 1 and 2.
+learner, actor, scripted human; real Zenoh on loopback) with 3 teacher demonstrations, 3 human episodes.
 
 It asserts what the recipe is for: the run's config.json holds HIL-SERL's settings and their sources; the prior
 data are the teacher's *successful* demonstrations (each ends in the goal's reward) plus the takeovers, all in the
-learner's buffer flagged intervened; the human who takes over finishes the episode (both human episodes succeed
-and are held from the first takeover to the last step); the learner ran sac_cta; the delta box is the task's.
+learner's buffer flagged intervened; the human who takes over finishes the episode (every episode it took over in
+succeeds, held from the first takeover to the last step); the learner ran sac_cta; the delta box is the task's.
 Before this change there was no recipe: ``--method hil-serl`` replayed the task's own demonstrations (0/9
 successes under delta control on low_cov, issue 35) and its scripted takeover let go after the corrected steps.
 """
@@ -27,8 +27,9 @@ from helpers import REPO, read_json
 def test_the_recipe_on_the_passage_world_through_khgrl_up(tmp_path):
     run_dir = tmp_path / "run"
     proc = subprocess.run([*CLI, "up", "--scenario", "low_cov", "--recipe", "hil-serl", "--teacher-demos", "3",
-                           "--episodes", "3", "--human-episodes", "1", "2", "--seed", "1", "--run-dir", str(run_dir),
-                           "--no-progress"], cwd=REPO, env=_env(), capture_output=True, text=True, timeout=450)
+                           "--episodes", "3", "--human-episodes", "1", "2", "3", "--seed", "1",
+                           "--run-dir", str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True,
+                          text=True, timeout=450)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     cfg = read_json(run_dir / "config.json")
     t = cfg["tqc"]
@@ -58,8 +59,9 @@ def test_the_recipe_on_the_passage_world_through_khgrl_up(tmp_path):
     ends = prior[rb.dones[prior, 0] > 0]  # each demonstration ends at the goal (+200)
     assert len(ends) == 3 and np.all(rb.rewards[ends, 0] > 100)
     human = [r for r in episodes if int(r["intervention_steps"]) > 0]
-    assert [int(r["episode"]) for r in human] == [1, 2]
-    assert all(r["success"] == "True" for r in human), human  # the human who takes over finishes the episode
+    # the human takes over once the KMP mean is in the scenario's window (an episode the policy failed before
+    # that has none) and then finishes the episode: every episode it took over in succeeds
+    assert human and all(r["success"] == "True" for r in human), episodes
     with open(run_dir / "actor-a0" / "corrections.csv") as fh:
         held = {}
         for c in csv.DictReader(fh):
