@@ -30,11 +30,12 @@ FIRST_ACTOR = "a0"
 
 
 def replays_demos(loop: Any) -> bool:
-    """Whether this actor replays the demonstrations now: sampling is rlpd, it is the run's first actor, and its
-    stream and episodes are empty (a restarted actor has sent them already)."""
+    """Whether this actor replays the demonstrations now: sampling is rlpd, it is the run's first actor, its
+    stream and episodes are empty (a restarted actor has sent them already), and no teacher records others."""
     p = loop.p
+    teacher = loop.cfg.method == "hil-serl" and loop.cfg.hilserl.teacher_demos > 0  # (actor/teach.py's instead)
     return (loop.cfg.tqc.sampling == "rlpd" and loop.id == FIRST_ACTOR and loop.episode == 0
-            and p.stream.count == 0)
+            and p.stream.count == 0 and not teacher)
 
 
 def replay_demos(loop: Any) -> int:

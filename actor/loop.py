@@ -12,9 +12,8 @@ Per control step:
    frame (``last`` on the episode's final one), and every ``batch`` transitions of the actor's running index
    (and at episode end) cut a batch (:class:`~khgrl.common.delivery.stream.TransitionStream`).
 The watchdog (:mod:`khgrl.actor.safety`) holds the robot, and says why, while the loop waits (the e-stop, a pause,
-the learner) or a holding human is silent. Before the first episode of a run with ``--sampling rlpd`` the
-demonstrations go out as prior transitions (:mod:`khgrl.actor.demos`). At the end the actor waits until the learner
-holds every batch in a checkpoint.
+the learner) or a holding human is silent. First, demonstrations go out as prior transitions (:mod:`~.demos`,
+:mod:`~.teach`). At the end the actor waits until the learner holds every batch in a checkpoint.
 """
 
 from __future__ import annotations
@@ -33,6 +32,7 @@ from khgrl.actor.physical import SOURCE
 from khgrl.actor.reset import reset_phase
 from khgrl.actor.safety import Watchdog
 from khgrl.actor.supervision import Supervision
+from khgrl.actor.teach import prepare
 from khgrl.actor.telemetry import frame, status_info
 from khgrl.common.config.settings import RunConfig
 from khgrl.common.delivery.actor_side import ActorDelivery
@@ -67,7 +67,7 @@ class ActorLoop:
         self.id = actor
         self.p = parts
         self.flag = flag
-        self.realtime, self.demo_transitions = False, 0
+        self.realtime, self.demo_transitions, self.teacher = False, 0, None  # (teacher: actor/teach.py's record)
         self.episode = parts.episodes.last_episode
         self.first_episode = self.episode + 1
         self.earlier_transitions = parts.episodes.earlier_transitions
@@ -103,7 +103,7 @@ class ActorLoop:
         todo = self.cfg.episodes - self.episode
         self.pacer = Pacer(self.cfg.rate)
         self.p.scale.publish()
-        self.demo_transitions = replay_demos(self)  # (--sampling rlpd: the demonstrations as prior data first)
+        self.demo_transitions = prepare(self) + replay_demos(self)  # (the teacher's or the task's, as prior data)
         if todo <= 0:
             log.info("all %d episodes of the run are done already: nothing to run", self.cfg.episodes)
         while len(self.p.episodes.new) < todo and not self.flag:

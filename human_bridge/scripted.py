@@ -121,14 +121,16 @@ def announced_task(announced: TaskDescriptor, cfg, say: Callable[[str], None] = 
 def _human(task: Task, cfg) -> ScriptedHuman:
     """The scripted human of ``task`` with the run's episodes, noise and seed; under ``--method hil-serl`` its
     ``takeover`` where it has one (the same human steering the robot from where it is), and with ``--takeover
-    episode`` holding every step of its episodes (:class:`~khgrl.common.tasks.scripted_human.WholeEpisode`)."""
+    episode`` holding every step of its episodes (:class:`~khgrl.common.tasks.scripted_human.WholeEpisode`), with
+    ``--takeover finish`` every step from its first takeover to the episode's end (``ScriptedHumanConfig.finish``)."""
     guide = task.scripted_human
-    if cfg.method == "hil-serl":
+    hil = cfg.method == "hil-serl"
+    if hil:
         guide = getattr(guide, "takeover", guide)
         if cfg.takeover == "episode":
             guide = WholeEpisode(guide)
     return ScriptedHuman(guide, ScriptedHumanConfig(episodes=tuple(cfg.human_episodes), noise=cfg.human_noise,
-                                                    seed=cfg.seed))
+                                                    seed=cfg.seed, finish=hil and cfg.takeover == "finish"))
 
 
 def _horizon(task: Task, human: ScriptedHuman) -> int | None:

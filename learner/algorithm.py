@@ -13,8 +13,9 @@ or infinite (:meth:`LearnerAlgorithm.snapshot`, :meth:`~LearnerAlgorithm.restore
 float32, taking the learner's weights by name.
 
 Implementations: ``tqc`` (:mod:`khgrl.learner.tqc`, sb3-contrib TQC, the paper's, the default), ``sac``
-(:mod:`khgrl.learner.sac`), ``sac_ln`` (:mod:`khgrl.learner.sac_ln`, HIL-SERL's SAC); SB3-based ones
-share :class:`khgrl.learner.sb3_offpolicy.SB3OffPolicy`. Adding one: a module with the class and one line in
+(:mod:`khgrl.learner.sac`), ``sac_ln`` (:mod:`khgrl.learner.sac_ln`, HIL-SERL's SAC), ``sac_cta``
+(:mod:`khgrl.learner.sac_cta`, with HIL-SERL's update schedule); SB3-based ones share
+:class:`khgrl.learner.sb3_offpolicy.SB3OffPolicy`. Adding one: a module with the class and one line in
 :data:`REGISTRY`.
 """
 
@@ -42,6 +43,7 @@ REGISTRY: dict[str, str] = {
     "tqc": "khgrl.learner.tqc:TQCAlgorithm",
     "sac": "khgrl.learner.sac:SACAlgorithm",
     "sac_ln": "khgrl.learner.sac_ln:SACLNAlgorithm",
+    "sac_cta": "khgrl.learner.sac_cta:SACCTAAlgorithm",
 }
 
 

@@ -36,6 +36,7 @@ from typing import Any, get_type_hints
 from khgrl.common.config.assignments import parse_assignments
 from khgrl.common.config.fields import _LA, _LAH, ACTOR, HUMAN, LEARNER, REFERENCE, ROLES, UP, _opt
 from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
+from khgrl.common.config.hilserl import PRESET, RECIPES, HilSerlSettings
 from khgrl.common.config.safety import SafetySettings
 from khgrl.common.config.tqc import SAMPLINGS, TQCSettings
 
@@ -46,7 +47,7 @@ __all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSER
 
 METHODS = ("khgrl", "kgrl", "hil-serl")
 HUMAN_METHODS, REFERENCE_METHODS = ("khgrl", "hil-serl"), ("khgrl", "kgrl")  # with a human; khgrl reference's
-TAKEOVERS = ("steps", "episode")
+TAKEOVERS = ("steps", "episode", "finish")
 HILSERL_DEFAULTS = {"algo": "sac_ln", "tqc": {"sampling": "rlpd"}}  # what --method hil-serl implies unless set
 MODES = ("simulation", "robot")
 PHYSICAL = ("off", "detect", "scripted")
@@ -154,8 +155,13 @@ class RunConfig:
     human_episodes: tuple[int, ...] = _opt(PAPER_EPISODES, "episodes with scripted corrections (the paper's)",
                                            roles=(HUMAN, ACTOR, REFERENCE))
     takeover: str = _opt("steps", "--method hil-serl: the scripted human takes over in the steps it corrects KhGRL "
-                                  "in (steps), or in every step of its episodes, on the KMP mean elsewhere (episode)",
+                                  "in (steps), in every step of its episodes, on the KMP mean elsewhere (episode), or "
+                                  "from its first correction of an episode to the episode's end (finish)",
                          TAKEOVERS, roles=(HUMAN,))
+    recipe: str = _opt("none", "none: the protocol every method shares; hil-serl: HIL-SERL's recipe (implies --method "
+                               "hil-serl, its published settings, --takeover finish, 20 teacher demonstrations, the "
+                               "task-sized safety box, unless given; common/config/hilserl.py)", RECIPES,
+                       roles=(LEARNER, ACTOR, HUMAN))
     human_noise: float = _opt(0.0, "std of the scripted human's hand noise (workspace units)",
                               roles=(HUMAN, REFERENCE))
     replay: str = _opt("", "with --human replay: the recorded RUN_DIR/actor-ID/corrections.csv to feed in",
@@ -178,6 +184,7 @@ class RunConfig:
     tqc: TQCSettings = field(default_factory=TQCSettings)
     stream: StreamSettings = field(default_factory=StreamSettings)
     safety: SafetySettings = field(default_factory=SafetySettings)
+    hilserl: HilSerlSettings = field(default_factory=HilSerlSettings)
 
     def validate(self) -> "RunConfig":
         if self.episodes < 1 or self.actors < 1:
@@ -202,6 +209,9 @@ class RunConfig:
         self.tqc.validate()
         self.stream.validate(self.tqc.train_freq)
         self.safety.validate(self.stream.correction_timeout)
+        self.hilserl.validate()
+        if self.recipe != "none" and self.method != "hil-serl":
+            raise ValueError(f"recipe {self.recipe!r} is an option of method hil-serl, not {self.method!r}")
         return self
 
     @property
@@ -347,6 +357,8 @@ def resolve(config_file: str | Path | None = None, args: argparse.Namespace | No
         data = _merge(data, _overrides(args))
     if overrides:
         data = _merge(data, overrides)
+    if data.get("recipe") == "hil-serl":  # HIL-SERL's recipe (common/config/hilserl.py), unless set
+        data = _merge(PRESET, data)
     if data.get("method") == "hil-serl":  # the recipe's algorithm and sampling, unless set
         data = _merge(HILSERL_DEFAULTS, data)
     return _build(RunConfig, data, "config").validate()

@@ -34,6 +34,10 @@ class TQCSettings:
                                     "sampling: half of each batch from the prior data -- demonstrations replayed as "
                                     "transitions and the human's interventions -- half from all data)", SAMPLINGS,
                          roles=_LA)
+    cta_ratio: int = _opt(1, "--algo sac_cta: critic updates per actor update in each gradient step (HIL-SERL's "
+                             "cta_ratio: 2; 1: SAC's one each)", roles=_LR)
+    backup_entropy: bool = _opt(True, "--algo sac_cta: the entropy term in the critics' target (SAC's; HIL-SERL: "
+                                      "--no-backup-entropy)", roles=_LR)
     device: str = _opt("auto", "where the learner trains: auto (cuda if torch sees a GPU, else cpu), cpu or cuda; "
                                "weights always go to actors as CPU float32 arrays", DEVICES, roles=_LR)
     cuda_graph: bool = _opt(True, "on a CUDA device, each gradient step is one CUDA graph replayed (the library's "
@@ -52,7 +56,7 @@ class TQCSettings:
                     verbose=0)
 
     def validate(self) -> None:
-        for name in ("train_freq", "gradient_steps", "batch_size", "buffer_size"):
+        for name in ("train_freq", "gradient_steps", "batch_size", "buffer_size", "cta_ratio"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1")
         if self.learning_starts < 0 or not self.net_arch or min(self.net_arch) < 1:

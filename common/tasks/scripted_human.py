@@ -27,6 +27,7 @@ class ScriptedHumanConfig:
     window: tuple[float, float] | None = None  # passage world: x-range where it helps (default: the scenario's)
     noise: float = 0.0  # std of Gaussian noise on P_h (workspace units)
     seed: int = 0
+    finish: bool = False  # once it takes over in an episode, it holds every remaining step (--takeover finish)
 
 
 class ScriptedHuman:
@@ -48,6 +49,7 @@ class ScriptedHuman:
         self.inputs = scripted_human_inputs(guide)  # what it asks for besides the mean (from its signature, once)
         self.config = config
         self._rng = np.random.default_rng(config.seed)
+        self._taken: set[int] = set()  # (finish) the episodes it has taken over in
 
     def path_y(self, x: float) -> float:
         """The passage world's safe path at workspace x."""
@@ -66,6 +68,9 @@ class ScriptedHuman:
         :param phase: its phase s_t.
         :param position: where the robot is before the step (None: at the mean).
         :param obs: the environment's latest observation (None: none yet).
+
+        With ``finish`` (HIL-SERL's human, ``--takeover finish``): from the guide's first P_h in an episode on,
+        every later step of that episode is held -- the guide's P_h where it helps, the step's KMP mean elsewhere.
         """
         if not self.active_in(episode):
             return None
@@ -73,6 +78,10 @@ class ScriptedHuman:
         position = mean.copy() if position is None else np.asarray(position, dtype=np.float64)
         p_h = call_scripted_human(self.guide, mean, step=int(step), phase=phase, position=position, obs=obs,
                                   names=self.inputs)
+        if self.config.finish and p_h is not None:
+            self._taken.add(episode)
+        elif self.config.finish and episode in self._taken:
+            p_h = mean  # (finishing what it took over: the demonstrated path to the task's end)
         if p_h is None:
             return None
         p_h = np.asarray(p_h, dtype=np.float64).reshape(-1)

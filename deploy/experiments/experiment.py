@@ -166,13 +166,15 @@ def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
         return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
                 "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]
     world = ["--task", spec.task] if spec.task else ["--scenario", spec.scenario]
-    # kgrl_noadapt: --method kgrl --no-adapt; khgrl_rlpd: --sampling rlpd; hil-serl_episode: --takeover episode
+    # kgrl_noadapt: --method kgrl --no-adapt; khgrl_rlpd: --sampling rlpd; hil-serl_episode: --takeover episode;
+    # hil-serl_recipe: --recipe hil-serl (HIL-SERL's settings, teacher demonstrations, finishing takeover, task box)
     method, _, variant = spec.method.partition("_")
     argv = [*khgrl, "up", *world, "--method", method, "--seed", str(spec.seed),
             "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead),
             "--no-progress", *(["--no-adapt"] if variant == "noadapt" else []),
             *(["--sampling", "rlpd"] if variant == "rlpd" else []),
-            *(["--takeover", "episode"] if variant == "episode" else [])]
+            *(["--takeover", "episode"] if variant == "episode" else []),
+            *(["--recipe", "hil-serl"] if variant == "recipe" else [])]
     if method in HUMAN_METHODS:
         argv += ["--human", "scripted", "--human-episodes", *map(str, cfg.human_episodes)]
     else:

@@ -10,7 +10,8 @@ from khgrl.deploy.experiments.run_results import METHOD_LABEL, episode_matrix, h
 __all__ = ["FIGURE", "METHOD_COLOR", "figure_name", "plot_learning", "plot_scale", "axis_names"]
 
 METHOD_COLOR = {"khgrl": "C3", "kgrl": "C0", "khgrl_noadapt": "C1", "kgrl_noadapt": "C7", "khgrl_rlpd": "C5",
-                "kgrl_rlpd": "C9", "hil-serl": "C2", "hil-serl_episode": "C8"}
+                "kgrl_rlpd": "C9", "hil-serl": "C2", "hil-serl_episode": "C8",
+                "hil-serl_recipe": "C4"}
 FIGURE = {"high_cov": ("fig4_high_cov.png", "Fig. 4 (high-covariance scenario A)"),
           "low_cov": ("fig5_low_cov.png", "Fig. 5 (low-covariance scenario B)")}
 

@@ -48,14 +48,14 @@ __all__ = [
 
 # <scenario>: a passage-world scenario (high_cov, low_cov) or a task's label (fetch_moved: ``khgrl experiment --tasks``)
 # <method>: khgrl, kgrl, or either with "_noadapt" (khgrl up --no-adapt: the demonstrations' KMP in every scene) or
-# "_rlpd" (--sampling rlpd); hil-serl, or hil-serl_episode (--takeover episode)
+# "_rlpd" (--sampling rlpd); hil-serl, hil-serl_episode (--takeover episode) or hil-serl_recipe (--recipe hil-serl)
 RUN_NAME = re.compile(r"^(?P<scenario>[A-Za-z0-9_]+)-"
-                      r"(?P<method>(?:khgrl|kgrl)(?:_noadapt|_rlpd)?|hil-serl(?:_episode)?)-seed(?P<seed>\d+)$")
+                      r"(?P<method>(?:khgrl|kgrl)(?:_noadapt|_rlpd)?|hil-serl(?:_episode|_recipe)?)-seed(?P<seed>\d+)$")
 STABLE_WINDOW = 5  # consecutive autonomous successes that count as "stable success"
 METHOD_LABEL = {"khgrl": "KhGRL", "kgrl": "KGRL", "khgrl_noadapt": "KhGRL, no adaptation",
                 "kgrl_noadapt": "KGRL, no adaptation", "khgrl_rlpd": "KhGRL + RLPD replay",
                 "kgrl_rlpd": "KGRL + RLPD replay", "hil-serl": "HIL-SERL",
-                "hil-serl_episode": "HIL-SERL, whole-episode takeover"}
+                "hil-serl_episode": "HIL-SERL, whole-episode takeover", "hil-serl_recipe": "HIL-SERL, its recipe"}
 
 
 @dataclass
@@ -86,6 +86,7 @@ class RunResult:
     human_steps_to_first_autonomous: int | None = None  # human steps in the episodes up to it (None: never)
     gradient_steps: int | None = None  # the learner's, at its last checkpoint (None: not recorded)
     wall_s: float | None = None  # the run's wall time (khgrl up's summary.json)
+    demo_steps: int | None = None  # prior transitions from demonstrations (the teacher's or the task's replayed)
 
 
 def stable_success(success: list[bool], human: list[bool], window: int = STABLE_WINDOW) -> int | None:
@@ -153,6 +154,16 @@ def run_compute(run_dir: Path) -> tuple[int | None, float | None]:
     steps = read(Path(run_dir) / "learner" / "checkpoint" / "state.json").get("gradient_steps")
     wall = read(Path(run_dir) / "summary.json").get("wall_time_s")
     return (int(steps) if isinstance(steps, int) else None), (float(wall) if isinstance(wall, (int, float)) else None)
+
+
+def demo_steps(run_dir: Path) -> int | None:
+    """The demonstrations' steps the run's first actor sent as prior data (``demo_transitions`` of
+    actor-a0/summary.json: the teacher's successful ones, or the task's replayed); None where not recorded."""
+    try:
+        value = json.loads((Path(run_dir) / "actor-a0" / "summary.json").read_text()).get("demo_transitions")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return int(value) if isinstance(value, int) else None
 
 
 def load_eval(run_dir: Path) -> list[bool]:
@@ -233,7 +244,7 @@ def summarize_run(scenario: str, method: str, seed: int, run_dir: Path, rows: li
         workspace_exits=sum(r["workspace_exits"] for r in rows),
         human_steps_to_first_autonomous=None if first_auto is None else sum(
             r["intervention_steps"] for r in rows if r["episode"] < first_auto),
-        gradient_steps=steps, wall_s=wall,
+        gradient_steps=steps, wall_s=wall, demo_steps=demo_steps(run_dir),
     )
 
 

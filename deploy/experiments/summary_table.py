@@ -187,7 +187,8 @@ def summary_markdown(results: list[RunResult], episodes: int) -> str:
 # (a, b): "a vs b" tables, where both ran: what the human adds (KhGRL vs KGRL, with and without adaptation) and
 # what adapting the KMP to the scene adds (KGRL vs KGRL without adaptation)
 COMPARISONS = (("khgrl", "kgrl"), ("kgrl", "kgrl_noadapt"), ("khgrl_noadapt", "kgrl_noadapt"), ("khgrl", "hil-serl"),
-               ("khgrl_rlpd", "hil-serl"), ("khgrl_rlpd", "khgrl"), ("khgrl", "hil-serl_episode"))
+               ("khgrl_rlpd", "hil-serl"), ("khgrl_rlpd", "khgrl"), ("khgrl", "hil-serl_episode"),
+               ("khgrl", "hil-serl_recipe"), ("hil-serl_recipe", "hil-serl"))
 
 
 def _comparison(groups: dict, a_method: str, b_method: str, criteria: list[str], heads: list[str], evaluated: bool,

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from khgrl.common.config.hilserl import recipe_runtime
 from khgrl.common.config.settings import HUMAN_METHODS, RunConfig, add_config_flags, resolve, write_run_config
 from khgrl.common.delivery import control_auth, role_keys, run_key
 from khgrl.common.delivery.declare import put, subscribe
@@ -202,7 +203,7 @@ def prepare_run_dir(plan: RunPlan) -> None:
     runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "cwd": os.getcwd(), "actor_ids": plan.cfg.actor_ids(),
                "argv": plan.argv, "started": started, "resumed": plan.resume, "part": part,
                "first_started": plan.previous.get("first_started", plan.previous.get("started", started)),
-               "secure": plan.secure}
+               "secure": plan.secure, **recipe_runtime(plan.cfg)}
     write_run_config(plan.run_dir, plan.cfg, runtime)
     # the learner builds its spaces from the task at once (instead of waiting for an actor to announce it), so it
     # is up before the actors step, as a learner of any task must be for a seeded run to repeat

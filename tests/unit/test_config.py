@@ -172,10 +172,11 @@ def _process_parsers() -> dict[str, list[argparse.ArgumentParser]]:
 def test_each_commands_flags_are_the_settings_whose_roles_name_it():
     from dataclasses import fields as dc_fields
 
+    from khgrl.common.config.hilserl import HilSerlSettings
     from khgrl.common.config.settings import ROLES, SafetySettings, role_fields
 
-    every = [f for cls in (RunConfig, TQCSettings, StreamSettings, SafetySettings) for f in dc_fields(cls)
-             if cls is not RunConfig or f.name not in ("tqc", "stream", "safety")]
+    every = [f for cls in (RunConfig, TQCSettings, StreamSettings, SafetySettings, HilSerlSettings)
+             for f in dc_fields(cls) if cls is not RunConfig or f.name not in ("tqc", "stream", "safety", "hilserl")]
     for f in every:  # every setting says which commands take it, and khgrl up takes it
         assert "up" in f.metadata["roles"] and f.metadata["roles"] <= set(ROLES), f.name
     parsers = _process_parsers()
