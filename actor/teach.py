@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 from khgrl.actor.demos import FIRST_ACTOR
+from khgrl.common.delivery.vouching import DEMO
 from khgrl.common.tasks.api import TaskError
 from khgrl.common.tasks.scripted_human import WholeEpisode
 
@@ -92,7 +93,7 @@ def _send(loop: Any, transitions: list) -> None:
     """One kept demonstration as intervened transitions on the actor's stream, cut as an episode's are."""
     stream = loop.p.stream
     for obs, next_obs, action, reward, terminated, truncated, clipped in transitions:
-        stream.add(obs, next_obs, action, reward, terminated, truncated, True, clipped)
+        stream.add(obs, next_obs, action, reward, terminated, truncated, True, clipped, DEMO)  # (a0's first rows)
         if terminated or truncated or stream.count % loop.cfg.stream.batch == 0:
             stream.cut()
 

@@ -172,7 +172,7 @@ def run(pc: ProcessConfig, keys: Keys, learner_id: str, learner_dir: Path, *, re
                            checkpoint_dir=cfg.checkpoint_dir or None, mode=cfg.stream.mode, journal=journal,
                            model_checkpoint_every=cfg.stream.model_checkpoint_every,
                            lead_cap=lead_cap(cfg.stream), key=key)
-        loop.set_task(task)
+        loop.set_task(task, cfg.hilserl.teacher_demos)  # (the teacher's demonstrations are a0's first rows)
         loop.ingest.control = gate
         if streams.journal_loss is not None:  # (accepted): a full checkpoint replaces the damaged journal
             loop.durable.settle_loss()

@@ -127,14 +127,15 @@ class LearnerIngest:
         """
         return self.admission.admit(owner(key), size)
 
-    def set_task(self, task: TaskDescriptor) -> None:
+    def set_task(self, task: TaskDescriptor, teacher_demos: int = 0) -> None:
         """The run's task descriptor: batches are checked against its sizes and digest, acks carry its digest.
 
         :param task: the descriptor
+        :param teacher_demos: demonstrations a0's scripted teacher records first (prior data, like the task's)
         """
         self.task = task
         self.dims = Dims(obs=task.obs_dim, out=task.out_dim)
-        self.vouching.demo_limit = demo_rows(task)
+        self.vouching.demo_limit = demo_rows(task, teacher_demos)
 
     # ------------------------------------------------------------------------------------ input
     def receive(self, kind: str, key: str, payload: bytes) -> None:

@@ -89,15 +89,17 @@ def evidence(row: int, word: Any | None) -> Evidence | None:
     return (row, word.client, int(word.envelope.seq), word.episode, word.t, word.step, p_h, word.sig)
 
 
-def demo_rows(task: Any) -> int:
-    """How many running indices of ``a0``'s stream may be demonstrations: demos x the longest episode.
+def demo_rows(task: Any, teacher_demos: int = 0) -> int:
+    """How many running indices of ``a0``'s stream may be demonstrations: the task's demos and the teacher's
+    (``--teacher-demos``: whole episodes) x the longest episode.
 
     :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor`.
+    :param teacher_demos: demonstrations the scripted teacher records before the first episode
+        (:mod:`khgrl.actor.teach`).
     """
     demos = np.asarray(task.demos)
-    if demos.ndim != 3:
-        return 0
-    return int(demos.shape[0]) * max(int(task.horizon), int(demos.shape[1]))
+    n, length = (int(demos.shape[0]), int(demos.shape[1])) if demos.ndim == 3 else (0, 0)
+    return (n + max(0, int(teacher_demos))) * max(int(task.horizon), length)
 
 
 @dataclass

@@ -206,9 +206,9 @@ def test_the_experiment_arm_hil_serl_recipe_runs_khgrl_up_with_the_recipe(tmp_pa
     import json
 
     from khgrl.common.config.settings import resolve
-    from khgrl.deploy.experiment import ExperimentConfig, plan_runs, run_argv
-    from khgrl.deploy.launcher import build_parser
-    from khgrl.deploy.run_results import METHOD_LABEL, RUN_NAME, demo_steps
+    from khgrl.deploy.experiments.experiment import ExperimentConfig, plan_runs, run_argv
+    from khgrl.deploy.experiments.run_results import METHOD_LABEL, RUN_NAME, demo_steps
+    from khgrl.deploy.run.launcher import build_parser
 
     cfg = ExperimentConfig(seeds=[0], tasks=["passage:low_cov"], methods=["hil-serl_recipe"], episodes=3)
     (spec,) = plan_runs(cfg)

@@ -193,6 +193,18 @@ def test_demonstrations_are_prior_data_only_from_a0_and_only_its_first_rows(run)
     assert other.vouched == 0 and "only a0 replays them" in other.why
 
 
+def test_the_demonstration_window_covers_the_tasks_and_the_teachers_demonstrations():
+    """--recipe hil-serl's teacher records its demonstrations as a0's first rows: without them in the window its
+    kept episodes were stored as ordinary data (found merging the recipe with vouching)."""
+    from types import SimpleNamespace
+
+    from khgrl.common.delivery.vouching import demo_rows
+
+    task = SimpleNamespace(demos=np.zeros((3, 50, 2)), horizon=100)
+    assert demo_rows(task) == 300 and demo_rows(task, teacher_demos=20) == 2300
+    assert demo_rows(SimpleNamespace(demos=np.zeros(0), horizon=100), teacher_demos=2) == 200
+
+
 def test_the_replay_guard_ignores_the_flag_and_exempts_only_vouched_batches():
     guard = ReplayGuard()
     policy = _batch(iv=[0, 0, 0, 0])
