@@ -119,7 +119,7 @@ def test_rewards_at_the_old_default_bound_are_refused(tmp_path):
                                                 f"|Q| on a0's states {q:.4g} (Q_max {Q_MAX:.4g})", done)
     assert q < Q_MAX, f"|Q| on a0's states {q:.4g} > Q_max {Q_MAX:.4g}"
     assert task.reward_bound == pytest.approx(R_MAX) and task.obs_bound == 2.0
-    assert "actor x9 batch 0: reward[0] = 999073 is outside [-293.728, 293.728]" in log
+    assert "actor x9 batch 0: reward[0] = 999074 is outside [-293.728, 293.728]" in log
     assert done["rollbacks"] == 0 and done["q_rollbacks"] == 0 and done["q_largest"] < Q_MAX, done
     bounds = read_json(run_dir / "config.json")["runtime"]["task_bounds"]
     assert bounds == {"reward_bound": 220.0, "obs_bound": 2.0, "rule": "stated by the task",
