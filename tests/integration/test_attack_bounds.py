@@ -8,13 +8,14 @@ from a session of its own and signed as an actor process signs (the run's key an
 ``x9``), :data:`FORGED` batches of 8 transitions whose reward is 0.999 x 1,000,073 (observations as the passage
 world's: 0.5), right after the learner is up, so every training iteration can sample them.
 
-Before (the unchanged code): all 24 forged batches were stored (values refused: 0, ``x9`` admitted) and the
-critic's largest |Q| on a0's own stored transitions at the end of the run was 1.2e5, beyond
-Q_max = 2 x 293.7 / (1 - 0.99) = 58,746 (the largest |discounted return| the task allows, twice).
+Before (the unchanged code, 696d564): all 24 forged batches were stored (values refused: 0, ``x9`` admitted:
+the test fails there) and the critic's largest |Q| on a0's own stored transitions at the end of the run (78
+iterations) was 2.09e4 and climbing, a thousand times the 19.6 of this run now (Q_max = 2 x 293.7 / (1 - 0.99) =
+58,746 is the most any reward within the task's bound allows, twice).
 Now: the built-in task states its bounds, so every forged batch is refused (``rejected: values`` = 24, x9 never
 admitted), nothing is rolled back (``rollbacks`` and ``q_rollbacks`` 0), a0's transitions are stored exactly once,
-the critic's |Q| on a0's states stays in the task's range (about 10), and ``config.json`` says where the bounds
-came from.
+the critic's |Q| on a0's states stays in the task's range (19.6), and ``config.json`` says where the bounds came
+from.
 """
 
 from __future__ import annotations
@@ -114,7 +115,7 @@ def test_rewards_at_the_old_default_bound_are_refused(tmp_path):
     q = _q_on_a0(run_dir, task)
     stored = state["actors"].get("x9", {}).get("ingested", 0) // 8
     refused = done["rejected"].get("values", 0)
-    # before: 24 forged batches stored, 0 refused, |Q| on a0's states 1.2e5 > Q_max 58,746
+    # before: 24 of 24 forged batches stored, 0 refused, |Q| on a0's states 2.09e4 (now 19.6)
     assert stored == 0 and refused == FORGED, (f"{stored} of {FORGED} forged batches stored, {refused} refused; "
                                                 f"|Q| on a0's states {q:.4g} (Q_max {Q_MAX:.4g})", done)
     assert q < Q_MAX, f"|Q| on a0's states {q:.4g} > Q_max {Q_MAX:.4g}"
