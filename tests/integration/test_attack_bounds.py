@@ -10,7 +10,7 @@ world's: 0.5), right after the learner is up, so every training iteration can sa
 
 Before (the unchanged code, 696d564): all 24 forged batches were stored (values refused: 0, ``x9`` admitted:
 the test fails there) and the critic's largest |Q| on a0's own stored transitions at the end of the run (78
-iterations) was 2.09e4 and climbing, a thousand times the 19.6 of this run now (Q_max = 2 x 293.7 / (1 - 0.99) =
+iterations) was 2.09e4, a thousand times the 19.6 of this run now (Q_max = 2 x 293.7 / (1 - 0.99) =
 58,746 is the most any reward within the task's bound allows, twice).
 Now: the built-in task states its bounds, so every forged batch is refused (``rejected: values`` = 24, x9 never
 admitted), nothing is rolled back (``rollbacks`` and ``q_rollbacks`` 0), a0's transitions are stored exactly once,
