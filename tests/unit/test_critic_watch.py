@@ -174,7 +174,7 @@ def test_the_check_draws_no_random_numbers_and_is_cheap(tmp_path, task):
     assert torch.equal(torch_rng, torch.get_rng_state()) and np.array_equal(np_rng[1], np.random.get_state()[1])
     assert loop.work()
     s = loop.summary()
-    assert s["q_rollbacks"] == 0 and 0 < s["q_largest"] < 100 and s["q_check_ms"] < 50
+    assert s["q_rollbacks"] == 0 and 0 < s["q_largest"] < 100 and s["q_check_ms"] < 1000  # (5 ms in a run)
 
 
 def test_a_watch_logs_the_first_ten_then_every_hundredth(tmp_path, task, caplog):
