@@ -71,7 +71,7 @@ def open_learner(tqc: TQCSettings, seed: int, learner_dir: str | Path, *, resume
     ckpt_dir = Path(checkpoint_dir or learner_dir)
     _remove_stale_temps(ckpt_dir)
     kw = dict(learning_starts=tqc.learning_starts, train_freq=tqc.train_freq, log_dir=learner_dir / "tb",
-              logger_formats=logger_formats)
+              logger_formats=logger_formats, reward_bound=None if task is None else task.reward_bound)
     if not resume:
         _remove_earlier(ckpt_dir)
         log.info("learner algorithm %s, seed %d", algo, seed)

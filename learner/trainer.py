@@ -12,7 +12,9 @@ learns does not depend on how many more arrived meanwhile (the learner stores ba
 
 An iteration that leaves a training loss or a parameter NaN or infinite is rolled back: the algorithm is
 restored from the in-memory snapshot taken before it (:meth:`~khgrl.learner.algorithm.LearnerAlgorithm.snapshot`),
-so non-finite weights are never published or checkpointed (status ``rollbacks``).
+so non-finite weights are never published or checkpointed (status ``rollbacks``). So is an iteration after which
+the critic's Q goes beyond what the task's reward bound and gamma allow (:mod:`khgrl.learner.critic_watch`; the
+summary's ``q_rollbacks``).
 
 In ``robot`` mode (actors never wait) there is no schedule: :meth:`Trainer.train_now` trains on everything
 stored so far whenever the learner is free, and the status reports the update-to-data ratio achieved.
@@ -35,6 +37,7 @@ from khgrl.common.config.settings import TQCSettings
 from khgrl.common.delivery.ingest import ActorStream
 from khgrl.common.wire.protocol import Ack, Transitions, Weights
 from khgrl.learner.algorithm import DEFAULT, LearnerAlgorithm, algorithm_class
+from khgrl.learner.critic_watch import CriticWatch
 from khgrl.learner.replay import StreamReplayBuffer
 
 __all__ = ["Trainer", "build_algorithm", "build_model", "torch_device", "keep_freed_memory"]
@@ -112,12 +115,13 @@ class Trainer:
     incarnation (``epoch``)."""
 
     def __init__(self, algo: LearnerAlgorithm, *, learning_starts: int, train_freq: int, log_dir: str | Path,
-                 logger_formats: tuple[str, ...] = ("csv", "tensorboard")) -> None:
+                 logger_formats: tuple[str, ...] = ("csv", "tensorboard"), reward_bound: float | None = None) -> None:
         """:param algo: the algorithm (:func:`build_algorithm`, or loaded from a checkpoint)
         :param learning_starts: transitions before the first training iteration
         :param train_freq: transitions per training iteration
         :param log_dir: where the algorithm's SB3 logger writes (csv, TensorBoard)
         :param logger_formats: SB3 logger output formats
+        :param reward_bound: the task's reward bound: the critic is watched against it (None: not watched)
         """
         self.algo = algo
         self.learning_starts = int(learning_starts)
@@ -131,6 +135,7 @@ class Trainer:
         self.weights_trained: dict[str, int] = {}
         self.rollbacks = 0  # iterations rolled back (a loss or parameter went non-finite)
         self.last_rollback = ""  # what was not finite the last time
+        self.watch = CriticWatch(reward_bound) if reward_bound is not None else None
         self.schedule = True  # simulation mode: iterations come due with the data; robot mode: train_now
         algo.set_logger(Path(log_dir), logger_formats)
 
@@ -236,7 +241,14 @@ class Trainer:
             fault = f"{fault} ({type(exc).__name__} in the iteration)"
         if fault is not None:
             self.algo.restore(before)
+        elif self.watch is not None and self.watch.check(self.algo, limit) is not None:
+            self.algo.restore(before)  # (counted and logged by the watch; not a non-finite ``rollbacks``)
         return fault
+
+    @property
+    def q_rollbacks(self) -> int:
+        """Iterations rolled back for a critic's Q beyond the task's bound (:mod:`khgrl.learner.critic_watch`)."""
+        return 0 if self.watch is None else self.watch.rollbacks
 
     def record_iteration(self, seconds: float, queue_depth: int) -> None:
         """Training scalars after an iteration (SB3 logger: csv and TensorBoard).

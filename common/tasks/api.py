@@ -11,8 +11,10 @@ settings
   linear constraints ``G P >= c`` (math.md §3);
 * the default exploration scale L0 and whether KhGRL learns it from the human (paper Section III-C);
 * the value bounds the learner holds the task's transitions to: ``reward_bound`` (the largest |reward| of the
-  environment, default 1e6) and ``obs_bound`` (the largest |observation| in any dimension, default 1e6; within it the
-  observation space's own bounds apply): a batch beyond them is refused (:func:`value_bounds`);
+  environment) and ``obs_bound`` (the largest |observation| in any dimension; within it the observation space's own
+  bounds apply): a batch beyond them is refused (:func:`value_bounds`). A bound the task does not state (None, the
+  default) is derived from its demonstrations and two random episodes with a margin of 4
+  (:mod:`khgrl.common.tasks.derived_bounds`);
 * optionally: ``scene``, a scene that changes every episode and the via-points that adapt the KMP to it
   (:class:`~khgrl.common.tasks.scene.Scene`);
 * optionally: ``position`` (where the robot is, in command coordinates, from the environment's observation;
@@ -43,7 +45,6 @@ import numpy as np
 from khgrl.common.kmp.fit import KMPConfig
 from khgrl.common.lerobot.demos import is_lerobot_spec
 from khgrl.common.tasks.scene import Scene, ViaPoint, scene_seed
-from khgrl.common.wire.descriptor import OBS_BOUND, REWARD_BOUND
 
 __all__ = ["Task", "View", "Scene", "ViaPoint", "scene_seed", "Cuboid", "Sphere", "Point", "TaskError", "load_task",
            "BUILTIN_TASKS", "MAX_DIM", "HUMAN_INPUTS", "scripted_human_inputs", "call_scripted_human",
@@ -136,10 +137,13 @@ class Task:
         ``**kwargs``) gets those too (:func:`call_scripted_human`).
     :param view: drawing hints.
     :param success_key: the ``info`` key that marks a successful episode end.
-    :param reward_bound: the largest |reward| the environment gives (default 1e6); the learner refuses a batch with
-        a reward beyond it plus the largest action cost (:func:`value_bounds`).
-    :param obs_bound: the largest |observation| in any dimension (default 1e6), whatever the observation space
-        says; within it the space's own bounds apply (with a margin of a tenth of their width).
+    :param reward_bound: the largest |reward| the environment gives; the learner refuses a batch with a reward
+        beyond it plus the largest action cost (:func:`value_bounds`). None (default): derived
+        (:mod:`khgrl.common.tasks.derived_bounds`: 4 x the largest |reward| seen replaying the demonstrations and
+        two random episodes, rounded up to a power of two).
+    :param obs_bound: the largest |observation| in any dimension, whatever the observation space says; within it
+        the space's own bounds apply (with a margin of a tenth of their width). None (default): derived as
+        ``reward_bound`` is.
     :param scene: how the scene varies per episode and adapts the KMP (None: one fixed scene;
         :mod:`khgrl.common.tasks.scene`).
     """
@@ -161,8 +165,8 @@ class Task:
     scripted_human: Callable[..., np.ndarray | None] | None = None
     view: View = field(default_factory=View)
     success_key: str = "success"
-    reward_bound: float = REWARD_BOUND
-    obs_bound: float = OBS_BOUND
+    reward_bound: float | None = None
+    obs_bound: float | None = None
     scene: Scene | None = None
 
     def with_demos(self, demos: Any) -> "Task":

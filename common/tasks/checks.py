@@ -85,7 +85,8 @@ def value_bounds(task: Task, workspace: tuple[np.ndarray, np.ndarray],
     the workspace allows: ``4 * action_cost * |high - low|^2`` (|P_t - eta0_t| <= twice the workspace's diagonal,
     even where the KMP mean leaves the box a little).
 
-    :param task: the task (its declared ``reward_bound``, ``obs_bound`` and ``action_cost``).
+    :param task: the task (its ``reward_bound``, ``obs_bound`` -- stated or derived:
+        :func:`~khgrl.common.tasks.derived_bounds.resolve_bounds` -- and ``action_cost``).
     :param workspace: (low, high) of the workspace box.
     :param obs_space: (low, high) of the policy's observation space (infinite where unbounded).
     :raises TaskError: a declared bound that is not a number in (0, 1e9], or an observation space that lies

@@ -7,8 +7,23 @@ from typing import Any
 
 import numpy as np
 from khgrl.common.tasks.checks import value_bounds
+from khgrl.common.tasks.derived_bounds import resolve_bounds
 
-__all__ = ["descriptor"]
+__all__ = ["descriptor", "task_bounds"]
+
+
+def task_bounds(env: Any) -> tuple[Any, dict]:
+    """The env's task with both value bounds set (stated, or derived once per env:
+    :func:`~khgrl.common.tasks.derived_bounds.resolve_bounds`) and the record of how.
+
+    :param env: the :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv`.
+    """
+    found = getattr(env, "_resolved_bounds", None)
+    if found is None or found[0] is not env.task:
+        w = env.world
+        found = (env.task, *resolve_bounds(env.task, w.demos, w.low, w.high))
+        env._resolved_bounds = found
+    return found[1], found[2]
 
 
 def descriptor(env: Any, spec: str = ""):
@@ -21,7 +36,7 @@ def descriptor(env: Any, spec: str = ""):
 
     w, ob = env.world, env.observation_space
     big = 1e30
-    reward_bound, obs_bound = value_bounds(env.task, (w.low, w.high), (ob.low, ob.high))
+    reward_bound, obs_bound = value_bounds(task_bounds(env)[0], (w.low, w.high), (ob.low, ob.high))
     return TaskDescriptor(
         name=env.task.name[:64] or "task", spec=(spec or env.task.name)[:200], out_dim=w.out_dim,
         obs_dim=int(ob.shape[0]), obs_low=tuple(np.clip(ob.low.astype(float), -big, big).tolist()),

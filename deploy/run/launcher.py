@@ -111,6 +111,7 @@ class RunPlan:
     secure: bool = False  # --secure: mTLS + access control (certificates in RUN_DIR/certs)
     zenoh_config: str | None = None  # --zenoh-config for every process (not with --secure)
     secure_run: SecureRun | None = None  # made by prepare_run_dir with --secure
+    bounds: dict = field(default_factory=dict)  # the task's value bounds: stated or derived (with the rule)
 
     def zenoh_file(self, role: str, ident: str | None = None) -> str | None:
         """The Zenoh configuration of a process (its own identity's with --secure), or None."""
@@ -165,7 +166,8 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     run_dir = Path(cfg.run_dir)
     _check_run_dir(run_dir, args, cfg.checkpoint_dir)
     check_algorithm(cfg.algo)
-    task = check_task(cfg)
+    bounds: dict = {}  # the task's value bounds and how they came about (config.json: runtime.task_bounds)
+    task = check_task(cfg, bounds)
     previous = rundir.previous_runtime(run_dir) if args.resume else {}
     run_id = cfg.run or str(previous.get("run") or "") or rundir.make_run_id(run_dir)
     Keys(run_id)  # a valid key chunk (ValueError otherwise)
@@ -176,7 +178,7 @@ def plan_run(args: argparse.Namespace, argv: list[str]) -> RunPlan:
     endpoint = cfg.connect or f"{scheme}/127.0.0.1:{cfg.port or free_port()}"
     return RunPlan(cfg=cfg, run_dir=run_dir, run_id=run_id, endpoint=endpoint, resume=args.resume,
                    overwrite=args.overwrite, progress=args.progress, argv=argv, previous=previous, task=task,
-                   secure=args.secure, zenoh_config=config_file(args.zenoh_config))
+                   secure=args.secure, zenoh_config=config_file(args.zenoh_config), bounds=bounds)
 
 
 def prepare_run_dir(plan: RunPlan) -> None:
@@ -203,7 +205,7 @@ def prepare_run_dir(plan: RunPlan) -> None:
     runtime = {"run": plan.run_id, "endpoint": plan.endpoint, "cwd": os.getcwd(), "actor_ids": plan.cfg.actor_ids(),
                "argv": plan.argv, "started": started, "resumed": plan.resume, "part": part,
                "first_started": plan.previous.get("first_started", plan.previous.get("started", started)),
-               "secure": plan.secure, **recipe_runtime(plan.cfg)}
+               "secure": plan.secure, "task_bounds": plan.bounds, **recipe_runtime(plan.cfg)}
     write_run_config(plan.run_dir, plan.cfg, runtime)
     # the learner builds its spaces from the task at once (instead of waiting for an actor to announce it), so it
     # is up before the actors step, as a learner of any task must be for a seeded run to repeat

@@ -78,8 +78,9 @@ def _loop(tmp_path: Path, task, *, resume: bool = False, algo: str = "tqc") -> L
 
 # ------------------------------------------------------------------------------------ the descriptor's bounds
 def test_the_descriptor_carries_value_bounds_that_survive_the_wire(task):
-    # passage world: |r| <= 200 (goal) + 10 + 10 (obstacle, wall) + 10 |dp|^2 <= 20: the default is 5,000 times that
-    assert 1e6 < task.reward_bound < 1e6 + 100 and task.obs_bound == 1e6
+    # passage world: |r| <= 200 (goal) + 10 + 10 (obstacle, wall), stated by the task, plus the largest action cost
+    # 4 x 10 x |0.96, 0.96|^2 = 73.7 (before issue 34 point 5: the default 1e6 plus it, 1,000,073)
+    assert task.reward_bound == pytest.approx(293.728) and task.obs_bound == 2.0
     low, high = task.obs_limits
     assert np.allclose(low, [-0.101] * 3 + [-1.201] * 2) and np.allclose(high, [1.101] * 3 + [1.201] * 2)
     back = decode(TaskInfo, encode(TaskInfo(sender_id="a0", descriptor=task), "a0", 0)).descriptor
@@ -94,17 +95,66 @@ def test_the_descriptor_carries_value_bounds_that_survive_the_wire(task):
 def test_a_task_declares_its_bounds_and_bad_declarations_are_one_error():
     from khgrl.deploy.examples.own_task import make_task
 
-    t = make_task()
+    t = dataclasses.replace(make_task(), reward_bound=1e6, obs_bound=1e6)
     box, space = ((0.0,) * 3, (1.0,) * 3), (np.full(7, -np.inf), np.full(7, np.inf))
     reward, obs = value_bounds(t, box, space)
     assert reward == pytest.approx(1e6 + 4 * t.action_cost * 3) and obs == 1e6
     assert value_bounds(dataclasses.replace(t, reward_bound=5.0, obs_bound=2.0), box, space) == (
         pytest.approx(5.0 + 4 * t.action_cost * 3), 2.0)
-    for field, v in (("reward_bound", 0), ("reward_bound", float("nan")), ("obs_bound", 1e10), ("obs_bound", "x")):
+    for field, v in (("reward_bound", 0), ("reward_bound", float("nan")), ("obs_bound", 1e10), ("obs_bound", "x"),
+                     ("obs_bound", None)):
         with pytest.raises(TaskError, match=field):
             value_bounds(dataclasses.replace(t, **{field: v}), box, space)
     with pytest.raises(TaskError, match="obs_bound"):  # a space that lies wholly beyond the bound
         value_bounds(t, box, (np.full(7, 2e6), np.full(7, 3e6)))
+
+
+# ------------------------------------------------------------------------------------ derived bounds
+def test_a_derived_bound_is_four_times_what_was_seen_rounded_up_to_a_power_of_two():
+    from khgrl.common.tasks.derived_bounds import margin_bound
+
+    assert [margin_bound(v) for v in (10.0, 10.2, 16.0, 200.0, 0.3, 0.1, 0.0)] == [64, 64, 64, 1024, 2, 1, 1]
+
+
+def test_a_task_that_states_no_bounds_gets_them_from_its_environment(monkeypatch):
+    """The example task (``deploy/examples/own_task.py``: +200 at the goal, -10 blocked; positions in the unit cube)
+    states no bounds: replaying its demonstrations (which reach the goal) and 2 random episodes shows |r| 200 and
+    |obs| 0.87, so its bounds are 1024 and 4 (before issue 34 point 5: 1e6 and 1e6). The derivation is the same in
+    every process (a digest the launcher, actors and learner agree on), runs once per environment, and the run's
+    config says how the bounds came about."""
+    from khgrl.common.tasks import derived_bounds
+    from khgrl.common.tasks.api import load_task
+    from khgrl.common.tasks.env_descriptor import task_bounds
+    from khgrl.common.tasks.kgrl_env import KGRLEnv
+
+    task = load_task("khgrl.deploy.examples.own_task:make_task")
+    assert task.reward_bound is None and task.obs_bound is None
+    calls = []
+    seen = derived_bounds.seen_ranges
+    monkeypatch.setattr(derived_bounds, "seen_ranges", lambda *a: calls.append(1) or seen(*a))
+    env = KGRLEnv(task, seed=7)
+    desc = env.descriptor("own")
+    assert desc.reward_bound == pytest.approx(1024 + 4 * 10.0 * (0.96 ** 2 * 2 + 0.78 ** 2)) and desc.obs_bound == 4.0
+    assert env.descriptor("own").digest == desc.digest and len(calls) == 1  # derived once per environment
+    assert KGRLEnv(task, seed=8).descriptor("own").digest == desc.digest  # another actor: the same bounds
+    record = task_bounds(env)[1]
+    assert record["derived"] == ["reward_bound", "obs_bound"] and record["seen"]["reward"] == 200.0
+    assert record["rule"].startswith("4 x the largest |value| seen replaying the demonstrations and 2 random")
+    stated = dataclasses.replace(task, reward_bound=300.0)  # a bound the task states is kept
+    assert derived_bounds.resolve_bounds(stated, env.world.demos, env.world.low, env.world.high)[0].reward_bound == 300
+
+
+def test_an_environment_that_fails_while_its_bounds_are_derived_is_one_task_error():
+    from khgrl.common.tasks.derived_bounds import resolve_bounds
+    from khgrl.deploy.examples.own_task import make_task
+
+    class Broken:
+        def reset(self, seed=None):
+            raise RuntimeError("no robot")
+
+    task = dataclasses.replace(make_task(), make_env=lambda seed: Broken())
+    with pytest.raises(TaskError, match="deriving its value bounds .* RuntimeError: no robot"):
+        resolve_bounds(task, np.zeros((2, 10, 3)), np.zeros(3), np.ones(3))
 
 
 # ------------------------------------------------------------------------------------ check_bounds, bad_rows
@@ -115,7 +165,10 @@ def test_check_bounds_refuses_what_overflows_and_names_it(task):
     r = np.zeros(8, np.float32)
     r[3] = 3e38
     why = check_bounds(_batch(task, reward=r), task)
-    assert why.startswith("reward[3] = 3e+38 is outside [-1.00007e+06, 1.00007e+06]")
+    assert why.startswith("reward[3] = 3e+38 is outside [-293.728, 293.728]")
+    old = r.copy()
+    old[3] = 0.999 * 1_000_073  # within the old default bound (issue 34 point 5), 3,400 times the passage world's
+    assert check_bounds(_batch(task, reward=old), task).startswith("reward[3] = 999073 is outside")
     obs = np.zeros((8, 5), np.float32)
     obs[[2, 5], 1] = -3e38
     why = check_bounds(_batch(task, next_obs=obs), task)
@@ -125,9 +178,9 @@ def test_check_bounds_refuses_what_overflows_and_names_it(task):
     assert check_bounds(_batch(task, obs=np.full((8, 5), 2.0, np.float32)), task).startswith("obs[0, 0] = 2")
     # a dimension the space leaves unbounded is still held to +-obs_bound
     open_task = dataclasses.replace(task, obs_low=(-1e30,) * 5, obs_high=(1e30,) * 5)
-    assert check_bounds(_batch(open_task, obs=np.full((8, 5), 5e5, np.float32)), open_task) is None
-    assert "outside [-1.2e+06, 1.2e+06]" in check_bounds(_batch(open_task, obs=np.full((8, 5), 3e38, np.float32)),
-                                                         open_task)
+    assert check_bounds(_batch(open_task, obs=np.full((8, 5), 1.9, np.float32)), open_task) is None
+    far = _batch(open_task, obs=np.full((8, 5), 3e38, np.float32))
+    assert "outside [-2.401, 2.401]" in check_bounds(far, open_task)  # (obs_bound 2, widened by a tenth of 4)
     # without a task: finite and within +-1e12
     assert check_bounds(_batch(None, reward=np.full(8, 1e9, np.float32)), None) is None
     assert check_bounds(_batch(None, reward=r), None) is not None

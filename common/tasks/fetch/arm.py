@@ -30,11 +30,13 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-__all__ = ["FetchPosition", "GripperSchedule", "MAX_STEP", "fetch_command", "import_robotics"]
+__all__ = ["FetchPosition", "GripperSchedule", "MAX_STEP", "fetch_command", "import_robotics", "OBS_BOUND",
+           "REWARD_BOUND"]
 
 MAX_STEP = 0.05  # metres per step at |action| = 1 (Fetch's pos_ctrl scale)
 OPEN, CLOSED = 1.0, -1.0
-OBS_BOUND = 10.0
+OBS_BOUND = 10.0  # every observation is clipped to +-10 (the task states it as its obs_bound)
+REWARD_BOUND = 1.0  # Fetch's sparse reward: 0 at the goal, -1 elsewhere (the task's reward_bound)
 
 
 def import_robotics():

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 from khgrl.common.tasks.api import Cuboid, Point, Scene, Task, ViaPoint, View
-from khgrl.common.tasks.fetch.arm import GripperSchedule
+from khgrl.common.tasks.fetch.arm import OBS_BOUND, REWARD_BOUND, GripperSchedule
 from khgrl.common.tasks.fetch.scene_env import (
     OBJECT_REGION,
     OBSTACLE_TOP,
@@ -182,6 +182,7 @@ def make_scene_task(scenario: str = "random", *, horizon: int = HORIZON, seed: i
         make_env=lambda s: cls(horizon=horizon, workspace=WORKSPACE, gripper=sched, goal=tuple(GOAL)),
         demos=teacher_demos(n=horizon, seed=seed), workspace=WORKSPACE, default_scale=DEFAULT_SCALE, learn_scale=True,
         action_cost=10.0, position=lambda obs: obs[:3], scripted_human=ObstacleGuide() if obstacle else GraspGuide(),
+        reward_bound=REWARD_BOUND, obs_bound=OBS_BOUND,
         view=View(axes=(0, 1), third=2, names=("x", "y", "z"), shapes=shapes),
         scene=Scene(region=_region_text(obstacle), describe=describe_obstacle if obstacle else describe_object,
                     via_points=lambda obs: grasp_via_points(obs, horizon)))

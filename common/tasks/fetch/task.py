@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 from khgrl.common.tasks.api import Cuboid, Point, Sphere, Task, View
-from khgrl.common.tasks.fetch.arm import FetchPosition, GripperSchedule
+from khgrl.common.tasks.fetch.arm import OBS_BOUND, REWARD_BOUND, FetchPosition, GripperSchedule
 from khgrl.common.tasks.fetch.scenes import SCENE_SCENARIOS, make_scene_task
 from khgrl.common.tasks.fetch.teacher import (
     DEFAULT_SCALE,
@@ -65,6 +65,7 @@ def make_task(scenario: str = "moved", *, horizon: int = HORIZON, seed: int = 0)
                                          object_xy=tuple(obj[:2]), goal=tuple(GOAL)),
         demos=teacher_demos(n=horizon, seed=seed), workspace=WORKSPACE, default_scale=DEFAULT_SCALE, learn_scale=True,
         action_cost=10.0, position=lambda obs: obs[:3], scripted_human=FetchGuide(SCENARIOS[scenario]),
+        reward_bound=REWARD_BOUND, obs_bound=OBS_BOUND,
         view=View(axes=(0, 1), third=2, names=("x", "y", "z"),
                   shapes=(Sphere("object", tuple(obj), 0.025), Point("demo object", tuple(DEMO_OBJECT)),
                           Point("goal", tuple(GOAL)), Cuboid("table", (1.05, 0.4, 0.40), (1.55, 1.1, 0.42)))))

@@ -19,11 +19,14 @@ from khgrl.common.kmp.fit import KMPConfig
 from khgrl.common.tasks.api import Cuboid, Point, Sphere, Task, View
 from khgrl.common.tasks.passage.scenarios import Scenario, get_scenario, make_demos
 
-__all__ = ["PassageRobot", "PassageGuide", "make_task", "segment_blocked", "R_OBSTACLE", "R_PASSAGE", "R_GOAL"]
+__all__ = ["PassageRobot", "PassageGuide", "make_task", "segment_blocked", "R_OBSTACLE", "R_PASSAGE", "R_GOAL",
+           "REWARD_BOUND", "OBS_BOUND"]
 
 R_OBSTACLE = -10.0
 R_PASSAGE = -10.0
 R_GOAL = 200.0
+REWARD_BOUND = R_GOAL - R_OBSTACLE - R_PASSAGE  # |r_o + r_p + r_T| <= 220 (the learner adds the action cost)
+OBS_BOUND = 2.0  # the environment's observation is a position in the unit square
 
 
 def segment_blocked(p: np.ndarray, q: np.ndarray, walls) -> tuple[np.ndarray, bool]:
@@ -184,4 +187,5 @@ def make_task(scenario: str = "high_cov", *, demos: np.ndarray | None = None, de
         name=f"passage-{sc.name}", make_env=lambda seed: PassageRobot(sc, speed, blocked_limit, start_noise),
         demos=make_demos(sc, seed=demo_seed) if demos is None else demos, workspace=((m, m), (1 - m, 1 - m)),
         kmp=kmp_config, default_scale=sc.default_scale, learn_scale=sc.learn_scale, action_cost=10.0,
-        position=lambda obs: obs, scripted_human=PassageGuide(sc) if sc.human_waypoints else None, view=view(sc))
+        position=lambda obs: obs, scripted_human=PassageGuide(sc) if sc.human_waypoints else None, view=view(sc),
+        reward_bound=REWARD_BOUND, obs_bound=OBS_BOUND)
