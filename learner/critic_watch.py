@@ -71,6 +71,12 @@ class CriticWatch:
         self.seconds = 0.0  # time spent in the checks
         self.checks = 0
 
+    def summary(self) -> dict:
+        """The largest |Q| and the time per check (ms), once there has been a check (else empty)."""
+        if not self.checks:
+            return {}
+        return {"q_largest": float(f"{self.largest:.4g}"), "q_check_ms": round(1e3 * self.seconds / self.checks, 2)}
+
     def q_max(self, gamma: float) -> float:
         """:func:`q_limit` of this task's reward bound and ``gamma``."""
         return q_limit(self.reward_bound, gamma)

@@ -216,18 +216,11 @@ class LearnerLoop:
             if syncer is not None:
                 syncer.join(10.0)
 
-    def _watch_summary(self) -> dict[str, Any]:
-        """The critic watch's largest |Q| and its time per check (ms), when the critic is watched."""
-        w = self.trainer.watch
-        if w is None or not w.checks:
-            return {}
-        return {"q_largest": float(f"{w.largest:.4g}"), "q_check_ms": round(1e3 * w.seconds / w.checks, 2)}
-
     def summary(self) -> dict[str, Any]:
         """Totals for the log line at the end."""
         tr = self.trainer
         return {"transitions": tr.total, "iterations": tr.iterations, "gradient_steps": tr.gradient_steps,
                 "train_s": round(self.train_time, 1), "version": tr.version, "rollbacks": tr.rollbacks,
-                "q_rollbacks": tr.q_rollbacks, **self._watch_summary(),
+                "q_rollbacks": tr.q_rollbacks, **(tr.watch.summary() if tr.watch is not None else {}),
                 "rejected": self.rejects.by_kind(), "offers": dict(self.ingest.results),
                 "not_admitted_dropped": self.ingest.dropped, **self.durable.summary()}
