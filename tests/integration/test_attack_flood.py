@@ -41,7 +41,8 @@ FLOOD_PER_S = 1725  # the issue's rate: 43,132 batches in 25 s
 # the issue's target is 0.8; a0's rate on the 2 shared cores of the development machine moves by +-30 % from one
 # window to the next (docs/attacks.md), so the test asks for a margin below it (main: 0.06-0.10)
 MIN_RATIO = 0.6
-UP_WITH_ATTACKER = [sys.executable, "-c", "import sys; from khgrl.deploy import secure, cli; "
+UP_WITH_ATTACKER = [sys.executable, "-c", "import sys; from khgrl.deploy import cli; "
+                    "from khgrl.deploy.run import secure; "
                     f"secure.EXTRA_IDS = (*secure.EXTRA_IDS, ('actor', {ATTACKER!r})); "
                     "sys.exit(cli.main(sys.argv[1:]))", "up"]
 
