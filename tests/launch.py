@@ -15,6 +15,14 @@ from helpers import REPO, endpoint_pattern, kill_pids, pid_alive, pids_matching,
 __all__ = ["UP", "FAST", "KGRL", "HUMAN_EPISODE", "Launcher", "_env", "_run", "_rows", "_ingested"]
 
 UP = [sys.executable, "-m", "khgrl.deploy.cli", "up"]
+
+
+def up_with_actor_certs(ids) -> list[str]:
+    """``khgrl up`` that also makes ``--secure`` certificates for the actor ids ``ids`` (attackers in tests), made
+    by the run's CA like every other identity (``khgrl.deploy.run.secure.EXTRA_IDS``)."""
+    return [sys.executable, "-c", "import sys; from khgrl.deploy import cli; from khgrl.deploy.run import secure; "
+            f"secure.EXTRA_IDS = (*secure.EXTRA_IDS, *[('actor', a) for a in {tuple(ids)!r}]); "
+            "sys.exit(cli.main(sys.argv[1:]))", "up"]
 FAST = ["--scenario", "low_cov", "--learning-starts", "64", "--no-progress"]
 KGRL = [*FAST, "--method", "kgrl", "--human", "none"]
 HUMAN_EPISODE = 3  # the scripted human helps in episode 3 of the run only

@@ -21,7 +21,6 @@ most its lead cap, a0's rate under the flood at least :data:`MIN_RATIO` of its q
 from __future__ import annotations
 
 import subprocess
-import sys
 import time
 
 import numpy as np
@@ -30,7 +29,7 @@ from test_attack_shares import Watch, _session
 
 import launch
 from helpers import actor_signer, read_json, wait_for
-from launch import FAST, Launcher
+from launch import FAST, Launcher, up_with_actor_certs
 
 pytestmark = pytest.mark.integration
 
@@ -41,10 +40,7 @@ FLOOD_PER_S = 1725  # the issue's rate: 43,132 batches in 25 s
 # the issue's target is 0.8; a0's rate on the 2 shared cores of the development machine moves by +-30 % from one
 # window to the next (docs/attacks.md), so the test asks for a margin below it (main: 0.06-0.10)
 MIN_RATIO = 0.6
-UP_WITH_ATTACKER = [sys.executable, "-c", "import sys; from khgrl.deploy import cli; "
-                    "from khgrl.deploy.run import secure; "
-                    f"secure.EXTRA_IDS = (*secure.EXTRA_IDS, ('actor', {ATTACKER!r})); "
-                    "sys.exit(cli.main(sys.argv[1:]))", "up"]
+UP_WITH_ATTACKER = up_with_actor_certs((ATTACKER,))
 
 
 def _flood_payloads(template, keys_of, n: int, task: str) -> list[bytes]:

@@ -24,7 +24,6 @@ is, and a learner resumed from that checkpoint starts.
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
 
@@ -33,7 +32,7 @@ import pytest
 
 import launch
 from helpers import actor_signer, read_json, wait_for
-from launch import FAST, Launcher
+from launch import FAST, Launcher, up_with_actor_certs
 
 pytestmark = pytest.mark.integration
 
@@ -42,10 +41,7 @@ ARGS = [*FAST, "--method", "kgrl", "--human", "none", "--episodes", "2", "--rate
 QUIET_S, VOLUME_S, HELD_S, REPLAY_S, FLOOD_S = 5.0, 6.0, 4.0, 5.0, 3.0  # a0: about 500 steps at 10 Hz
 BIG = 4096  # the largest batch the protocol takes
 # khgrl up, with certificates also for the attackers' actor ids (made by the run's CA, like every other identity)
-UP_WITH_ATTACKERS = [sys.executable, "-c", "import sys; from khgrl.deploy import cli; "
-                     "from khgrl.deploy.run import secure; "
-                     f"secure.EXTRA_IDS = (*secure.EXTRA_IDS, *[('actor', a) for a in {ATTACKERS!r}]); "
-                     "sys.exit(cli.main(sys.argv[1:]))", "up"]
+UP_WITH_ATTACKERS = up_with_actor_certs(ATTACKERS)
 
 
 def _session(run_dir, cn: str, endpoint: str):
