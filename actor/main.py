@@ -150,7 +150,7 @@ def _summary(loop: ActorLoop, rc: int, wall: float) -> dict:
                         first_episode=loop.first_episode, stream=p.stream, weights=p.weights, arbiter=p.arbiter,
                         rejects=p.rejects, waits=loop.waits, max_lead=loop.cfg.stream.max_lead, rate=loop.cfg.rate,
                         periods=loop.pacer.periods, scale_updates=p.scale.updates, realtime=loop.realtime)
-    return {**out, "demo_transitions": loop.demo_transitions, "teacher": loop.teacher,
+    return {**out, "demo_transitions": loop.demo_transitions, "teacher": loop.teacher, "converged": loop.converged,
             "safety": loop.watchdog.summary(),
             "physical": p.physical.counts}
 

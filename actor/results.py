@@ -86,6 +86,17 @@ class EpisodeLog:
         """Transitions (steps) the earlier parts took."""
         return sum(int(e["steps"]) for e in self.earlier)
 
+    def autonomous_success(self, window: int) -> float | None:
+        """The success rate over the last ``window`` autonomous episodes (no human step), earlier parts included;
+        None while fewer than ``window`` have run (``--until-success``).
+
+        :param window: how many autonomous episodes to look back over.
+        """
+        rows = [(bool(e["success"]), int(e["intervention_steps"])) for e in self.earlier]
+        rows += [(bool(e.success), int(e.intervention_steps)) for e in self.new]
+        autonomous = [success for success, human in rows if human == 0][-window:]
+        return sum(autonomous) / window if len(autonomous) == window else None
+
     def add(self, st: EpisodeStats, scene: dict | None = None) -> None:
         """Record a finished episode (appended to episodes.csv; episodes.json rewritten).
 

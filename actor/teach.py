@@ -10,7 +10,8 @@ until N are kept or ``teacher_tries`` episodes were tried (HIL-SERL's ``record_d
 teleoperated episodes until it has 20). Only the run's first actor sends them, as intervened transitions on its
 stream (the learner's prior data, :mod:`khgrl.learner.replay`), instead of replaying the task's demonstrations
 (:mod:`khgrl.actor.demos`); they are not episodes. What the teacher did is in ``actor-ID/teacher.json`` and the
-actor's ``summary.json`` (``teacher``: tries, kept, steps sent; ``demo_transitions``).
+actor's ``summary.json`` (``teacher``: tries, kept, steps sent, steps driven in all tries -- a person's time;
+``demo_transitions``).
 
 **The task-sized box** (``[hilserl] safety_box task``): the delta actions are clipped to the bounding box of the
 positions the kept demonstrations visited (none kept, or no teacher: the task's demonstrations), widened on each
@@ -100,20 +101,22 @@ def _send(loop: Any, transitions: list) -> None:
 
 def teach(loop: Any) -> dict | None:
     """The teacher's episodes (module docstring); the first actor sends the kept ones. Returns what it did
-    (``tries``, ``kept``, ``steps`` sent, ``positions`` visited by the kept ones), None if stopped on the way.
+    (``tries``, ``kept``, ``steps`` sent, ``steps_driven`` in all tries, ``positions`` visited by the kept ones),
+    None if stopped on the way.
 
     :param loop: the actor's :class:`~khgrl.actor.loop.ActorLoop`
     """
     hs, env = loop.cfg.hilserl, loop.p.env
     guide = teacher(env.task)
     send = loop.id == FIRST_ACTOR and loop.p.stream.count == 0
-    tries, kept, steps, positions = 0, 0, 0, []
+    tries, kept, steps, driven, positions = 0, 0, 0, 0, []
     while kept < hs.teacher_demos and tries < hs.tries:
         tries += 1
         got = _episode(loop, guide, tries)
         if got is None:
             return None
         transitions, visited, success = got
+        driven += len(transitions)  # a person's steps, kept or not (the human budget)
         if success:
             kept, positions = kept + 1, positions + visited
             if send:
@@ -121,7 +124,8 @@ def teach(loop: Any) -> dict | None:
                 steps += len(transitions)
     log.info("actor %s: the teacher kept %d successful demonstrations of %d tries (%d prior transitions sent)",
              loop.id, kept, tries, steps)
-    return {"tries": tries, "kept": kept, "steps": steps, "sent": send, "positions": positions}
+    return {"tries": tries, "kept": kept, "steps": steps, "steps_driven": driven, "sent": send,
+            "positions": positions}
 
 
 def prepare(loop: Any) -> int:
@@ -138,7 +142,7 @@ def prepare(loop: Any) -> int:
     if loop.episode > 0 and path.is_file():  # a resumed actor: its box as it was
         record = json.loads(path.read_text())
     else:
-        record = {"tries": 0, "kept": 0, "steps": 0, "sent": False}
+        record = {"tries": 0, "kept": 0, "steps": 0, "steps_driven": 0, "sent": False}
         taught = teach(loop) if cfg.hilserl.teacher_demos > 0 else record
         if taught is None:
             return 0
@@ -152,5 +156,5 @@ def prepare(loop: Any) -> int:
     if record.get("box"):
         env.delta = dataclasses.replace(env.delta, low=np.asarray(record["box"][0]), high=np.asarray(record["box"][1]))
         log.info("actor %s: the safety box is the task's, %s to %s", loop.id, record["box"][0], record["box"][1])
-    loop.teacher = {k: record[k] for k in ("tries", "kept", "steps", "box")}
+    loop.teacher = {k: record.get(k) for k in ("tries", "kept", "steps", "steps_driven", "box")}
     return int(record["steps"]) if record.get("sent") and loop.episode == 0 else 0

@@ -13,7 +13,7 @@
   serl_launcher/serl_launcher/utils/launcher.py:85 (``backup_entropy=False``).
 
 With ``cta_ratio`` 1 and ``backup_entropy`` on, a gradient step is SB3's SAC step exactly (the same random draws
-in the same order: ``tests/unit/test_hilserl_recipe.py``). It is SB3's SAC with its ``train`` replaced (SB3's hook
+in the same order: ``tests/unit/test_recipe_settings.py``). It is SB3's SAC with its ``train`` replaced (SB3's hook
 for an off-policy algorithm's update); the rest -- buffer, checkpoints, the actors' policy -- is
 :class:`~khgrl.learner.sb3_offpolicy.SB3OffPolicy`'s. It trains without CUDA graphs and without the compiled loss
 (:mod:`khgrl.learner.cuda_graph` captures SB3's own step).

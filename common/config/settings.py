@@ -18,7 +18,7 @@ and ``config.json`` with the run's runtime facts: run id, router endpoint, actor
 that file instead of a hand-built argv, and ``khgrl up --config RUN_DIR/config.toml`` runs the same configuration
 again.
 
-One module of ~360 lines on purpose: the dataclasses and the flags built from them must stay together: a flag is a
+One module of ~380 lines on purpose: the dataclasses and the flags built from them must stay together: a flag is a
 field.
 """
 
@@ -139,6 +139,10 @@ class RunConfig:
                             "sb3-contrib TQC, the paper's; it takes the [tqc] settings that apply to it)",
                      roles=(LEARNER, ACTOR))
     episodes: int = _opt(60, "episodes per actor (a resumed run continues up to this)", roles=(ACTOR, REFERENCE))
+    until_success: float = _opt(0.0, "end an actor's run early once its last --success-window autonomous episodes "
+                                     "(no human step) succeed at this rate or more (0: run every episode)",
+                                roles=(ACTOR,))
+    success_window: int = _opt(20, "autonomous episodes --until-success looks back over", roles=(ACTOR,))
     seed: int = _opt(0, "seed of the learner and of actor 0 (actor i: seed + i) and the human client",
                      roles=(*_LAH, REFERENCE))
     run_dir: str = _opt("runs/demo", "run directory (refused if it holds results, unless --resume/--overwrite)",
@@ -189,6 +193,8 @@ class RunConfig:
     def validate(self) -> "RunConfig":
         if self.episodes < 1 or self.actors < 1:
             raise ValueError("episodes and actors must be >= 1")
+        if not 0.0 <= self.until_success <= 1.0 or self.success_window < 1:
+            raise ValueError("until_success must be in [0, 1] and success_window >= 1")
         if self.run and (any(c in self.run for c in "/*$?# ") or len(self.run) > 64):
             raise ValueError(f"run id must be a key chunk without / * $ ? # or space, got {self.run!r}")
         if self.actor_rt_priority and not (1 <= self.actor_rt_priority <= 99 and self.rate > 0):

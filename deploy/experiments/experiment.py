@@ -18,7 +18,7 @@ scratch, so no half-run is ever mixed into the results. ``OUT/experiment.json`` 
 configuration, the machine and every run's status and wall time; ``khgrl report OUT`` analyses it. With ``--ray
 ADDRESS`` the runs are Ray tasks on a cluster's workers instead (:mod:`khgrl.deploy.experiments.experiment_ray`).
 
-One module of ~350 lines on purpose: the grid (configuration, plan, one run's command) and the local runner
+One module of ~380 lines on purpose: the grid (configuration, plan, one run's command) and the local runner
 that walks it; the progress display is :mod:`~khgrl.deploy.experiments.experiment_progress`, Ray's runner
 :mod:`~khgrl.deploy.experiments.experiment_ray`.
 """
@@ -73,6 +73,8 @@ class ExperimentConfig:
     jobs: int = 1  # runs at a time
     max_lead: int = 8  # khgrl up --max-lead (8: lock-step with the learner, as the single-process reference)
     timeout: float = 0.0  # seconds per run (0: none)
+    until_success: float = 0.0  # khgrl up --until-success: a run ends once it holds this autonomous success rate
+    success_window: int = 20  # ... over this many autonomous episodes
     ray: str = ""  # a Ray cluster's address (or "auto", "local"): each run a Ray task there (experiment_ray.py)
     ray_cpus: float = DEFAULT_CPUS  # per run, with ray
     ray_gpus: float = 0.0  # per run, with ray (> 0: the learner runs with --device cuda)
@@ -88,6 +90,10 @@ class ExperimentConfig:
         if bad_tasks:
             raise ValueError(f"tasks {bad_tasks}: expected 'passage:SCENARIO', 'fetch:SCENARIO' or "
                              "'package.module:callable'")
+        if not 0.0 <= self.until_success <= 1.0 or self.success_window < 1:
+            raise ValueError("until_success must be in [0, 1] and success_window >= 1")
+        if self.until_success and self.system == "reference":
+            raise ValueError("the single-process reference runs every episode (no until_success)")
         if self.tasks and self.system == "reference":
             raise ValueError("the single-process reference runs the passage world's scenarios only, not tasks")
         if len({task_label(t) for t in self.tasks}) != len(self.tasks):
@@ -144,7 +150,8 @@ def plan_runs(cfg: ExperimentConfig) -> list[RunSpec]:
 
 
 def run_is_done(run_dir: Path, cfg: ExperimentConfig) -> bool:
-    """Whether ``run_dir`` holds a finished run of ``cfg.episodes`` episodes (then it is not redone)."""
+    """Whether ``run_dir`` holds a finished run of ``cfg.episodes`` episodes, or one that ended early at
+    ``cfg.until_success`` (then it is not redone)."""
     try:
         if cfg.system == "reference":
             summary = json.loads((run_dir / "summary.json").read_text())
@@ -154,7 +161,8 @@ def run_is_done(run_dir: Path, cfg: ExperimentConfig) -> bool:
         actor = summary.get("a0", {})
         return (summary.get("failed") == [] and not summary.get("interrupted")
                 and all(c == 0 for c in summary.get("exit_codes", {}).values())
-                and actor.get("episodes") == cfg.episodes and actor.get("unconfirmed_transitions") == 0)
+                and (actor.get("episodes") == cfg.episodes or actor.get("converged") is True)
+                and actor.get("unconfirmed_transitions") == 0)
     except (OSError, ValueError, AttributeError):
         return False
 
@@ -181,6 +189,8 @@ def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
         argv += ["--human", "none"]
     if cfg.timeout > 0:
         argv += ["--timeout", str(cfg.timeout)]
+    if cfg.until_success > 0:
+        argv += ["--until-success", str(cfg.until_success), "--success-window", str(cfg.success_window)]
     return argv
 
 
@@ -277,7 +287,8 @@ def run(args: argparse.Namespace) -> int:
     overrides = {"out": args.out, "scenarios": args.scenarios, "tasks": args.tasks, "methods": args.methods,
                  "seeds": args.seeds, "episodes": args.episodes, "human_episodes": args.human_episodes,
                  "system": args.system, "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout,
-                 "ray": args.ray, "ray_cpus": args.ray_cpus, "ray_gpus": args.ray_gpus}
+                 "ray": args.ray, "ray_cpus": args.ray_cpus, "ray_gpus": args.ray_gpus,
+                 "until_success": args.until_success, "success_window": args.success_window}
     try:
         cfg = load_config(args.config, overrides)
     except (ValueError, OSError, TypeError) as exc:
@@ -341,6 +352,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="runs at a time (default 1; each run's learner uses one core)")
     p.add_argument("--max-lead", type=int, default=None, help="khgrl up --max-lead (default 8)")
     p.add_argument("--timeout", type=float, default=None, help="fail a run after this many seconds (default: none)")
+    p.add_argument("--until-success", type=float, default=None, metavar="RATE",
+                   help="end each run early once its last --success-window autonomous episodes succeed at RATE "
+                        "(khgrl up --until-success; default 0: every episode)")
+    p.add_argument("--success-window", type=int, default=None, help="autonomous episodes looked back over "
+                                                                     "(default 20)")
     p.add_argument("--dry-run", action="store_true",
                    help="list the runs, their state and commands; run nothing (default: off)")
     p.add_argument("--no-progress", action="store_true", help="plain lines instead of progress bars (default: off)")

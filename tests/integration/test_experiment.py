@@ -108,6 +108,20 @@ def test_run_is_done_only_for_a_complete_clean_run(tmp_path):
     assert run_is_done(d, cfg)
     (d / "summary.json").write_text("{truncated")
     assert not run_is_done(d, cfg)
+    early = {**good, "a0": {"episodes": 2, "unconfirmed_transitions": 0, "converged": True}}  # --until-success
+    (d / "summary.json").write_text(json.dumps(early))
+    assert run_is_done(d, cfg)
+
+
+def test_until_success_goes_to_every_run_and_is_checked(tmp_path):
+    cfg = load_config(None, {"tasks": ["fetch:moved"], "methods": ["khgrl"], "until_success": 0.8})
+    argv = run_argv(plan_runs(cfg)[0], cfg, tmp_path / "r")
+    i = argv.index("--until-success")
+    assert argv[i:i + 4] == ["--until-success", "0.8", "--success-window", "20"]
+    assert "--until-success" not in run_argv(plan_runs(load_config(None, {}))[0], load_config(None, {}), tmp_path)
+    for bad in ({"until_success": 1.5}, {"success_window": 0}, {"until_success": 0.8, "system": "reference"}):
+        with pytest.raises(ValueError):
+            load_config(None, bad)
 
 
 def _experiment(out, *extra, timeout=300):

@@ -4,6 +4,7 @@ stream (batches, acks, re-sends, forged acks), the weights bookkeeping, and the 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import threading
@@ -304,6 +305,20 @@ def test_episode_log_resume_appends_and_continues_numbering(tmp_path):
     assert [e["episode"] for e in json.loads((tmp_path / "episodes.json").read_text())] == [1, 2, 3]
     fresh = EpisodeLog(tmp_path, resume=False)  # without --resume nothing is appended
     assert fresh.last_episode == 0 and not (tmp_path / "episodes.csv").exists()
+
+
+def test_autonomous_success_looks_back_over_autonomous_episodes_only(tmp_path):
+    """``--until-success``: the rate over the last N episodes without a human step, earlier parts included."""
+    log = EpisodeLog(tmp_path, resume=False)
+    log.add(dataclasses.replace(episode(1), success=True))
+    log.add(dataclasses.replace(episode(2), success=False, intervention_steps=12))  # a human episode: not counted
+    assert log.autonomous_success(2) is None  # one autonomous episode so far
+    log.add(dataclasses.replace(episode(3), success=False))
+    assert log.autonomous_success(2) == 0.5 and log.autonomous_success(1) == 0.0
+    log.write_final({}, {})
+    again = EpisodeLog(tmp_path, resume=True)  # a resumed part sees the earlier episodes
+    again.add(dataclasses.replace(episode(4), success=True))
+    assert again.autonomous_success(3) == 2 / 3 and again.autonomous_success(4) is None
 
 
 def test_episode_log_resume_from_csv_only(tmp_path):

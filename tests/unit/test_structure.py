@@ -169,3 +169,12 @@ def test_the_rooms_of_deploy_import_only_the_rooms_before_them():
     bad = [f"{a} -> {b}" for a, deps in _graph().items() if a in room for b in deps
            if b in room and ROOMS.index(room[b]) > ROOMS.index(room[a])]
     assert set(room.values()) == set(ROOMS) and not bad, bad
+
+
+def test_test_files_have_unique_names():
+    """pytest imports test modules by their base name (rootdir-relative packages are not used here): two
+    ``test_x.py`` under tests/unit and tests/integration make collection fail with "import file mismatch"."""
+    seen: dict[str, list[str]] = {}
+    for path in (REPO / "tests").rglob("test_*.py"):
+        seen.setdefault(path.name, []).append(str(path.relative_to(REPO)))
+    assert not {name: paths for name, paths in seen.items() if len(paths) > 1}
