@@ -88,6 +88,26 @@ def read_json(path: str | Path) -> Any:
     return json.loads(Path(path).read_text())
 
 
+# Networks of 64 x 64 and minibatches of 64 in tests that check what the system does, not how well it learns: the same
+# code at a quarter of the learner's CPU time (the tests that check learning, or compare with the paper's sizes,
+# give their own --net-arch / --batch-size, or use the defaults through their own command lines).
+SMALL_NETS = ["--net-arch", "64", "64"]
+SMALL = [*SMALL_NETS, "--batch-size", "64"]
+
+
+def _unless_given(extra: tuple[str, ...], flags: list[str]) -> list[str]:
+    """``flags`` (pairs of --flag values) that ``extra`` does not set itself."""
+    out, i = [], 0
+    while i < len(flags):
+        j = i + 1
+        while j < len(flags) and not flags[j].startswith("--"):
+            j += 1
+        if flags[i] not in extra:
+            out += flags[i:j]
+        i = j
+    return out
+
+
 class ProcGroup(ProcessGroup):
     """The supervisor of ``khgrl up`` (khgrl.deploy.run.supervisor) with shortcuts for KhGRL processes: starts
     them under
@@ -125,12 +145,13 @@ class ProcGroup(ProcessGroup):
         # the tests' actors mostly run with --max-lead 100000: so does their learner unless a test says otherwise
         lead = [] if "--max-lead" in extra else ["--max-lead", "100000"]
         return self.start("learner", python_main("khgrl.learner.main") + [
-            "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *lead, *extra])
+            "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *lead, *_unless_given(extra, SMALL),
+            *extra])
 
     def actor(self, run: str, endpoint: str, *extra: str, run_dir: str | Path | None = None) -> Proc:
         run_dir = Path(run_dir or self.base / "run")
         return self.start("actor", python_main("khgrl.actor.main") + [
-            "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *extra])
+            "--run", run, "--connect", endpoint, "--run-dir", str(run_dir), *_unless_given(extra, SMALL_NETS), *extra])
 
     def supervise(self, run: str, endpoint: str, run_dir: str | Path | None = None) -> Proc:
         """``khgrl supervise``: the heartbeat without which an actor in robot mode holds (keeping the e-stop state in

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from helpers import REPO, endpoint_pattern, kill_pids, pid_alive, pids_matching, read_json, wait_for
+from helpers import REPO, SMALL, endpoint_pattern, kill_pids, pid_alive, pids_matching, read_json, wait_for
 
 __all__ = ["UP", "FAST", "KGRL", "HUMAN_EPISODE", "Launcher", "_env", "_run", "_rows", "_ingested"]
 
@@ -23,7 +23,7 @@ def up_with_actor_certs(ids) -> list[str]:
     return [sys.executable, "-c", "import sys; from khgrl.deploy import cli; from khgrl.deploy.run import secure; "
             f"secure.EXTRA_IDS = (*secure.EXTRA_IDS, *[('actor', a) for a in {tuple(ids)!r}]); "
             "sys.exit(cli.main(sys.argv[1:]))", "up"]
-FAST = ["--scenario", "low_cov", "--learning-starts", "64", "--no-progress"]
+FAST = ["--scenario", "low_cov", "--learning-starts", "64", "--no-progress", *SMALL]  # (SMALL: helpers.py)
 KGRL = [*FAST, "--method", "kgrl", "--human", "none"]
 HUMAN_EPISODE = 3  # the scripted human helps in episode 3 of the run only
 

@@ -24,7 +24,7 @@ import pytest
 from test_learner_actor import assert_exactly_once, checkpoint
 from test_sac import CLI, OWN, _env
 
-from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
+from helpers import REPO, SMALL, ProcGroup, read_json, unique_run, wait_for
 
 
 def _rows(path: Path) -> list[dict]:
@@ -117,7 +117,7 @@ def test_hilserl_passage_takeover_prior_data_and_learner_kill(tmp_path):
 def test_rlpd_on_a_3d_task_through_khgrl_up(tmp_path, method):
     run_dir = tmp_path / "run"
     proc = subprocess.run([*CLI, "up", "--task", OWN, *method, "--episodes", "3", "--human-episodes", "2",
-                           "--learning-starts", "64", "--gradient-steps", "16", "--seed", "2", "--run-dir",
+                           "--learning-starts", "64", "--gradient-steps", "16", *SMALL, "--seed", "2", "--run-dir",
                            str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True, text=True,
                           timeout=400)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -136,7 +136,7 @@ def test_rlpd_on_a_3d_task_through_khgrl_up(tmp_path, method):
     assert state["iterations"] == (n - 64) // 8, (state["iterations"], n)
     assert state["gradient_steps"] / (n - 64) == pytest.approx(2.0, abs=16 / (n - 64))
     rb = _buffer(run_dir)
-    assert _prior_share(rb) == pytest.approx(0.5) and rb.sampled_prior + rb.sampled_online == 256 * state[
+    assert _prior_share(rb) == pytest.approx(0.5) and rb.sampled_prior + rb.sampled_online == 64 * state[
         "gradient_steps"]
     if "hil-serl" in method:
         assert _check_takeover(run_dir, OWN, demos) == human_steps

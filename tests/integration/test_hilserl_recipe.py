@@ -19,7 +19,7 @@ import pytest
 from test_learner_actor import assert_exactly_once, checkpoint
 from test_sac import CLI, _env
 
-from helpers import REPO, read_json
+from helpers import REPO, SMALL, read_json
 
 
 @pytest.mark.integration
@@ -28,8 +28,8 @@ def test_the_recipe_on_the_passage_world_through_khgrl_up(tmp_path):
     run_dir = tmp_path / "run"
     proc = subprocess.run([*CLI, "up", "--scenario", "low_cov", "--recipe", "hil-serl", "--teacher-demos", "3",
                            "--episodes", "3", "--human-episodes", "1", "2", "3", "--seed", "1",
-                           "--run-dir", str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True,
-                          text=True, timeout=450)
+                           "--run-dir", str(run_dir), "--no-progress", *SMALL], cwd=REPO, env=_env(),
+                          capture_output=True, text=True, timeout=450)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     cfg = read_json(run_dir / "config.json")
     t = cfg["tqc"]
@@ -43,6 +43,7 @@ def test_the_recipe_on_the_passage_world_through_khgrl_up(tmp_path):
     summary = read_json(run_dir / "actor-a0" / "summary.json")
     n, demos, teacher = summary["transitions"], summary["demo_transitions"], summary["teacher"]
     assert teacher["kept"] == 3 and teacher["steps"] == demos > 0 and teacher["tries"] >= 3
+    assert teacher["steps_driven"] >= demos  # the person's steps: every try, kept or not (the human budget)
     low, high = teacher["box"]
     assert np.all(np.array(low) >= 0.02) and np.all(np.array(high) <= 0.98) and (low[1] > 0.02 or high[1] < 0.98)
     with open(run_dir / "actor-a0" / "episodes.csv") as fh:

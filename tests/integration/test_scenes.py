@@ -29,7 +29,9 @@ from launch import Launcher
 CASES = {
     "reach": ("khgrl.deploy.examples.reach_task:make_task", ["--method", "kgrl", "--human", "none"], 4, 1e-3),
     # the scripted human drags in episode 2 (the adapted mean leaves it little to do): corrections are P_t too
-    "fetch_random": ("fetch:random", ["--method", "khgrl", "--human-episodes", "2"], 3, 2e-3),
+    # up to 5 episodes, ended early once 2 autonomous episodes in a row succeed (--until-success)
+    "fetch_random": ("fetch:random", ["--method", "khgrl", "--human-episodes", "2", "--until-success", "1.0",
+                                      "--success-window", "2"], 5, 2e-3),
     "panda_pick": ("panda:pick", ["--method", "kgrl", "--human", "none"], 3, 2e-3),
 }
 
@@ -60,6 +62,8 @@ def test_varying_scene_through_khgrl_up(tmp_path: Path, case: str) -> None:
             sub.undeclare()
     finally:
         up.cleanup()
+    if "--until-success" in flags:
+        episodes = _until_success(tmp_path / "run" / "actor-a0", episodes)
     seen = [decode(Frame, frames.get_nowait()) for _ in range(frames.qsize())]
     by_episode: dict[int, list] = {}
     for f in seen:
@@ -94,3 +98,17 @@ def test_varying_scene_through_khgrl_up(tmp_path: Path, case: str) -> None:
     names = list(task.scene.describe(seen[0].obs))
     csv_places = [tuple(float(rows[e - 1][n]) for n in names) for e in whole]
     assert np.allclose(csv_places, placements)
+
+
+def _until_success(actor_dir: Path, most: int) -> int:
+    """``--until-success 1.0 --success-window 2``: the run ended after the first episode that completes two
+    successful autonomous episodes in a row (autonomous: no human step), before ``most``; returns its length."""
+    import json
+
+    with open(actor_dir / "episodes.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    autonomous = [(int(r["episode"]), r["success"] == "True") for r in rows if int(r["intervention_steps"]) == 0]
+    due = next(e for (_, a), (e, b) in zip(autonomous, autonomous[1:]) if a and b)
+    assert len(rows) == due < most, (len(rows), due, rows)
+    assert json.loads((actor_dir / "summary.json").read_text())["converged"] is True
+    return due
