@@ -11,6 +11,8 @@ An experiment directory holds one run directory per (scenario, method, seed), na
 * ``fig4_high_cov.png`` / ``fig5_low_cov.png``  return, obstacle cost, passage cost, success rate per episode
   (mean +- std band over seeds, human episodes shaded); ``fig6_scale.png`` L over phase
 * ``summary.md``       the tables: per method and scenario, and KhGRL vs KGRL with a rank test
+* ``convergence.md`` / ``convergence.csv`` / ``curves_<task>.png``  for each task with runs of more than one method:
+  what each method needs to reach its milestones, HIL-SERL : KhGRL (``deploy/experiments/convergence.py``)
 
 The learning criteria of one run (first success, stable success, zero obstacle cost from, ...) and the reading
 of run directories are in ``deploy/experiments/run_results.py``, the figures in
@@ -26,6 +28,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from khgrl.deploy.experiments.convergence import write_convergence
 from khgrl.deploy.experiments.figures import axis_names, figure_name, plot_learning, plot_scale
 from khgrl.deploy.experiments.run_results import (
     METHOD_LABEL,
@@ -76,6 +79,7 @@ def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, sce
     plot_scale(scales, out / "fig6_scale.png")
     text = summary_markdown(results, episodes)
     (out / "summary.md").write_text(text)
+    write_convergence(found, out)  # tasks with runs of several methods: convergence.md, .csv, curves_<task>.png
     return text
 
 

@@ -1,4 +1,5 @@
-"""Fig. 4-6 of the paper from an experiment's runs (``khgrl report EXP``): learning curves and the scale L."""
+"""Fig. 4-6 of the paper from an experiment's runs (``khgrl report EXP``): learning curves and the scale L; per-seed
+success curves of a task's runs against episode and human steps (``curves_<task>.png``)."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from khgrl.deploy.experiments.run_results import METHOD_LABEL, episode_matrix, human_episodes
 
-__all__ = ["FIGURE", "METHOD_COLOR", "figure_name", "plot_learning", "plot_scale", "axis_names"]
+__all__ = ["FIGURE", "METHOD_COLOR", "figure_name", "plot_learning", "plot_scale", "axis_names", "plot_curves"]
 
 METHOD_COLOR = {"khgrl": "C3", "kgrl": "C0", "khgrl_noadapt": "C1", "kgrl_noadapt": "C7", "khgrl_rlpd": "C5",
                 "kgrl_rlpd": "C9", "hil-serl": "C2", "hil-serl_episode": "C8",
@@ -97,6 +98,54 @@ def plot_scale(scales: dict, path: Path) -> None:
             ax.set_yscale("log")
             ax.grid(alpha=0.3)
         axes[row][0].legend(fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _rolling(x: np.ndarray, k: int = 10) -> np.ndarray:
+    c = np.cumsum(np.insert(x.astype(np.float64), 0, 0.0))
+    i = np.arange(1, x.size + 1)
+    return (c[i] - c[np.maximum(0, i - k)]) / np.minimum(i, k)
+
+
+def plot_curves(task: str, groups: dict[str, list], path: Path) -> None:
+    """Per method (columns): each seed's success (rolling mean over 10 episodes) against episode (top) and against
+    cumulative human steps, the teacher's at the start (bottom; each row one x scale); a run ended by
+    --until-success ends with a star.
+
+    :param task: the task's label (the title).
+    :param groups: {method: its runs}, each with ``seed``, ``rows`` (episode rows with ``success`` and
+        ``intervention_steps``), ``teacher_steps`` and ``converged`` (``convergence.RunConvergence``).
+    :param path: the PNG written.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, len(groups), figsize=(4.5 * len(groups), 6), squeeze=False, sharex="row",
+                             sharey=True, constrained_layout=True)
+    for col, (method, runs) in enumerate(groups.items()):
+        marked = False
+        for k, run in enumerate(runs):
+            succ = _rolling(np.array([r["success"] for r in run.rows], dtype=bool))
+            human = run.teacher_steps + np.cumsum([r["intervention_steps"] for r in run.rows])
+            for ax, x, draw in zip(axes[:, col], (np.arange(1, succ.size + 1), human), ("default", "steps-post")):
+                ax.plot(x, succ, lw=0.8, color=f"C{k % 10}", label=f"seed {run.seed}", drawstyle=draw)
+                if run.converged and succ.size:
+                    ax.plot(x[-1], succ[-1], "*", ms=9, color=f"C{k % 10}", label=None if marked else "converged")
+            marked = marked or (run.converged and bool(succ.size))
+        axes[0, col].set_title(f"{METHOD_LABEL.get(method, method)} ({len(runs)} seeds)", fontsize=10)
+        axes[0, col].set_xlabel("episode")
+        axes[1, col].set_xlabel("human steps (cumulative; teacher's at the start)")
+        axes[0, col].legend(fontsize=7)
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+        ax.set_ylim(-0.05, 1.05)
+    for ax in axes[:, 0]:
+        ax.set_ylabel("success (mean of last 10)")
+    fig.suptitle(f"{task}: success per seed (★ converged: ended by --until-success)")
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -1,8 +1,9 @@
 """``khgrl report``: results of runs or of whole experiments.
 
 * Experiment directories (``khgrl experiment`` output: run directories named ``<scenario>-<method>-seed<S>``):
-  statistics across seeds, Fig. 4-6 and the data behind them (:mod:`khgrl.deploy.experiments.analysis`), written to
-  ``--out`` (default ``EXP/report``).
+  statistics across seeds, Fig. 4-6 and the data behind them (:mod:`khgrl.deploy.experiments.analysis`), and for
+  tasks run with several methods what each needs to converge (:mod:`khgrl.deploy.experiments.convergence`), written
+  to ``--out`` (default ``EXP/report``).
 * Run directories of ``khgrl reference`` (``RUN/episodes.csv``) or ``khgrl up`` (``RUN/actor-<id>/episodes.csv``,
   one series per actor): per-episode curves in one figure and a markdown table.
 """
@@ -124,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"khgrl report: error: {exc}", file=sys.stderr)
             return 2
         print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig6_scale.png and the learning "
-              "curves of each scenario (fig4_high_cov.png, fig5_low_cov.png, learning_<task>.png)")
+              "curves of each scenario (fig4_high_cov.png, fig5_low_cov.png, learning_<task>.png); for tasks with runs "
+              "of several methods convergence.md, convergence.csv and curves_<task>.png")
         return 0
     args.out = args.out or "runs/report.png"
     series: dict[str, list[dict]] = {}

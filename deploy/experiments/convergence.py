@@ -1,0 +1,249 @@
+"""How much each method needs to converge, KhGRL against HIL-SERL (``khgrl report EXP`` on a task's runs).
+
+Per run, two milestones (episodes counted from 1; "autonomous" = no intervention step in the episode):
+
+* ``first``: the first autonomous success;
+* ``80/20``: the episode that completes the first window of 20 consecutive autonomous episodes (human-assisted ones
+  skipped) with >= 80 % successes -- the criterion of ``--until-success 0.8``.
+
+At each: the episode, the environment steps up to and including it, the **human steps** up to it (intervention
+steps of those episodes plus the teacher's ``steps_driven``: the budget a person spends) and the wall seconds of
+those episodes. A run that never reaches a milestone is censored: its values at the end of the run are lower bounds
+("> N"). Per task, each HIL-SERL arm against KhGRL: the ratio of the seed means with a percentile bootstrap interval
+(seeds resampled within each arm), the final policies' success over new scenes (Wilson), and the smallest one-sided
+Mann-Whitney p that the seeds allow. Writes ``convergence.md``, ``convergence.csv`` and ``curves_<task>.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from khgrl.common.tasks.passage.scenarios import SCENARIOS
+from khgrl.deploy.experiments.figures import plot_curves
+from khgrl.deploy.experiments.run_results import METHOD_LABEL, load_evaluation
+from khgrl.deploy.tools.intervals import rate_text
+
+__all__ = ["MILESTONES", "METRICS", "HIL_ARMS", "Milestone", "RunConvergence", "milestone_episode",
+           "run_convergence", "ratio_interval", "smallest_p", "write_convergence"]
+
+WINDOW, RATE = 20, 0.8  # the 80/20 milestone
+MILESTONES = ("first", "80/20")
+METRICS = (("episodes", "episodes"), ("steps", "env steps"), ("human_steps", "human steps"), ("wall_s", "wall s"))
+HIL_ARMS = ("hil-serl", "hil-serl_recipe")
+RESAMPLES, BOOT_SEED = 10_000, 0
+
+
+@dataclass
+class Milestone:
+    """A run's values at a milestone; where not reached (``reached`` False) its values at the run's end."""
+
+    reached: bool
+    episodes: int
+    steps: int
+    human_steps: int
+    wall_s: float
+
+
+@dataclass
+class RunConvergence:
+    task: str
+    method: str
+    seed: int
+    rows: list[dict]  # episode, steps, success, intervention_steps, wall_time
+    teacher_steps: int  # the teacher's steps_driven (0 without a teacher)
+    converged: bool  # ended early by --until-success
+    milestones: dict[str, Milestone]
+    human_budget: int  # the whole run's: intervention steps + teacher steps
+    evaluation: tuple[str, int, int]  # (kind, successes, n) of load_evaluation
+
+
+def milestone_episode(success: list[bool], human: list[bool], name: str) -> int | None:
+    """Position (1-based, in the rows' order) of the episode that reaches a milestone, None if none does.
+
+    :param success: each episode's success.
+    :param human: whether each episode had an intervention step.
+    :param name: ``first`` or ``80/20`` (:data:`MILESTONES`).
+    """
+    size, need = (1, 1) if name == "first" else (WINDOW, math.ceil(RATE * WINDOW - 1e-9))
+    window: list[bool] = []
+    for ep, (s, h) in enumerate(zip(success, human), start=1):
+        if h:
+            continue
+        window = (window + [s])[-size:]
+        if len(window) == size and sum(window) >= need:
+            return ep
+    return None
+
+
+def _episodes(run_dir: Path) -> list[dict]:
+    f = next(f for f in (run_dir / "actor-a0" / "episodes.csv", run_dir / "episodes.csv") if f.exists())
+    with open(f, newline="") as fh:
+        return [{"episode": int(r["episode"]), "steps": int(r.get("steps") or 0), "success": r["success"] == "True",
+                 "intervention_steps": int(r["intervention_steps"]), "wall_time": float(r.get("wall_time") or 0.0)}
+                for r in csv.DictReader(fh)]
+
+
+def _json(path: Path) -> dict:
+    try:
+        return dict(json.loads(path.read_text()) or {})
+    except (OSError, ValueError, TypeError):
+        return {}
+
+
+def run_convergence(task: str, method: str, seed: int, run_dir: Path) -> RunConvergence:
+    """A run's milestones and human budget (module docstring).
+
+    :param task: the task's label.
+    :param method: the run's method (``khgrl``, ``hil-serl``, ...).
+    :param seed: its seed.
+    :param run_dir: the run directory (``actor-a0/episodes.csv``, ``actor-a0/summary.json``).
+    """
+    rows, summary = _episodes(Path(run_dir)), _json(Path(run_dir) / "actor-a0" / "summary.json")
+    teacher = summary["teacher"] if "teacher" in summary else _json(Path(run_dir) / "actor-a0" / "teacher.json")
+    teacher_steps = int((teacher or {}).get("steps_driven") or 0)  # teacher.json: a run without summary.json yet
+    steps = np.cumsum([0] + [r["steps"] for r in rows], dtype=np.int64)
+    human = teacher_steps + np.cumsum([0] + [r["intervention_steps"] for r in rows], dtype=np.int64)
+    wall = np.cumsum([0.0] + [r["wall_time"] for r in rows])
+    marks = {}
+    for name in MILESTONES:
+        at = milestone_episode([r["success"] for r in rows], [r["intervention_steps"] > 0 for r in rows], name)
+        i = at if at is not None else len(rows)  # rows up to and including it (all of them: censored)
+        marks[name] = Milestone(at is not None, rows[i - 1]["episode"] if i else 0, int(steps[i]), int(human[i]),
+                                float(wall[i]))
+    return RunConvergence(task, method, seed, rows, teacher_steps, summary.get("converged") is True, marks,
+                          int(human[-1]), load_evaluation(Path(run_dir)))
+
+
+def ratio_interval(hil: list[float], khgrl: list[float], resamples: int = RESAMPLES,
+                   seed: int = BOOT_SEED) -> tuple[float, float, float]:
+    """(mean(hil) / mean(khgrl), 2.5 %, 97.5 % percentiles of the bootstrap ratio); each arm's seeds resampled
+    independently. A KhGRL mean of 0 gives inf.
+
+    :param hil: a HIL-SERL arm's values, one per seed.
+    :param khgrl: KhGRL's values, one per seed.
+    :param resamples: bootstrap resamples.
+    :param seed: the generator's seed (a fixed seed: the same interval every time).
+    """
+    a, b = np.asarray(hil, dtype=np.float64), np.asarray(khgrl, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    ma = a[rng.integers(0, a.size, (resamples, a.size))].mean(axis=1)
+    mb = b[rng.integers(0, b.size, (resamples, b.size))].mean(axis=1)
+    point = a.mean() / b.mean() if b.mean() else math.inf
+    r = np.where(mb > 0, ma / np.where(mb > 0, mb, 1.0), np.inf)
+    lo, hi = np.percentile(r, [2.5, 97.5], method="nearest")
+    return float(point), float(lo), float(hi)
+
+
+def smallest_p(n1: int, n2: int) -> float:
+    """The smallest one-sided Mann-Whitney p (exact, no ties) at n1 and n2 seeds: 1 / C(n1 + n2, n1).
+
+    :param n1: seeds of one arm.
+    :param n2: seeds of the other.
+    """
+    return 1.0 / math.comb(n1 + n2, n1)
+
+
+def _csv_rows(runs: list[RunConvergence]) -> list[dict]:
+    return [{"task": r.task, "method": r.method, "seed": r.seed, "milestone": name, "reached": m.reached,
+             "episodes": m.episodes, "steps": m.steps, "human_steps": m.human_steps, "wall_s": f"{m.wall_s:.3f}",
+             "teacher_steps": r.teacher_steps, "run_human_steps": r.human_budget, "converged": r.converged}
+            for r in runs for name, m in r.milestones.items()]
+
+
+def _num(v: float) -> str:
+    return f"{v:.0f}" if abs(v) >= 100 else f"{v:.3g}"
+
+
+def _arm_cell(runs: list[RunConvergence], name: str, key: str) -> str:
+    ms = [r.milestones[name] for r in runs]
+    seeds = ", ".join(f"{'' if m.reached else '>'}{_num(getattr(m, key))}" for m in ms)
+    return f"{'' if all(m.reached for m in ms) else '≥ '}{_num(np.mean([getattr(m, key) for m in ms]))} ({seeds})"
+
+
+def _ratio_cell(hil: list[RunConvergence], kh: list[RunConvergence], name: str, key: str) -> str:
+    if name == "whole run":  # the human budget of the whole runs: nothing censored
+        if key != "human_steps":
+            return ""
+        point, lo, hi = ratio_interval([r.human_budget for r in hil], [r.human_budget for r in kh])
+        return f"{_num(point)} [{_num(lo)}, {_num(hi)}]"
+    point, lo, hi = ratio_interval([getattr(r.milestones[name], key) for r in hil],
+                                   [getattr(r.milestones[name], key) for r in kh])
+    reached = [r.milestones[name].reached for r in hil]
+    flag = "" if all(r.milestones[name].reached for r in kh) else "†"
+    if not any(reached):
+        return f"> {_num(point)}{flag}"
+    return f"{'' if all(reached) else '≥ '}{_num(point)} [{_num(lo)}, {_num(hi)}]{flag}"
+
+
+def _task_markdown(task: str, groups: dict[str, list[RunConvergence]]) -> list[str]:
+    head = " | ".join(h for _, h in METRICS)
+    rule = "|---|---|" + "---|" * (len(METRICS) + 1)
+    lines = [f"## {task}", "", f"| method | milestone | {head} | converged |", rule]
+    for method, runs in groups.items():
+        for name in MILESTONES:
+            cells = " | ".join(_arm_cell(runs, name, k) for k, _ in METRICS)
+            lines.append(f"| {METHOD_LABEL.get(method, method)} | {name} | {cells} | "
+                         f"{sum(r.converged for r in runs)}/{len(runs)} |")
+    lines += ["", "Human budget of the whole run (intervention + teacher steps): " + "; ".join(
+        f"{METHOD_LABEL.get(m, m)} {_num(np.mean([r.human_budget for r in rs]))} "
+        f"({', '.join(str(r.human_budget) for r in rs)})" for m, rs in groups.items()), ""]
+    arms = [m for m in HIL_ARMS if m in groups and "khgrl" in groups]
+    if arms:
+        lines += [f"| HIL-SERL arm : KhGRL | milestone | {head} | min p |", rule]
+        for arm in arms:
+            p = smallest_p(len(groups[arm]), len(groups["khgrl"]))
+            for name in (*MILESTONES, "whole run"):
+                cells = " | ".join(_ratio_cell(groups[arm], groups["khgrl"], name, k) for k, _ in METRICS)
+                lines.append(f"| {METHOD_LABEL[arm]} : KhGRL | {name} | {cells} | {p:.3g} |")
+        lines.append("")
+    evals = [(m, sum(r.evaluation[1] for r in rs), sum(r.evaluation[2] for r in rs),
+              ", ".join(sorted({r.evaluation[0] for r in rs} - {""}))) for m, rs in groups.items()]
+    if any(n for _, _, n, _ in evals):
+        lines += ["| method | final success over new scenes, pooled over seeds | evaluated over |", "|---|---|---|",
+                  *(f"| {METHOD_LABEL.get(m, m)} | {rate_text(k, n)} | {kinds} |" for m, k, n, kinds in evals if n), ""]
+    return lines
+
+
+NOTE = ("Milestones: 'first' the first autonomous success (no human step in the episode); '80/20' the episode that "
+        f"completes the first window of {WINDOW} autonomous episodes with >= {RATE:.0%} successes. Cells: mean over "
+        "seeds (per seed). '>N': the run never reached the milestone, N is its value at the run's "
+        "end (a lower bound); '≥' a mean or ratio with such lower bounds in the HIL-SERL arm; '> X' every run of that "
+        "arm censored. '†': some KhGRL run censored too (its end value enters the mean; the ratio may be too high). "
+        "Ratio = HIL-SERL arm's seed mean : KhGRL's (whole run: the runs' human budgets), [2.5 %, 97.5 %] percentile "
+        f"bootstrap over seeds (each arm resampled independently, {RESAMPLES} resamples, seed {BOOT_SEED}). Human "
+        "steps = intervention steps + the teacher's steps driven; wall s = the episodes' wall time (not the "
+        "teacher's). min p: the smallest one-sided Mann-Whitney p that n1 vs n2 seeds can give, 1 / C(n1 + n2, n1).")
+
+
+def write_convergence(found: list[tuple[str, str, int, Path]], out: Path) -> str | None:
+    """For each task (not a passage-world scenario) with runs of more than one method: ``convergence.md``,
+    ``convergence.csv`` and ``curves_<task>.png`` in ``out``. Returns the markdown, None if no task qualifies.
+
+    :param found: (task, method, seed, run dir) of the runs (:func:`~khgrl.deploy.experiments.run_results.find_runs`).
+    :param out: the report's directory.
+    """
+    tasks: dict[str, dict[str, list[RunConvergence]]] = {}
+    for task, method, seed, run_dir in found:
+        if task not in SCENARIOS:
+            tasks.setdefault(task, {}).setdefault(method, []).append(run_convergence(task, method, seed, run_dir))
+    tasks = {t: {m: g[m] for m in sorted(g, key=lambda m: (m != "khgrl", m))} for t, g in tasks.items() if len(g) > 1}
+    if not tasks:
+        return None
+    out.mkdir(parents=True, exist_ok=True)
+    lines = ["# Convergence: KhGRL against HIL-SERL", "", NOTE, ""]
+    rows = _csv_rows([r for _, groups in sorted(tasks.items()) for runs in groups.values() for r in runs])
+    with open(out / "convergence.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    for task, groups in sorted(tasks.items()):
+        lines += _task_markdown(task, groups)
+        plot_curves(task, groups, out / f"curves_{task}.png")
+    text = "\n".join(lines).rstrip("\n") + "\n"
+    (out / "convergence.md").write_text(text)
+    return text
