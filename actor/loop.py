@@ -68,7 +68,6 @@ class ActorLoop:
         self.p = parts
         self.flag = flag
         self.realtime, self.demo_transitions, self.teacher = False, 0, None  # (teacher: actor/teach.py's record)
-        self.converged = False  # --until-success reached (the run ended early)
         self.episode = parts.episodes.last_episode
         self.first_episode = self.episode + 1
         self.earlier_transitions = parts.episodes.earlier_transitions
@@ -107,7 +106,7 @@ class ActorLoop:
         self.demo_transitions = prepare(self) + replay_demos(self)  # (the teacher's or the task's, as prior data)
         if todo <= 0:
             log.info("all %d episodes of the run are done already: nothing to run", self.cfg.episodes)
-        while len(self.p.episodes.new) < todo and not self.flag and not self._converged():
+        while len(self.p.episodes.new) < todo and not self.flag and not self.p.episodes.converged():
             if not self._episode(acc):
                 break  # stopped mid-episode: no statistics for a partial episode
         if self.inbound.guard.fatal:  # another process publishes as this actor id: nothing more goes out on its stream
@@ -119,20 +118,6 @@ class ActorLoop:
         if self.flag:
             return self.delivery.finish_on_signal()
         return self.delivery.flush(len(self.p.episodes.new))  # (4 if another process as this actor stopped it)
-
-    def _converged(self) -> bool:
-        """``--until-success``: the last autonomous episodes succeed at the rate asked (the run ends early)."""
-        if self.cfg.until_success <= 0:
-            return False
-        rate = self.p.episodes.autonomous_success(self.cfg.success_window)
-        if rate is None or rate < self.cfg.until_success:
-            return False
-        if not self.converged:
-            log.info("actor %s: %.0f %% of the last %d autonomous episodes succeeded (--until-success %.2f): "
-                     "the run ends after episode %d", self.id, 100 * rate, self.cfg.success_window,
-                     self.cfg.until_success, self.episode)
-        self.converged = True
-        return True
 
     def _episode(self, acc: EpisodeAccumulator) -> bool:
         env = self.p.env

@@ -106,7 +106,7 @@ def _build_parts(pc: ProcessConfig, actor: str, session, env, policy, out_dir: P
     stream.bounds = task  # a transition outside the task's value bounds is not sent (the learner would refuse it)
     khgrl = cfg.method == "khgrl"  # (learns L; hil-serl's human takes over instead, KGRL's has no say)
     scale = ExplorationScale(env, actor, khgrl, link.publish)
-    episodes = EpisodeLog(out_dir, resume)
+    episodes = EpisodeLog(out_dir, resume, (cfg.until_success, cfg.success_window))
     if resume:
         scale.restore(out_dir)
     weights = PolicyWeights(policy, actor, receiver)
@@ -150,7 +150,7 @@ def _summary(loop: ActorLoop, rc: int, wall: float) -> dict:
                         first_episode=loop.first_episode, stream=p.stream, weights=p.weights, arbiter=p.arbiter,
                         rejects=p.rejects, waits=loop.waits, max_lead=loop.cfg.stream.max_lead, rate=loop.cfg.rate,
                         periods=loop.pacer.periods, scale_updates=p.scale.updates, realtime=loop.realtime)
-    return {**out, "demo_transitions": loop.demo_transitions, "teacher": loop.teacher, "converged": loop.converged,
+    return {**out, "demo_transitions": loop.demo_transitions, "teacher": loop.teacher, "converged": p.episodes.reached,
             "safety": loop.watchdog.summary(),
             "physical": p.physical.counts}
 

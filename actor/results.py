@@ -50,9 +50,11 @@ class EpisodeLog:
 
     :param out_dir: RUN_DIR/actor-ID.
     :param resume: continue the episodes already recorded there (else start afresh).
+    :param until: ``--until-success`` (rate, window): the run ends early once the last ``window`` autonomous episodes
+        succeed at ``rate`` or more (rate 0: never; :meth:`converged`).
     """
 
-    def __init__(self, out_dir: Path, resume: bool) -> None:
+    def __init__(self, out_dir: Path, resume: bool, until: tuple[float, int] = (0.0, 20)) -> None:
         self.dir = Path(out_dir)
         self.csv = self.dir / "episodes.csv"
         self.json = self.dir / "episodes.json"
@@ -64,6 +66,7 @@ class EpisodeLog:
             for p in (self.csv, self.json, self.dir / "scenes.csv"):
                 p.unlink(missing_ok=True)
         self.new: list[EpisodeStats] = []
+        self.until, self.reached = until, False  # (--until-success; reached: the run ended early)
 
     def _read_earlier(self) -> list[dict]:
         """episodes.json, or episodes.csv where it has more rows (a part killed between the two writes)."""
@@ -82,6 +85,11 @@ class EpisodeLog:
         return max((int(e["episode"]) for e in self.earlier), default=0)
 
     @property
+    def last_episode_run(self) -> int:
+        """The number of the last episode finished, this part's or an earlier one's (0: none)."""
+        return self.new[-1].episode if self.new else self.last_episode
+
+    @property
     def earlier_transitions(self) -> int:
         """Transitions (steps) the earlier parts took."""
         return sum(int(e["steps"]) for e in self.earlier)
@@ -96,6 +104,16 @@ class EpisodeLog:
         rows += [(bool(e.success), int(e.intervention_steps)) for e in self.new]
         autonomous = [success for success, human in rows if human == 0][-window:]
         return sum(autonomous) / window if len(autonomous) == window else None
+
+    def converged(self) -> bool:
+        """``--until-success``: whether the last ``window`` autonomous episodes succeed at ``rate`` (> 0) or more
+        (``until``); then the run ends early, said once in the log and kept in ``reached``."""
+        rate, window = self.until
+        if rate > 0 and not self.reached and (self.autonomous_success(window) or 0.0) >= rate:
+            self.reached = True
+            log.info("%.0f %% of the last %d autonomous episodes succeeded (--until-success %.2f): the run ends after "
+                     "episode %d", 100 * self.autonomous_success(window), window, rate, self.last_episode_run)
+        return self.reached
 
     def add(self, st: EpisodeStats, scene: dict | None = None) -> None:
         """Record a finished episode (appended to episodes.csv; episodes.json rewritten).

@@ -319,6 +319,13 @@ def test_autonomous_success_looks_back_over_autonomous_episodes_only(tmp_path):
     again = EpisodeLog(tmp_path, resume=True)  # a resumed part sees the earlier episodes
     again.add(dataclasses.replace(episode(4), success=True))
     assert again.autonomous_success(3) == 2 / 3 and again.autonomous_success(4) is None
+    for rate, window in ((0.0, 1), (0.7, 3), (0.5, 4)):  # never asked, below the rate, too few episodes
+        again.until = (rate, window)
+        assert not again.converged() and not again.reached
+    again.until = (0.6, 3)
+    assert again.converged() and again.reached
+    again.until = (0.9, 3)
+    assert again.converged()  # (kept once reached)
 
 
 def test_episode_log_resume_from_csv_only(tmp_path):
