@@ -52,8 +52,11 @@ def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, sce
     figures into ``out``; return summary.md."""
     found = [r for d in exp_dirs for r in find_runs(Path(d))
              if (seeds is None or r[2] in seeds) and (scenarios is None or r[0] in scenarios)]
+    running = [r for r in found if _unfinished(r[3])]  # an experiment still running, or a run cut short
+    found = [r for r in found if r not in running]
     if not found:
-        raise FileNotFoundError(f"no run directories named <scenario>-<method>-seed<S> with results in {exp_dirs}")
+        raise FileNotFoundError(f"no run directories named <scenario>-<method>-seed<S> with finished results in "
+                                f"{exp_dirs}")
     out.mkdir(parents=True, exist_ok=True)
     data: dict[tuple[str, str], list[list[dict]]] = {}
     results: list[RunResult] = []
@@ -78,9 +81,22 @@ def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, sce
         plot_learning(scenario, groups, episodes, out / name, title)
     plot_scale(scales, out / "fig6_scale.png")
     text = summary_markdown(results, episodes)
+    if running:
+        names = ", ".join(r[3].name for r in running)
+        text += f"\nLeft out, not finished (experiment.json: running or interrupted): {names}\n"
     (out / "summary.md").write_text(text)
     write_convergence(found, out)  # tasks with runs of several methods: convergence.md, .csv, curves_<task>.png
     return text
+
+
+def _unfinished(run_dir: Path) -> bool:
+    """Whether the experiment that made ``run_dir`` (its ``experiment.json``) says the run is still running or
+    was interrupted: its episodes are not a result yet."""
+    try:
+        runs = json.loads((run_dir.parent / "experiment.json").read_text()).get("runs", {})
+    except (OSError, ValueError, AttributeError):
+        return False
+    return isinstance(runs, dict) and runs.get(run_dir.name, {}).get("status") in ("running", "interrupted")
 
 
 def _write_per_episode(data: dict, episodes: int, path: Path) -> None:

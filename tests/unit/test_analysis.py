@@ -162,3 +162,19 @@ def test_report_compares_with_hil_serl_in_human_steps_and_counts_safety(tmp_path
     khgrl_vs_hil = next(line for line in text.splitlines() if line.startswith("| low_cov | 3/3 |"))
     # KhGRL: 10 human steps (episode 2) before its first autonomous success (3 or 4); HIL-SERL never succeeds
     assert "| 10 vs never (p = 0.023) |" in khgrl_vs_hil, khgrl_vs_hil  # (scipy: asymptotic, ties within groups)
+
+
+def test_runs_the_experiment_still_runs_are_left_out_and_named(tmp_path):
+    """``khgrl report`` during an experiment: a run that experiment.json says is running (or was interrupted) is
+    not a result yet -- left out of every table and named under the summary."""
+    import json
+
+    exp = tmp_path / "exp"
+    _write_run(exp / "high_cov-kgrl-seed0", [False, True], [0.0, 0.0])
+    _write_run(exp / "high_cov-kgrl-seed1", [True], [0.0])
+    (exp / "experiment.json").write_text(json.dumps({"runs": {"high_cov-kgrl-seed0": {"status": "done"},
+                                                              "high_cov-kgrl-seed1": {"status": "running"}}}))
+    text = analyse([exp], tmp_path / "out")
+    with open(tmp_path / "out" / "per_run.csv", newline="") as fh:
+        assert [r["seed"] for r in csv.DictReader(fh)] == ["0"]
+    assert "Left out, not finished" in text and "high_cov-kgrl-seed1" in text and "seed0" not in text.split("Left")[1]
