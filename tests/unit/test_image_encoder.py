@@ -290,3 +290,29 @@ def test_a_frozen_trunk_does_not_change_while_the_heads_train(built_frozen, tmp_
     assert not any(m.training for m in encoder.trunks.modules()) and encoder.heads.training
     for key, value in encoder.state_dict().items():
         assert torch.equal(value, before[key]) == key.startswith("trunks."), key
+
+
+def test_a_safetensors_file_needs_the_package(tmp_path):
+    try:
+        import safetensors  # noqa: F401
+    except ImportError:
+        (tmp_path / "trunk.safetensors").write_bytes(b"")
+        with pytest.raises(EncoderWeightsError, match="needs the safetensors package"):
+            read_weights(tmp_path / "trunk.safetensors")
+    else:
+        from safetensors.torch import save_file
+
+        save_file(conv_trunk(3).state_dict(), str(tmp_path / "trunk.safetensors"))
+        assert set(read_weights(tmp_path / "trunk.safetensors")) == set(conv_trunk(3).state_dict())
+
+
+def test_an_actors_policy_on_the_tasks_channel_last_space_takes_the_learners_actor_weights():
+    model, env = _model(TQC, tqc_image_policy, learning_starts=1000)  # the learner's: channel-first (SB3's transpose)
+    policy, kwargs = tqc_image_policy(env.observation_space, features_dim=8)
+    actor_side = policy(env.observation_space, env.action_space, lambda _: 1e-3, net_arch=[16, 16], **kwargs)
+    actor_side.actor.load_state_dict(model.policy.actor.state_dict())
+    actor_side.set_training_mode(False)
+    obs = env.reset(seed=1)[0]
+    model.policy.set_training_mode(False)
+    np.testing.assert_allclose(actor_side.predict(obs, deterministic=True)[0],
+                               model.predict(obs, deterministic=True)[0], rtol=1e-5, atol=1e-6)
