@@ -44,8 +44,10 @@ pytestmark = pytest.mark.integration
 
 RATE, TIMEOUT = 20.0, 3.0
 ARGS = [*FAST, "--task", "driver_log_task:make_task", "--method", "khgrl", "--human", "scripted",
-        "--human-episodes", "1", "--episodes", "2", "--seed", "4", "--rate", str(RATE), "--rate-limit", "on",
-        "--reset-path", "on", "--correction-timeout", str(TIMEOUT)]
+        "--human-episodes", "1", "--episodes", "3", "--seed", "4", "--rate", str(RATE), "--rate-limit", "on",
+        "--reset-path", "on", "--correction-timeout", str(TIMEOUT),
+        "--net-arch", "256", "256", "--batch-size", "256"]  # the default sizes: the seeded episodes this test's
+# faults are timed against (with FAST's small networks the scripted human still holds when the dying client drags)
 HUMAN = """
 import sys, time
 import numpy as np
@@ -134,7 +136,9 @@ def limits_run(tmp_path_factory):
         human = subprocess.Popen([sys.executable, "-c", HUMAN, *_endpoint(up.run_dir)], env=_env(),
                                  stdout=subprocess.PIPE, text=True, start_new_session=True)
         assert human.stdout.readline().strip() == "holding"  # 3. a live client drags, then dies mid-hold
-        time.sleep(1.0)
+        before = _steps(log_path)
+        time.sleep(1.0)  # (and the actor stepping while it holds, on a loaded machine: killed between two steps)
+        wait_for(lambda: _steps(log_path) >= before + 3, 60, "the actor's steps while the client holds")
         human.kill()
         human.wait(10)
         time.sleep(TIMEOUT)
@@ -217,7 +221,7 @@ def test_every_command_the_driver_gets_is_within_both_limits_after_every_kind_of
     speed, accel, tol = 2.0 * d, 0.5 * d, 1e-9
     assert s["estops"] == 2 and s["human_silence_holds"] >= 1 and s["learner_holds"] >= 1, s
     assert s["late_steps"] >= 1 and s["late_ms_max"] >= 300, s
-    assert len(s["reset_paths"]) == 1 and s["reset_paths"][0]["steps"] > 0, s
+    assert len(s["reset_paths"]) == 2 and all(r["steps"] > 0 for r in s["reset_paths"]), s  # (3 episodes)
     assert any(r[0] == "push" for r in log), "the hand moved the arm while it was held"
     ref, v, worst, checked, after_hold = None, np.zeros(2), (0.0, 0.0), 0, 0
     for i, r in enumerate(log):
