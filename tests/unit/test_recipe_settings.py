@@ -15,15 +15,9 @@ from khgrl.learner.algorithm import algorithm_class
 from khgrl.learner.sac_cta import CTASAC, SACCTAAlgorithm
 from khgrl.learner.sac_ln import SACLNAlgorithm
 
+from test_sac_ln import _store  # (the same 40 stored rows, a quarter intervened)
+
 SMALL = TQCSettings(learning_starts=16, buffer_size=200, net_arch=(16, 16), batch_size=8, gradient_steps=2)
-
-
-def _store(algo, n: int = 40) -> None:
-    rng = np.random.default_rng(0)
-    algo.store(rng.random((n, 5), dtype=np.float32), rng.random((n, 5), dtype=np.float32),
-               rng.uniform(-1, 1, (n, 2)).astype(np.float32), rng.standard_normal(n).astype(np.float32),
-               np.zeros(n, np.float32), np.zeros(n, np.float32), intervened=(np.arange(n) % 4 == 0).astype(np.uint8),
-               clipped=np.zeros(n, np.uint8), actor=0, first_step=0)
 
 
 def _trained(cls, settings: TQCSettings, tmp_path) -> dict[str, torch.Tensor]:
