@@ -95,7 +95,7 @@ def run_view(args: argparse.Namespace, plan: Any) -> "RunView":
     """``khgrl up``'s view from its flags (ValueError for a bad ``--view``; the sink's log in RUN_DIR/logs).
 
     :param args: ``--view``, ``--view-camera-every``, ``--overwrite``.
-    :param plan: the run's :class:`~khgrl.deploy.run.launcher.RunPlan` (run id, directory, actors).
+    :param plan: the run's :class:`~khgrl.deploy.run.plan.RunPlan` (run id, directory, actors).
     """
     return RunView(parse_view(args.view, args.overwrite, plan.run_dir), plan.run_id, args.view_camera_every,
                    Path(plan.run_dir) / "logs", tuple(plan.cfg.actor_ids()))
