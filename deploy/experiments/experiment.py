@@ -14,12 +14,15 @@ named after it with ``:`` and ``.`` as ``_`` (``fetch:moved`` -> ``fetch_moved-k
 
 Resumable: a run whose directory holds a finished result (every process exited 0, all episodes) is not
 redone; any other run directory (an interrupted or failed run) is wiped and the run starts again from
-scratch, so no half-run is ever mixed into the results. ``OUT/experiment.json`` records the resolved
-configuration, the machine and every run's status and wall time; ``khgrl report OUT`` analyses it. With ``--ray
+scratch, so no half-run is ever mixed into the results -- unless ``--resume-interrupted``: then a run that was
+interrupted (Ctrl-C, or the machine went away while it ran) and left a learner checkpoint continues from it with
+``khgrl up --resume``, and experiment.json counts its ``parts``. A run still alive is never touched.
+``OUT/experiment.json`` records the resolved configuration, the machine and every run's status and wall time;
+``khgrl report OUT`` analyses it. With ``--ray
 ADDRESS`` the runs are Ray tasks on a cluster's workers instead (:mod:`khgrl.deploy.experiments.experiment_ray`).
 
-One module of ~380 lines on purpose: the grid (configuration, plan, one run's command) and the local runner
-that walks it; the progress display is :mod:`~khgrl.deploy.experiments.experiment_progress`, Ray's runner
+The grid (configuration, plan, one run's command) is :mod:`~khgrl.deploy.experiments.grid`; here is the local
+runner that walks it; the progress display is :mod:`~khgrl.deploy.experiments.experiment_progress`, Ray's runner
 :mod:`~khgrl.deploy.experiments.experiment_ray`.
 """
 
@@ -29,7 +32,6 @@ import argparse
 import json
 import os
 import platform
-import re
 import shutil
 import signal
 import subprocess
@@ -37,162 +39,28 @@ import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
-from khgrl.common.config.settings import HUMAN_METHODS, PAPER_EPISODES, REFERENCE_METHODS, TQCSettings, read_table
+from khgrl.common.config.settings import REFERENCE_METHODS
 from khgrl.common.tasks.passage.scenarios import SCENARIOS
 from khgrl.deploy.experiments.experiment_progress import Progress, last_line
-from khgrl.deploy.experiments.experiment_ray import (
-    DEFAULT_CPUS,
-    EPISODE_LINE,
-    RayRunner,
-    add_ray_arguments,
-    check_ray_settings,
+from khgrl.deploy.experiments.experiment_ray import EPISODE_LINE, RayRunner, add_ray_arguments
+from khgrl.deploy.experiments.grid import (
+    SYSTEMS,
+    ExperimentConfig,
+    RunSpec,
+    load_config,
+    plan_runs,
+    run_argv,
+    run_is_done,
+    task_label,
 )
 from khgrl.deploy.experiments.run_results import METHOD_LABEL
+from khgrl.deploy.run import rundir
 
-__all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "main",
+__all__ = ["ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done", "run_argv", "main",
            "build_parser"]
-
-SYSTEMS = ("distributed", "reference")
-
-
-@dataclass
-class ExperimentConfig:
-    """The grid and how each run is made (the keys of a config file)."""
-
-    out: str = "runs/experiment"
-    scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
-    tasks: list[str] = field(default_factory=list)  # task specs (khgrl up --task); if given, instead of scenarios
-    methods: list[str] = field(default_factory=lambda: list(REFERENCE_METHODS))
-    seeds: list[int] = field(default_factory=lambda: [0, 1, 2, 3, 4])
-    episodes: int = 60
-    human_episodes: list[int] = field(default_factory=lambda: list(PAPER_EPISODES))
-    system: str = "distributed"  # "distributed": khgrl up; "reference": single-process SB3 (khgrl reference)
-    jobs: int = 1  # runs at a time
-    max_lead: int = 8  # khgrl up --max-lead (8: lock-step with the learner, as the single-process reference)
-    timeout: float = 0.0  # seconds per run (0: none)
-    until_success: float = 0.0  # khgrl up --until-success: a run ends once it holds this autonomous success rate
-    success_window: int = 20  # ... over this many autonomous episodes
-    ray: str = ""  # a Ray cluster's address (or "auto", "local"): each run a Ray task there (experiment_ray.py)
-    ray_cpus: float = DEFAULT_CPUS  # per run, with ray
-    ray_gpus: float = 0.0  # per run, with ray (> 0: the learner runs with --device cuda)
-
-    def validate(self) -> "ExperimentConfig":
-        bad = [s for s in self.scenarios if s not in SCENARIOS] + [m for m in self.methods if m not in METHOD_LABEL]
-        if bad:
-            raise ValueError(f"unknown scenario/method {bad}; choose from {tuple(SCENARIOS)} and "
-                             f"{tuple(METHOD_LABEL)}")
-        if self.system == "reference" and any(m not in REFERENCE_METHODS for m in self.methods):
-            raise ValueError(f"the single-process reference runs the methods {REFERENCE_METHODS} only")
-        bad_tasks = [t for t in self.tasks if not isinstance(t, str) or ":" not in t]
-        if bad_tasks:
-            raise ValueError(f"tasks {bad_tasks}: expected 'passage:SCENARIO', 'fetch:SCENARIO' or "
-                             "'package.module:callable'")
-        if not 0.0 <= self.until_success <= 1.0 or self.success_window < 1:
-            raise ValueError("until_success must be in [0, 1] and success_window >= 1")
-        if self.until_success and self.system == "reference":
-            raise ValueError("the single-process reference runs every episode (no until_success)")
-        if self.tasks and self.system == "reference":
-            raise ValueError("the single-process reference runs the passage world's scenarios only, not tasks")
-        if len({task_label(t) for t in self.tasks}) != len(self.tasks):
-            raise ValueError(f"tasks {self.tasks}: two of them would share a run directory name")
-        if self.system not in SYSTEMS:
-            raise ValueError(f"system must be one of {SYSTEMS}, not {self.system!r}")
-        if not self.seeds or any(int(s) < 0 for s in self.seeds) or len(set(self.seeds)) != len(self.seeds):
-            raise ValueError(f"seeds must be distinct non-negative integers, got {self.seeds}")
-        if self.episodes < 1 or self.jobs < 1:
-            raise ValueError("episodes and jobs must be >= 1")
-        if self.max_lead < TQCSettings().train_freq:
-            raise ValueError(f"max_lead must be >= the learner's train frequency ({TQCSettings().train_freq})")
-        if any(e < 1 for e in self.human_episodes):
-            raise ValueError("human_episodes are 1-based episode numbers")
-        check_ray_settings(self.ray, self.ray_cpus, self.ray_gpus, self.system)
-        return self
-
-
-def load_config(path: str | Path | None, overrides: dict) -> ExperimentConfig:
-    """The config file's values (TOML or JSON), then every non-None override on top."""
-    values: dict = {}
-    if path is not None:
-        values = read_table(path)  # the one reader of settings files (TOML or JSON)
-        known = set(ExperimentConfig.__dataclass_fields__)
-        unknown = sorted(set(values) - known)
-        if unknown:
-            raise ValueError(f"{path}: unknown keys {unknown}; known: {sorted(known)}")
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    return ExperimentConfig(**values).validate()
-
-
-def task_label(spec: str) -> str:
-    """The name of a task's runs: ``fetch:moved`` -> ``fetch_moved``."""
-    return re.sub(r"[^A-Za-z0-9_]", "_", spec)
-
-
-@dataclass(frozen=True)
-class RunSpec:
-    scenario: str  # a passage-world scenario, or the label of a task (see ``task``)
-    method: str
-    seed: int
-    task: str = ""  # the task spec, for runs of a task
-
-    @property
-    def name(self) -> str:
-        return f"{self.scenario}-{self.method}-seed{self.seed}"
-
-
-def plan_runs(cfg: ExperimentConfig) -> list[RunSpec]:
-    """Seed-major order, so that an experiment cut short has every method and scenario at the same seeds."""
-    if cfg.tasks:
-        return [RunSpec(task_label(t), m, int(s), t) for s in cfg.seeds for t in cfg.tasks for m in cfg.methods]
-    return [RunSpec(sc, m, int(s)) for s in cfg.seeds for sc in cfg.scenarios for m in cfg.methods]
-
-
-def run_is_done(run_dir: Path, cfg: ExperimentConfig) -> bool:
-    """Whether ``run_dir`` holds a finished run of ``cfg.episodes`` episodes, or one that ended early at
-    ``cfg.until_success`` (then it is not redone)."""
-    try:
-        if cfg.system == "reference":
-            summary = json.loads((run_dir / "summary.json").read_text())
-            episodes = json.loads((run_dir / "episodes.json").read_text())
-            return "wall_time_s" in summary and len(episodes) == cfg.episodes
-        summary = json.loads((run_dir / "summary.json").read_text())
-        actor = summary.get("a0", {})
-        return (summary.get("failed") == [] and not summary.get("interrupted")
-                and all(c == 0 for c in summary.get("exit_codes", {}).values())
-                and (actor.get("episodes") == cfg.episodes or actor.get("converged") is True)
-                and actor.get("unconfirmed_transitions") == 0)
-    except (OSError, ValueError, AttributeError):
-        return False
-
-
-def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
-    """The command of one run (the same a user types)."""
-    khgrl = [sys.executable, "-m", "khgrl.deploy.cli"]
-    if cfg.system == "reference":
-        return [*khgrl, "reference", "--scenario", spec.scenario, "--method", spec.method, "--seed", str(spec.seed),
-                "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--quiet"]
-    world = ["--task", spec.task] if spec.task else ["--scenario", spec.scenario]
-    # kgrl_noadapt: --method kgrl --no-adapt; khgrl_rlpd: --sampling rlpd; hil-serl_episode: --takeover episode;
-    # hil-serl_recipe: --recipe hil-serl (HIL-SERL's settings, teacher demonstrations, finishing takeover, task box)
-    method, _, variant = spec.method.partition("_")
-    argv = [*khgrl, "up", *world, "--method", method, "--seed", str(spec.seed),
-            "--episodes", str(cfg.episodes), "--run-dir", str(run_dir), "--max-lead", str(cfg.max_lead),
-            "--no-progress", *(["--no-adapt"] if variant == "noadapt" else []),
-            *(["--sampling", "rlpd"] if variant == "rlpd" else []),
-            *(["--takeover", "episode"] if variant == "episode" else []),
-            *(["--recipe", "hil-serl"] if variant == "recipe" else [])]
-    if method in HUMAN_METHODS:
-        argv += ["--human", "scripted", "--human-episodes", *map(str, cfg.human_episodes)]
-    else:
-        argv += ["--human", "none"]
-    if cfg.timeout > 0:
-        argv += ["--timeout", str(cfg.timeout)]
-    if cfg.until_success > 0:
-        argv += ["--until-success", str(cfg.until_success), "--success-window", str(cfg.success_window)]
-    return argv
-
 
 class _Runner:
     """Runs the planned runs, ``jobs`` at a time, and keeps ``OUT/experiment.json`` current."""
@@ -228,14 +96,20 @@ class _Runner:
             self.progress.skip(spec.name)
             self.record(spec.name, status="done", reused=True)
             return "done"
-        if run_dir.exists():
+        if alive := rundir.live_run(run_dir):  # another invocation runs it: neither wiped nor resumed
+            self.progress.finish(spec.name, "failed", 0.0, f"still running elsewhere: {', '.join(alive)}")
+            return "failed"
+        resume = self._resumable(spec.name, run_dir)
+        if run_dir.exists() and not resume:
             shutil.rmtree(run_dir)  # interrupted or failed before: start again from scratch
-        run_dir.mkdir(parents=True)
-        argv = run_argv(spec, self.cfg, run_dir)
-        self.record(spec.name, status="running", argv=argv, started=time.strftime("%Y-%m-%dT%H:%M:%S"))
+        run_dir.mkdir(parents=True, exist_ok=True)
+        argv = run_argv(spec, self.cfg, run_dir) + (["--resume"] if resume else [])
+        parts = int(self.status.get(spec.name, {}).get("parts", 1)) + 1 if resume else 1
+        self.record(spec.name, status="running", argv=argv, parts=parts,
+                    started=time.strftime("%Y-%m-%dT%H:%M:%S"))
         t0 = time.time()
         log_path = run_dir / "experiment.log"
-        with open(log_path, "w") as log:
+        with open(log_path, "a" if resume else "w") as log:
             proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
                                     env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
             with self.lock:
@@ -257,6 +131,12 @@ class _Runner:
         why = "" if ok else f"{last_line(log_path.read_text(errors='replace'))} (log: {log_path})"
         self.progress.finish(spec.name, status, wall, why)
         return status
+
+    def _resumable(self, name: str, run_dir: Path) -> bool:
+        """``--resume-interrupted`` and the run was interrupted (or still marked running: its machine went away)
+        with a learner checkpoint to go on from; a failed run starts again from scratch."""
+        return (self.cfg.resume_interrupted and self.status.get(name, {}).get("status") in ("interrupted", "running")
+                and (run_dir / "config.toml").is_file() and rundir.has_checkpoint(run_dir))
 
     def stop(self) -> None:
         """Ctrl-C: let each ``khgrl up`` stop its processes (SIGINT), then wait for them."""
@@ -288,7 +168,8 @@ def run(args: argparse.Namespace) -> int:
                  "seeds": args.seeds, "episodes": args.episodes, "human_episodes": args.human_episodes,
                  "system": args.system, "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout,
                  "ray": args.ray, "ray_cpus": args.ray_cpus, "ray_gpus": args.ray_gpus,
-                 "until_success": args.until_success, "success_window": args.success_window}
+                 "until_success": args.until_success, "success_window": args.success_window,
+                 "resume_interrupted": args.resume_interrupted or None}
     try:
         cfg = load_config(args.config, overrides)
     except (ValueError, OSError, TypeError) as exc:
@@ -357,6 +238,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(khgrl up --until-success; default 0: every episode)")
     p.add_argument("--success-window", type=int, default=None, help="autonomous episodes looked back over "
                                                                      "(default 20)")
+    p.add_argument("--resume-interrupted", action="store_true",
+                   help="continue an interrupted run from its learner checkpoint (khgrl up --resume) instead of "
+                        "starting it again (default: off; experiment.json counts its parts)")
     p.add_argument("--dry-run", action="store_true",
                    help="list the runs, their state and commands; run nothing (default: off)")
     p.add_argument("--no-progress", action="store_true", help="plain lines instead of progress bars (default: off)")

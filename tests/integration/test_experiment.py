@@ -1,15 +1,16 @@
-"""khgrl experiment: config, run plan, resumability (a finished run is kept, an interrupted one redone)."""
+"""khgrl experiment: config, run plan, resumability (a finished run is kept, an interrupted one redone or resumed)."""
 
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 
 import pytest
 from khgrl.deploy.experiments.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
 
-from helpers import REPO
+from helpers import REPO, wait_for
 
 
 def test_config_file_then_overrides(tmp_path):
@@ -124,34 +125,59 @@ def test_until_success_goes_to_every_run_and_is_checked(tmp_path):
             load_config(None, bad)
 
 
+def _argv(out, *extra):
+    return [sys.executable, "-m", "khgrl.deploy.cli", "experiment", "--out", str(out), "--scenarios", "low_cov",
+            "--methods", "kgrl", "--seeds", "0", "--episodes", "3", "--no-progress", "--timeout", "240", *extra]
+
+
 def _experiment(out, *extra, timeout=300):
-    argv = [sys.executable, "-m", "khgrl.deploy.cli", "experiment", "--out", str(out), "--scenarios", "low_cov",
-            "--methods", "kgrl", "--seeds", "0", "--episodes", "2", "--no-progress", "--timeout", "240", *extra]
-    return subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(_argv(out, *extra), cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+def _rows(run):
+    return (run / "actor-a0" / "episodes.csv").read_text().splitlines()[1:]
 
 
 @pytest.mark.integration
 @pytest.mark.timeout(600)
 def test_experiment_runs_resumes_and_redoes_an_interrupted_run(tmp_path):
-    out = tmp_path / "exp"
-    first = _experiment(out)
-    assert first.returncode == 0, first.stdout + first.stderr
-    run = out / "low_cov-kgrl-seed0"
-    rows = (run / "actor-a0" / "episodes.csv").read_text().splitlines()
-    assert len(rows) == 3  # header + 2 episodes
+    """Ctrl-C after the first episode, then ``--resume-interrupted`` goes on from the checkpoint (the episodes of
+    the first part kept, one log); a finished run is not redone; without the flag an interrupted run is wiped."""
+    out, name = tmp_path / "exp", "low_cov-kgrl-seed0"
+    run = out / name
+    first = subprocess.Popen(_argv(out), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    wait_for(lambda: "[a0] episode 1:" in _read(run / "experiment.log"), 240, "the first episode")
+    first.send_signal(signal.SIGINT)
+    assert first.wait(120) == 130, first.stdout.read()
     doc = json.loads((out / "experiment.json").read_text())
-    assert doc["runs"]["low_cov-kgrl-seed0"]["status"] == "done" and doc["config"]["episodes"] == 2
-    assert "[a0] episode 2" in (run / "experiment.log").read_text()
+    assert doc["runs"][name]["status"] == "interrupted"
+    kept = _rows(run)
+    assert 1 <= len(kept) < 3, "the run was to be cut short"
+    resumed = _experiment(out, "--resume-interrupted")
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    rows = _rows(run)
+    assert len(rows) == 3 and rows[:len(kept)] == kept and [r.split(",")[0] for r in rows] == ["1", "2", "3"]
+    doc = json.loads((out / "experiment.json").read_text())
+    assert doc["runs"][name]["status"] == "done" and doc["runs"][name]["parts"] == 2
+    assert "--resume" in doc["runs"][name]["argv"] and "[a0] episode 1:" in _read(run / "experiment.log")
     stamp = (run / "summary.json").stat().st_mtime_ns
-    again = _experiment(out)  # finished: not redone
+    again = _experiment(out, "--resume-interrupted")  # finished: not redone
     assert again.returncode == 0 and "finished before, not redone" in again.stdout
     assert (run / "summary.json").stat().st_mtime_ns == stamp
-    # an interrupted run (no summary, leftovers): wiped and run again from scratch
+    # interrupted (no summary, leftovers), without the flag: wiped and run again from scratch
     (run / "summary.json").unlink()
     (run / "leftover.txt").write_text("half a run")
     third = _experiment(out)
     assert third.returncode == 0, third.stdout + third.stderr
-    assert not (run / "leftover.txt").exists() and run_is_done(run, ExperimentConfig(episodes=2))
+    assert not (run / "leftover.txt").exists() and run_is_done(run, ExperimentConfig(episodes=3))
+    assert json.loads((out / "experiment.json").read_text())["runs"][name]["parts"] == 1
+
+
+def _read(path):
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
 
 
 def test_experiment_cli_reports_bad_config(tmp_path):
