@@ -109,6 +109,9 @@ def test_position_is_read_from_the_state(panda: KGRLEnv) -> None:
     assert np.allclose(panda.inner_obs["environment_state"], panda.inner.cube_pos)
     assert set(panda.placement) == {"cube_x", "cube_y"} and np.isclose(panda.placement["cube_x"],
                                                                        panda.inner.cube_pos[0])
+    cube = panda.inner.cube_pos  # the scripted human reads the cube from the task-only key, as in panda:pick
+    p_h = panda.task.scripted_human(cube + [0.05, 0.0, 0.1], phase=0.5, obs=panda.inner_obs)
+    assert np.allclose(p_h, [cube[0], cube[1], cube[2] + 0.1])
 
 
 def test_camera_passage_observes_state_and_image() -> None:
