@@ -17,6 +17,8 @@ settings
   (:mod:`khgrl.common.tasks.derived_bounds`);
 * optionally: ``scene``, a scene that changes every episode and the via-points that adapt the KMP to it
   (:class:`~khgrl.common.tasks.scene.Scene`);
+* optionally: cameras, ``state_key`` and ``image_keys``: the environment observes named images plus a state vector
+  (a ``spaces.Dict``; :mod:`khgrl.common.tasks.obs_spaces`);
 * optionally: ``position`` (where the robot is, in command coordinates, from the environment's observation;
   default: the command last sent), ``scripted_human`` (P_h or None for the step whose KMP mean is given; it may
   also ask for the step, the phase, the robot's position and the observation: :func:`call_scripted_human`),
@@ -27,7 +29,7 @@ The policy observes the environment's observation, the phase s and the robot's d
 (eq. 7). :func:`load_task` turns a spec (``passage:high_cov`` or ``my_package.my_module:make_task``) into a
 checked task; every mistake in a task definition is one :class:`TaskError` naming what is wrong.
 
-One module of ~310 lines on purpose: the task author's whole API in one file: the Task, its shapes, loading a task
+One module of ~325 lines on purpose: the task author's whole API in one file: the Task, its shapes, loading a task
 by name.
 """
 
@@ -146,6 +148,11 @@ class Task:
         ``reward_bound`` is.
     :param scene: how the scene varies per episode and adapts the KMP (None: one fixed scene;
         :mod:`khgrl.common.tasks.scene`).
+    :param state_key: a task with cameras: the key of the state vector in its environment's ``spaces.Dict``
+        observation (``position`` reads the robot from it); None: a 1-D Box observation
+        (:mod:`khgrl.common.tasks.obs_spaces`).
+    :param image_keys: a task with cameras: the keys of its images (uint8 (H, W, C)); the policy observes them
+        unchanged beside the state vector, phase and deviation.
     """
 
     name: str
@@ -168,6 +175,8 @@ class Task:
     reward_bound: float | None = None
     obs_bound: float | None = None
     scene: Scene | None = None
+    state_key: str | None = None
+    image_keys: tuple[str, ...] = ()
 
     def with_demos(self, demos: Any) -> "Task":
         """This task with other demonstrations (``--demos FILE``)."""

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 from khgrl.common.tasks.api import Task, TaskError
+from khgrl.common.tasks.obs_spaces import state_of
 
 __all__ = ["MARGIN", "FLOOR", "EPISODES", "SEED", "RULE", "SeenRanges", "seen_ranges", "margin_bound",
            "resolve_bounds"]
@@ -71,13 +72,13 @@ def _walk(demos: np.ndarray, low: np.ndarray, high: np.ndarray, k: int, rng: np.
 def _run(task: Task, env: Any, commands: np.ndarray, seen: list[float]) -> int:
     """One episode of ``env`` driven by ``commands`` (N, O); the largest |reward| and |obs| into ``seen``."""
     obs, _ = env.reset(seed=SEED)
-    _note(seen, 1, obs)
+    _note(seen, 1, state_of(task, obs))
     steps = 0
     for p in commands:
         action = task.command(env, p.copy()) if task.command is not None else p.copy()
         obs, reward, terminated, truncated, _ = env.step(action)
         _note(seen, 0, reward)
-        _note(seen, 1, obs)
+        _note(seen, 1, state_of(task, obs))  # a task with cameras: its state vector (the images are uint8)
         steps += 1
         if terminated or truncated:
             break

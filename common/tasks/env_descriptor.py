@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 from khgrl.common.tasks.checks import value_bounds
 from khgrl.common.tasks.derived_bounds import resolve_bounds
+from khgrl.common.tasks.obs_spaces import STATE
 
 __all__ = ["descriptor", "task_bounds"]
 
@@ -31,10 +32,15 @@ def descriptor(env: Any, spec: str = ""):
 
     :param env: the :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv`.
     :param spec: the task's spec as given (``passage:low_cov``, ``module:callable``; default: its name).
+
+    A task with cameras: the observation fields (``obs_dim``, ``obs_low``, ``obs_high``, ``obs_bound``) describe the
+    policy observation's ``"state"`` vector only; the images are not in the wire's descriptor yet (issue 37).
     """
     from khgrl.common.wire.descriptor import TaskDescriptor
 
     w, ob = env.world, env.observation_space
+    if getattr(env, "cameras", None) is not None:  # the descriptor has no images yet: it states the state part
+        ob = ob[STATE]
     big = 1e30
     reward_bound, obs_bound = value_bounds(task_bounds(env)[0], (w.low, w.high), (ob.low, ob.high))
     return TaskDescriptor(

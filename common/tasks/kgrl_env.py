@@ -14,7 +14,9 @@ s = t / (N - 1), N the KMP grid):
 Episode end: the task environment's termination; truncation by the environment or after N steps.
 
 Observation (float32): the environment's observation, the phase s, and the robot's deviation from the KMP
-mean at this phase clipped to [-1, 1]^O (the robot: ``task.position(obs)``, or the command last sent).
+mean at this phase clipped to [-1, 1]^O (the robot: ``task.position(obs)``, or the command last sent). A task with
+cameras (``Task.image_keys``): a ``spaces.Dict``, ``"state"`` = the environment's state vector, s and the deviation
+(float32), plus each image unchanged (uint8) (:mod:`khgrl.common.tasks.obs_spaces`).
 
 Action: a in [-1, 1]^O (float32), the null-space action of eq. 5; with ``control="delta"`` (the HIL-SERL
 baseline, :mod:`khgrl.common.tasks.delta`) a displacement instead: P_t = clip(position + step a) in the workspace
@@ -34,7 +36,7 @@ scale L stays a function of the phase: it scales the null-space action about wha
 :meth:`KGRLEnv.reset_episode` resets episode ``e`` of a run to the scene :func:`~khgrl.common.tasks.scene.scene_seed`
 gives.
 
-One module of ~370 lines on purpose: one Gymnasium environment, the KGRL mapping of a task; its reset and step share
+One module of ~385 lines on purpose: one Gymnasium environment, the KGRL mapping of a task; its reset and step share
 the KMP's state.
 """
 
@@ -49,6 +51,7 @@ from khgrl.common.tasks.adapted import episode_scene
 from khgrl.common.tasks.api import Task, TaskError
 from khgrl.common.tasks.delta import DeltaControl
 from khgrl.common.tasks.motion import measured, reset_path
+from khgrl.common.tasks.obs_spaces import camera_layout, policy_obs, policy_space
 from khgrl.common.tasks.safety import RateLimiter
 from khgrl.common.tasks.scene import scene_seed
 from khgrl.common.tasks.world import TaskWorld, build_task_world
@@ -60,7 +63,8 @@ VIOLATION_TOL = 1e-6  # a hard constraint counts as violated by more than this
 
 
 def make_inner_env(task: Task, seed: int) -> gym.Env:
-    """The task's own environment, checked: a 1-D Box observation; a (O,) Box action unless ``command`` adapts."""
+    """The task's own environment, checked: a 1-D Box observation (a task with cameras: the ``spaces.Dict`` it
+    declares, :func:`~khgrl.common.tasks.obs_spaces.camera_layout`); a (O,) Box action unless ``command`` adapts."""
     try:
         env = task.make_env(seed)
     except TaskError:
@@ -70,6 +74,8 @@ def make_inner_env(task: Task, seed: int) -> gym.Env:
     if not isinstance(env, gym.Env):
         raise TaskError(f"task {task.name!r}: make_env returned {type(env).__name__}, not a gymnasium.Env")
     obs = env.observation_space
+    if camera_layout(task, obs) is not None:
+        return env
     if not isinstance(obs, spaces.Box) or len(obs.shape) != 1:
         raise TaskError(f"task {task.name!r}: the environment's observation space must be a 1-D Box, got {obs}")
     return env
@@ -110,7 +116,8 @@ class KGRLEnv(gym.Env):
         self.render_mode = render_mode
         self.action_space = spaces.Box(-1.0, 1.0, shape=(o,), dtype=np.float32)
         ob = self.inner.observation_space
-        self.observation_space = spaces.Box(
+        self.cameras = camera_layout(self.task, ob)  # None: a vector task
+        self.observation_space = policy_space(self.cameras, o) if self.cameras is not None else spaces.Box(
             low=np.concatenate([ob.low.astype(np.float64), [0.0], -np.ones(o)]).astype(np.float32),
             high=np.concatenate([ob.high.astype(np.float64), [1.0], np.ones(o)]).astype(np.float32),
             dtype=np.float32)
@@ -160,9 +167,11 @@ class KGRLEnv(gym.Env):
                             f"got {p}")
         return p
 
-    def _obs(self) -> np.ndarray:
+    def _obs(self) -> np.ndarray | dict[str, np.ndarray]:
         t = min(self.t, self.horizon - 1)
         dev = np.clip(self.position - self.mapping.mean(t), -1.0, 1.0)
+        if self.cameras is not None:
+            return policy_obs(self.cameras, self._inner_obs, float(self.mapping.phases[t]), dev)
         inner = np.asarray(self._inner_obs, dtype=np.float64).reshape(-1)
         return np.concatenate([inner, [self.mapping.phases[t]], dev]).astype(np.float32)
 

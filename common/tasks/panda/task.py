@@ -21,6 +21,12 @@ covariance ~0 at the grasp), the mean is pinned there between via-points and lif
 The scripted human (:class:`PandaGuide`): during the grasp part of the task (descent, hold, lift), while the KMP
 mean is more than 1 cm (in x, y) from the cube it sees, it drags P_h over the cube at the mean's height;
 elsewhere, or when the mean is already there, it lets go.
+
+``panda:pick-pixels`` (issue 37): the same task -- demonstrations, KMP, scene, via-points, scripted human, bounds --
+whose environment observes gym-hil's cameras (:class:`~khgrl.common.tasks.panda.pixels.PandaPixels`): the policy
+sees ``front`` and ``wrist`` (128 x 128 x 3 uint8) and the state vector ``agent_pos`` (the robot's position is read
+from it); the scene and the scripted human read the cube's true position from ``environment_state``, which the
+policy does not see.
 """
 
 from __future__ import annotations
@@ -30,7 +36,8 @@ from khgrl.common.kmp.fit import KMPConfig
 from khgrl.common.tasks.api import Cuboid, Point, Task, View
 from khgrl.common.tasks.fetch.arm import GripperSchedule
 from khgrl.common.tasks.keyframes import through
-from khgrl.common.tasks.panda.arm import BOUNDS, CUBE, REGION, TCP, PandaPosition
+from khgrl.common.tasks.panda.arm import BOUNDS, REGION, PandaPosition
+from khgrl.common.tasks.panda.pixels import CAMERAS, STATE_KEY, PandaPixels, cube_of, tcp_of
 from khgrl.common.tasks.scene import Scene, ViaPoint
 
 __all__ = ["make_task", "teacher_demos", "demo_cubes", "teacher_plan", "via_points", "describe", "PandaGuide",
@@ -44,7 +51,7 @@ ABOVE, LIFT = 0.08, 0.16  # heights above the grasp: the descent starts here; th
 PHASES = {"above": 0.30, "grasp": 0.42, "hold": 0.55, "lift": 0.80}
 GRASP_PHASE = 0.46  # the gripper closes here (after the pinch site reaches the cube, before the lift starts)
 NEAR = 0.01  # the scripted human lets go when the mean is this close (x, y) to the cube
-SCENARIOS = ("pick",)
+SCENARIOS = ("pick", "pick-pixels")  # the second observes gym-hil's cameras (pixels.py)
 VIA_PHASES = np.linspace(PHASES["above"], PHASES["lift"], 16)  # where the via-points are (16: the most allowed)
 KMP = KMPConfig(length_scale=0.05)  # see the module docstring
 # L0: the fetch task's choice (same units: metres, a band of a few cm where the demonstrations spread); not tuned
@@ -100,9 +107,9 @@ def teacher_demos(m: int = 6, n: int = HORIZON, seed: int = 0) -> np.ndarray:
 def describe(obs: np.ndarray) -> dict[str, float]:
     """The scene: the cube's x, y (metres) in the episode's first observation.
 
-    :param obs: the environment's observation (21,).
+    :param obs: the environment's observation (21,), or ``panda:pick-pixels``' dict.
     """
-    cube = np.asarray(obs, np.float64)[CUBE]
+    cube = cube_of(obs)
     return {"cube_x": float(cube[0]), "cube_y": float(cube[1])}
 
 
@@ -110,10 +117,10 @@ def via_points(obs: np.ndarray, n: int = HORIZON) -> list[ViaPoint]:
     """The grasp at the observed cube: the teacher's plan for the cube in the first observation at the 16 phases
     ``VIA_PHASES`` (above the cube, down onto it, held there, lifted), precision 1e6 (1 mm).
 
-    :param obs: the environment's observation (21,).
+    :param obs: the environment's observation (21,), or ``panda:pick-pixels``' dict.
     :param n: N, the steps of the task's episodes (the grid the phases snap to).
     """
-    plan = teacher_plan(np.asarray(obs, np.float64)[CUBE], n)
+    plan = teacher_plan(cube_of(obs), n)
     steps = np.unique(np.round(VIA_PHASES * (n - 1)).astype(int))
     return [ViaPoint(float(t) / (n - 1), tuple(float(v) for v in plan[t])) for t in steps]
 
@@ -126,7 +133,7 @@ class PandaGuide:
                  ) -> np.ndarray | None:
         if obs is None or phase is None or not PHASES["above"] <= phase <= PHASES["lift"]:
             return None
-        cube = np.asarray(obs, np.float64)[CUBE]
+        cube = cube_of(obs)
         if np.linalg.norm(np.asarray(mean[:2]) - cube[:2]) <= NEAR:
             return None
         return np.array([cube[0], cube[1], mean[2]], np.float64)
@@ -135,7 +142,7 @@ class PandaGuide:
 def make_task(scenario: str = "pick", *, horizon: int = HORIZON, seed: int = 0) -> Task:
     """gym-hil's Panda pick-cube, the cube placed at random every episode.
 
-    :param scenario: "pick" (the only one).
+    :param scenario: "pick", or "pick-pixels" (the same task observing gym-hil's cameras).
     :param horizon: N, steps per episode.
     :param seed: seed of the teacher's demonstrations.
     """
@@ -143,15 +150,18 @@ def make_task(scenario: str = "pick", *, horizon: int = HORIZON, seed: int = 0) 
         raise ValueError(f"unknown panda scenario {scenario!r}; choose one of {list(SCENARIOS)}")
     sched = GripperSchedule(close_at=GRASP_PHASE, open_at=1.1)
     (x0, y0), (x1, y1) = REGION
+    pixels = scenario == "pick-pixels"
+    env_class = PandaPixels if pixels else PandaPosition
     return Task(
         name=f"panda-{scenario}",
-        make_env=lambda s: PandaPosition(horizon=horizon, workspace=BOUNDS, gripper=sched, region=REGION),
+        make_env=lambda s: env_class(horizon=horizon, workspace=BOUNDS, gripper=sched, region=REGION),
         demos=teacher_demos(n=horizon, seed=seed), kmp=KMP, workspace=BOUNDS, default_scale=DEFAULT_SCALE,
-        learn_scale=True, action_cost=10.0, position=lambda obs: np.asarray(obs, np.float64)[TCP],
+        learn_scale=True, action_cost=10.0, position=tcp_of,
         push=lambda env, p_h: env.push(p_h), contact=lambda env: env.gripper_closed,
         scripted_human=PandaGuide(), success_key="succeed", reward_bound=1.0, obs_bound=10.0,
         scene=Scene(region=f"cube x in [{x0}, {x1}], y in [{y0}, {y1}] m (uniform; gym-hil's sampling bounds)",
                     describe=describe, via_points=lambda obs: via_points(obs, horizon)),
         view=View(axes=(0, 1), third=2, names=("x", "y", "z"),
                   shapes=(Cuboid("cube region", (x0, y0, 0.0), (x1, y1, 0.04)),
-                          Point("region centre", tuple(DEMO_CUBE)), Point("start", tuple(START)))))
+                          Point("region centre", tuple(DEMO_CUBE)), Point("start", tuple(START)))),
+        state_key=STATE_KEY if pixels else None, image_keys=tuple(CAMERAS) if pixels else ())
