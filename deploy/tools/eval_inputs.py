@@ -108,12 +108,13 @@ def find_model(run_dir: Path, checkpoint: str | Path | None) -> Path:
     raise EvalError(f"--checkpoint {checkpoint}: no {MODEL_FILE} there")
 
 
-def load_run_task(cfg: Any, cwd: str | None = None) -> tuple[Any, str]:
+def load_run_task(cfg: Any, cwd: str | None = None, spec: str | None = None) -> tuple[Any, str]:
     """The run's task (``--task`` / ``--scenario``, ``--demos``) and its spec.
 
     :param cfg: the run's :class:`~khgrl.common.config.settings.RunConfig`.
     :param cwd: the directory ``khgrl up`` ran in, if the run recorded it: the task's module and a relative
         ``--demos`` path are also looked for there.
+    :param spec: another task to load with the run's demonstrations (None: the run's).
     :raises EvalError: the task does not load.
     """
     from khgrl.common.tasks.api import TaskError, load_task
@@ -124,7 +125,7 @@ def load_run_task(cfg: Any, cwd: str | None = None) -> tuple[Any, str]:
             sys.path.append(cwd)
         if demos is not None and not demos.startswith("lerobot:") and not Path(demos).exists():
             demos = str(Path(cwd) / demos)
-    spec = cfg.task_spec
+    spec = spec or cfg.task_spec
     try:
         return load_task(spec, demos), spec
     except TaskError as exc:

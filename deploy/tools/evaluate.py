@@ -106,7 +106,8 @@ def _write_csv(path: Path, episodes: list[EpisodeResult]) -> None:
 
 def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes: int = 10, seed: int | None = None,
              gif: str | Path | None = None, csv_path: str | Path | None = None, actor: str | None = None,
-             scenes: int | None = None, gif_scenes: int = 3, adapt: bool | None = None) -> Evaluation:
+             scenes: int | None = None, gif_scenes: int = 3, adapt: bool | None = None,
+             task_spec: str | None = None) -> Evaluation:
     """Evaluate a run's policy (see the module docstring).
 
     :param run_dir: the run directory (or an actor folder in it: :func:`find_run`).
@@ -122,6 +123,8 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
     :param gif_scenes: scenes the GIF shows one after another.
     :param adapt: refit the KMP through each scene's via-points at reset (a task with a varying scene and
         via-points; None: as the run did, its ``--adapt/--no-adapt``).
+    :param task_spec: evaluate on this task instead of the run's (its spaces must be the run's: e.g.
+        ``panda:pick-camera``, ``panda:pick`` with the scene from the camera); None: the run's task.
     :raises EvalError: one line saying what is missing.
     """
     import torch
@@ -141,7 +144,7 @@ def evaluate(run_dir: str | Path, checkpoint: str | Path | None = None, episodes
         if running := still_running(run_dir, "khgrl eval"):  # (a live run: its first checkpoint may still come)
             raise EvalError(f"{running}; it has no checkpoint yet") from None
         raise
-    task, spec = load_run_task(cfg, runtime.get("cwd"))
+    task, spec = load_run_task(cfg, runtime.get("cwd"), task_spec)
     seed = cfg.seed if seed is None else int(seed)
     adapted = bool(cfg.adapt if adapt is None else adapt)
     torch.manual_seed(seed)
@@ -257,7 +260,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
             raise EvalError("give --episodes N (episodes reset with SEED + i) or --scenes K (seeded scenes), not both")
         ev = evaluate(args.run_dir, checkpoint=args.checkpoint, episodes=10 if args.episodes is None else args.episodes,
                       seed=args.seed, gif=args.gif, csv_path=args.csv, actor=args.actor, scenes=args.scenes,
-                      gif_scenes=args.gif_scenes, adapt=args.adapt)
+                      gif_scenes=args.gif_scenes, adapt=args.adapt, task_spec=args.task)
     except EvalError as exc:
         print(f"khgrl eval: error: {exc}", file=sys.stderr)
         return 2
@@ -310,6 +313,9 @@ def add_parser(sub: Any) -> argparse.ArgumentParser:
                         "(--no-adapt: the demonstrations' KMP in every scene; default: as the run did)")
     p.add_argument("--actor", default=None, metavar="ID",
                    help="use the exploration scale this actor learned (default: a0, or the actor folder's)")
+    p.add_argument("--task", default=None, metavar="SPEC",
+                   help="evaluate on this task instead of the run's, one with the same spaces (e.g. panda:pick-camera "
+                        "for a panda:pick run: the scene from the front camera; default: the run's task)")
     p.set_defaults(func=_cmd_eval)
     return p
 

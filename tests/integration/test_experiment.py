@@ -164,13 +164,16 @@ def test_experiment_runs_resumes_and_redoes_an_interrupted_run(tmp_path):
     again = _experiment(out, "--resume-interrupted")  # finished: not redone
     assert again.returncode == 0 and "finished before, not redone" in again.stdout
     assert (run / "summary.json").stat().st_mtime_ns == stamp
-    # interrupted (no summary, leftovers), without the flag: wiped and run again from scratch
+    # interrupted (no summary, leftovers), without the flag: wiped and started again from scratch (here cut by a
+    # 1 s timeout: the wipe is what is checked, the run itself was checked above)
     (run / "summary.json").unlink()
     (run / "leftover.txt").write_text("half a run")
-    third = _experiment(out)
-    assert third.returncode == 0, third.stdout + third.stderr
-    assert not (run / "leftover.txt").exists() and run_is_done(run, ExperimentConfig(episodes=3))
-    assert json.loads((out / "experiment.json").read_text())["runs"][name]["parts"] == 1
+    third = _experiment(out, "--timeout", "1")
+    assert third.returncode == 1, third.stdout + third.stderr
+    episodes = run / "actor-a0" / "episodes.csv"  # (the episodes of before gone with the rest)
+    assert not (run / "leftover.txt").exists() and (not episodes.is_file() or len(_rows(run)) < 3)
+    entry = json.loads((out / "experiment.json").read_text())["runs"][name]
+    assert entry["parts"] == 1 and entry["status"] == "failed" and "--resume" not in entry["argv"]
 
 
 def _read(path):

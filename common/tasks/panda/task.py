@@ -27,6 +27,10 @@ whose environment observes gym-hil's cameras (:class:`~khgrl.common.tasks.panda.
 sees ``front`` and ``wrist`` (128 x 128 x 3 uint8) and the state vector ``agent_pos`` (the robot's position is read
 from it); the scene and the scripted human read the cube's true position from ``environment_state``, which the
 policy does not see.
+
+``panda:pick-camera``: ``panda:pick`` whose scene (placement, via-points) is what gym-hil's front camera sees
+(:class:`~khgrl.common.tasks.panda.seen.PandaSeen`); its observations are ``panda:pick``'s after the reset, so a
+policy trained on ``panda:pick`` runs on it unchanged (``khgrl eval RUN --task panda:pick-camera``).
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from khgrl.common.tasks.fetch.arm import GripperSchedule
 from khgrl.common.tasks.keyframes import through
 from khgrl.common.tasks.panda.arm import BOUNDS, REGION, PandaPosition
 from khgrl.common.tasks.panda.pixels import CAMERAS, STATE_KEY, PandaPixels, cube_of, tcp_of
+from khgrl.common.tasks.panda.seen import PandaSeen
 from khgrl.common.tasks.scene import Scene, ViaPoint
 
 __all__ = ["make_task", "teacher_demos", "demo_cubes", "teacher_plan", "via_points", "describe", "PandaGuide",
@@ -51,7 +56,8 @@ ABOVE, LIFT = 0.08, 0.16  # heights above the grasp: the descent starts here; th
 PHASES = {"above": 0.30, "grasp": 0.42, "hold": 0.55, "lift": 0.80}
 GRASP_PHASE = 0.46  # the gripper closes here (after the pinch site reaches the cube, before the lift starts)
 NEAR = 0.01  # the scripted human lets go when the mean is this close (x, y) to the cube
-SCENARIOS = ("pick", "pick-pixels")  # the second observes gym-hil's cameras (pixels.py)
+SCENARIOS = ("pick", "pick-pixels", "pick-camera")  # pixels.py: observes gym-hil's cameras; seen.py: the scene
+# from the front camera
 VIA_PHASES = np.linspace(PHASES["above"], PHASES["lift"], 16)  # where the via-points are (16: the most allowed)
 KMP = KMPConfig(length_scale=0.05)  # see the module docstring
 # L0: the fetch task's choice (same units: metres, a band of a few cm where the demonstrations spread); not tuned
@@ -142,7 +148,8 @@ class PandaGuide:
 def make_task(scenario: str = "pick", *, horizon: int = HORIZON, seed: int = 0) -> Task:
     """gym-hil's Panda pick-cube, the cube placed at random every episode.
 
-    :param scenario: "pick", or "pick-pixels" (the same task observing gym-hil's cameras).
+    :param scenario: "pick", "pick-pixels" (the same task observing gym-hil's cameras) or "pick-camera" (the
+        scene from the front camera).
     :param horizon: N, steps per episode.
     :param seed: seed of the teacher's demonstrations.
     """
@@ -151,7 +158,7 @@ def make_task(scenario: str = "pick", *, horizon: int = HORIZON, seed: int = 0) 
     sched = GripperSchedule(close_at=GRASP_PHASE, open_at=1.1)
     (x0, y0), (x1, y1) = REGION
     pixels = scenario == "pick-pixels"
-    env_class = PandaPixels if pixels else PandaPosition
+    env_class = {"pick-pixels": PandaPixels, "pick-camera": PandaSeen}.get(scenario, PandaPosition)
     return Task(
         name=f"panda-{scenario}",
         make_env=lambda s: env_class(horizon=horizon, workspace=BOUNDS, gripper=sched, region=REGION),

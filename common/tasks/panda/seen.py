@@ -1,0 +1,75 @@
+"""gym-hil's Panda pick-cube whose scene is what the front camera sees: the environment of ``--task
+panda:pick-camera`` (issue 37, point 5).
+
+``panda:pick`` reads the cube's place for its via-points (and its placement) from the first observation, which
+holds the cube's true position: a real robot has only a camera. :class:`PandaSeen` is
+:class:`~khgrl.common.tasks.panda.arm.PandaPosition` whose *first* observation of an episode holds, instead of the
+cube's true (x, y), the estimate from one 128 x 128 frame of gym-hil's ``front`` camera
+(:func:`~khgrl.common.tasks.panda.camera.locate_cube`: colour segmentation, back-projection onto the table, the
+arm's occlusion modelled): the scene's placement, the via-points and the KMP refitted through them follow the
+camera. From the first step on the observation is ``panda:pick``'s, so a policy trained on ``panda:pick`` sees
+what it was trained on and only the scene's source differs (``khgrl eval RUN --task panda:pick-camera``).
+
+A cube the camera does not find (:class:`~khgrl.common.tasks.panda.camera.CubeNotFound`: 13 of 200 scenes in
+docs/camera_scene.json) is reached for where the region's centre is -- what a robot that saw nothing would do --
+and counted (``not_seen``, ``info["cube_seen"]`` False). The reset costs one render (~170 ms) and the estimate
+(~55 ms) more than ``panda:pick``'s; the reset's random draws are the same, so seeded scenes place the cube where
+``panda:pick`` does.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from khgrl.common.tasks.panda.arm import CUBE, PandaPosition
+
+__all__ = ["PandaSeen"]
+
+
+class PandaSeen(PandaPosition):
+    """:class:`~khgrl.common.tasks.panda.arm.PandaPosition` whose first observation holds the cube as the front
+    camera sees it (see the module docstring).
+
+    :param kwargs: :class:`~khgrl.common.tasks.panda.arm.PandaPosition`'s parameters.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        from khgrl.common.tasks.panda.camera import front_renderer
+        from khgrl.common.tasks.panda.colours import scene_colours
+
+        self._renderer = front_renderer(self.base.model)
+        self._colours = scene_colours(self.base.model)
+        self.seen = 0
+        self.not_seen = 0
+        self.last_error_m = float("nan")  # |estimate - truth| in (x, y) at the last reset where the cube was seen
+
+    def _estimate(self) -> np.ndarray | None:
+        """The cube's (x, y) seen by the front camera now, or None where it is not found."""
+        from khgrl.common.tasks.panda.camera import CubeNotFound, locate_cube, render_front
+
+        frame, camera = render_front(self._renderer, self.base.model, self.base.data)
+        try:
+            return locate_cube(frame, camera, self._colours)[:2]
+        except CubeNotFound:
+            return None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        flat, info = super().reset(seed=seed, options=options)
+        truth = flat[CUBE][:2].copy()
+        seen = self._estimate()
+        if seen is not None:
+            self.seen += 1
+            self.last_error_m = float(np.linalg.norm(seen - truth))
+        else:
+            self.not_seen += 1
+            low, high = self.region if self.region is not None else (truth, truth)
+        flat[CUBE.start:CUBE.start + 2] = seen if seen is not None else (np.asarray(low) + np.asarray(high)) / 2
+        return flat, {**info, "cube_seen": seen is not None}
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+        super().close()
