@@ -23,7 +23,9 @@ predecessor was evicted -- or a pin whose slot was evicted. So, with E episode s
 ``E <= buffer_size / min_episode_steps``; :func:`frame_capacity` adds ``2 * max_streams``. (A batch holds its own
 frames until it is stored: only a batch larger than its actor's share, which evicts its own rows, goes above the
 bound.) Beyond it :class:`~khgrl.learner.frame_store.FrameStoreFull` says so. Two 128x128x3 cameras: 98,304 bytes
-per frame, ~10.3 GB for 100,000 transitions with 20-step episodes (:mod:`khgrl.benchmarks.frame_replay`).
+per frame; 100,000 transitions of 100-step episodes hold 1.01 frames a transition, 9.95 GB with the per-slot
+arrays against SB3's 19.7 GB (:mod:`khgrl.benchmarks.frame_replay`, ``docs/frame_replay.json``); the store
+allocates (and a checkpoint pickles) ``frame_capacity`` frames: 10.3 GB with ``min_episode_steps`` 20.
 
 Save and load: the store, the frame ids and the pins are attributes, pickled with the buffer as the side arrays
 are (:mod:`khgrl.learner.checkpoint`); ``copy.copy`` (the checkpoint's ``copy_buffer``) copies the store too.
@@ -134,6 +136,8 @@ class FrameReplayBuffer(StreamReplayBuffer):
         :param actor: provenance code of the actor stream
         :param first_step: the running index of the first transition in that stream (-1: unknown)
         :raises ValueError: indices out of range, or PREV without a pin for this stream at ``first_step``
+        :raises FrameStoreFull: more frames alive than the store was sized for (``min_episode_steps``,
+            ``max_streams``); the batch is then stored in part and the buffer is not to be used further
         """
         obs_frame, next_frame = np.asarray(obs_frame, dtype=np.int64), np.asarray(next_frame, dtype=np.int64)
         n, m = len(state), len(next(iter(frames.values())))
@@ -181,14 +185,15 @@ class FrameReplayBuffer(StreamReplayBuffer):
         :param continues: row 0's observation is the stream's pinned frame (None: when the pin is at ``first_step``
             and its pixels equal row 0's)
         """
-        if continues is None:
-            pin = self.pins.get(actor)
-            continues = (pin is not None and len(done) > 0 and (first_step < 0 or pin[1] == first_step)
-                         and all(np.array_equal(self.store.frames[k][pin[0]], obs[k][0]) for k in self.cameras))
-        frames, obs_frame, next_frame = pack_frames(obs, next_obs, done, self.cameras, continues)
-        self.add_frames(frames, obs_frame, next_frame, obs[self.state_key], next_obs[self.state_key], action,
-                        reward, done, timeout, intervened=intervened, clipped=clipped, actor=actor,
-                        first_step=first_step)
+        with self.lock:
+            if continues is None:
+                pin = self.pins.get(actor)
+                continues = (pin is not None and len(done) > 0 and (first_step < 0 or pin[1] == first_step)
+                             and all(np.array_equal(self.store.frames[k][pin[0]], obs[k][0]) for k in self.cameras))
+            frames, obs_frame, next_frame = pack_frames(obs, next_obs, done, self.cameras, continues)
+            self.add_frames(frames, obs_frame, next_frame, obs[self.state_key], next_obs[self.state_key], action,
+                            reward, done, timeout, intervened=intervened, clipped=clipped, actor=actor,
+                            first_step=first_step)
 
     def add(self, obs: dict[str, np.ndarray], next_obs: dict[str, np.ndarray], action: np.ndarray,
             reward: np.ndarray, done: np.ndarray, infos: list[dict[str, Any]], *, intervened: bool | int = 0,

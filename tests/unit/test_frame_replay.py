@@ -7,6 +7,7 @@ back the same and goes on with the stream."""
 from __future__ import annotations
 
 import copy
+import json
 import tempfile
 from typing import Any
 
@@ -292,3 +293,35 @@ def test_sb3_tqc_learns_from_it_and_saves_it(tmp_path):
     model.load_replay_buffer(tmp_path / "buffer.pkl")
     assert model.replay_buffer is not rb and model.replay_buffer.store.live == 32
     model.train(gradient_steps=1, batch_size=8)
+
+
+def test_rlpd_sampling_draws_its_prior_half_with_the_right_pixels():
+    rb = FrameReplayBuffer(64, OBS, ACT, device="cpu", min_episode_steps=4, max_streams=2, prior_fraction=0.5)
+    streams = {0: Stream(0, 9, seed=12), 1: Stream(1, 5, seed=13)}
+    for _ in range(4):
+        for a, s in streams.items():
+            args, kw = s.batch(4)
+            rb.add_batch(*args, **(kw | {"intervened": np.full(4, a, np.uint8)}))  # actor 1: the prior data
+    batch = rb.sample(64)
+    actors = batch.observations["state"][:, 0].numpy().astype(int)
+    assert np.all(actors[32:] == 1) and rb.sampled_prior == 32
+    for row, (actor, step, _) in enumerate(batch.observations["state"].numpy().astype(int)):
+        for c in CAMS:
+            expected = streams[actor].pixels[(step, "next")][c]
+            np.testing.assert_array_equal(batch.next_observations[c][row].numpy(), expected)
+
+
+def test_the_benchmark_measures_both_buffers_and_writes_json(tmp_path, capsys):
+    from khgrl.benchmarks.frame_replay import main
+
+    out = tmp_path / "frame_replay.json"
+    result = main(["--transitions", "200", "--side", "16", "--repeats", "2", "--out", str(out)])
+    frame, sb3 = result["frame_replay"], result["sb3_dict"]
+    assert frame["added"] >= 400 and frame["shares"] == {"#0": 100, "#1": 100}  # wrapped, shares evicted
+    # 450 added: actor 0 holds steps 200-299 (one episode), actor 1 steps 50-149 (an episode starts at 100): each
+    # slot's next frame, the two runs' first observations and actor 1's episode start (its pin is a slot's frame)
+    assert frame["live_frames"] == 200 + 2 + 1
+    assert frame["bytes_per_transition"] < 0.55 * sb3["bytes_per_transition"]
+    assert frame["rss_bytes"] > 0 and sb3["rss_bytes"] > 0 and frame["sample_s"] > 0
+    assert json.loads(out.read_text())["extrapolated"]["transitions"] == 100_000
+    assert "extrapolated linearly from 200 to 100,000" in capsys.readouterr().out
