@@ -60,3 +60,12 @@ def test_khgrl_up_then_eval_on_seeded_scenes(tmp_path: Path) -> None:
     again = _run(["eval", "runs/pts", "--scenes", "8", "--seed", "2"], tmp_path, 120)
     assert again.returncode == 0, again.stdout[-2000:] + again.stderr[-2000:]
     assert _rows(run / "eval" / "scenes-2.csv") == rows  # (a deterministic policy: the results too)
+
+    # --task: the run's policy on another task with the same spaces (here the run's own, named) gives the same
+    # scenes and results; a task with other spaces is refused in one line
+    same = _run(["eval", "runs/pts", "--scenes", "8", "--seed", "2", "--task", "scene_point_task:make_task"],
+                tmp_path, 120)
+    assert same.returncode == 0 and _rows(run / "eval" / "scenes-3.csv") == rows, same.stdout + same.stderr
+    other = _run(["eval", "runs/pts", "--scenes", "2", "--task", "passage:low_cov"], tmp_path, 120)
+    assert other.returncode == 2 and other.stderr.count("\n") == 1 and "khgrl eval: error:" in other.stderr, \
+        other.stdout[-2000:] + other.stderr[-2000:]
