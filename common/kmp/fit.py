@@ -1,13 +1,20 @@
-"""From demonstrations to an LC-NS-KMP model, with every hyperparameter in one config."""
+"""From demonstrations to an LC-NS-KMP model, with every hyperparameter in one config.
+
+The model's code (GMM/GMR, the LC-NS-KMP and scipy behind them) is imported by :func:`fit_model`, not with this
+module: a task's definition names a :class:`KMPConfig`, and a process that only loads tasks (a human-input client)
+starts without the numerical stack (~1 s less).
+"""
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from khgrl.common.kmp.gmr import ReferenceDistribution, reference_distribution
-from khgrl.common.kmp.kernels import RBF
-from khgrl.common.kmp.lcnskmp import LCNSKMP
+
+if TYPE_CHECKING:
+    from khgrl.common.kmp.gmr import ReferenceDistribution
+    from khgrl.common.kmp.lcnskmp import LCNSKMP
 
 __all__ = ["KMPConfig", "fit_model", "box_constraints"]
 
@@ -45,6 +52,10 @@ def fit_model(
     demos: np.ndarray, config: KMPConfig = KMPConfig(), constraints: tuple[np.ndarray, np.ndarray] | None = None
 ) -> tuple[LCNSKMP, ReferenceDistribution]:
     """GMM + GMR on the demonstrations' own N-point time grid, then the LC-NS-KMP on that grid."""
+    from khgrl.common.kmp.gmr import reference_distribution
+    from khgrl.common.kmp.kernels import RBF
+    from khgrl.common.kmp.lcnskmp import LCNSKMP
+
     ref = reference_distribution(demos, n_components=config.n_components, seed=config.seed, jitter=config.jitter)
     model = LCNSKMP(
         ref.s,

@@ -2,15 +2,19 @@
 
 The GMM is scikit-learn's :class:`~sklearn.mixture.GaussianMixture` with full covariances fitted on the
 joint (input, output) points; GMR conditions every component on the input and moment-matches the
-mixture, as in every reference KMP implementation.
+mixture, as in every reference KMP implementation. scikit-learn is imported when a GMM is fitted, not with this
+module: a process that only loads a task (a human-input client, the launcher) does not pay for it (~1.5 s).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from sklearn.mixture import GaussianMixture
+
+if TYPE_CHECKING:
+    from sklearn.mixture import GaussianMixture
 
 
 @dataclass(frozen=True)
@@ -46,6 +50,8 @@ def fit_gmm(
 
     ``demos`` has shape (M, N, O); each demonstration's time is normalised to [0, 1].
     """
+    from sklearn.mixture import GaussianMixture
+
     demos = _check_demos(demos)
     m, n, o = demos.shape
     s = np.broadcast_to(time_inputs(n)[None], (m, n, 1))
