@@ -3,7 +3,8 @@
 The GMM is scikit-learn's :class:`~sklearn.mixture.GaussianMixture` with full covariances fitted on the
 joint (input, output) points; GMR conditions every component on the input and moment-matches the
 mixture, as in every reference KMP implementation. scikit-learn is imported when a GMM is fitted, not with this
-module: a process that only loads a task (a human-input client, the launcher) does not pay for it (~1.5 s).
+module, and a fit of the same points is read from a cache (:mod:`khgrl.common.kmp.gmm_cache`): a process that only
+loads a task, or fits demonstrations fitted before, does not pay for it (~1.5 s).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from khgrl.common.kmp.gmm_cache import FittedGMM, gmm_key, load_gmm, store_gmm
 
 if TYPE_CHECKING:
     from sklearn.mixture import GaussianMixture
@@ -45,23 +47,30 @@ def time_inputs(n_points: int) -> np.ndarray:
 
 def fit_gmm(
     demos: np.ndarray, n_components: int = 8, *, seed: int = 0, reg_covar: float = 1e-6
-) -> GaussianMixture:
+) -> GaussianMixture | FittedGMM:
     """Fit a full-covariance GMM on the joint (s, eta) points of time-indexed demonstrations.
 
-    ``demos`` has shape (M, N, O); each demonstration's time is normalised to [0, 1].
+    ``demos`` has shape (M, N, O); each demonstration's time is normalised to [0, 1]. The fit is scikit-learn's, or
+    the same fit read back from the cache (:mod:`khgrl.common.kmp.gmm_cache`): either has ``weights_``, ``means_``
+    and ``covariances_``.
     """
-    from sklearn.mixture import GaussianMixture
-
     demos = _check_demos(demos)
     m, n, o = demos.shape
     s = np.broadcast_to(time_inputs(n)[None], (m, n, 1))
     data = np.concatenate([s, demos], axis=2).reshape(m * n, 1 + o)
     if n_components < 1 or n_components > data.shape[0]:
         raise ValueError(f"n_components must be in [1, {data.shape[0]}], got {n_components}")
+    key = gmm_key(data, n_components, seed, reg_covar)
+    cached = load_gmm(key, n_components, 1 + o)
+    if cached is not None:
+        return cached
+    from sklearn.mixture import GaussianMixture
+
     gmm = GaussianMixture(
         n_components=n_components, covariance_type="full", random_state=seed, reg_covar=reg_covar, n_init=1
     )
     gmm.fit(data)
+    store_gmm(key, FittedGMM(gmm.weights_, gmm.means_, gmm.covariances_))
     return gmm
 
 

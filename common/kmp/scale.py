@@ -12,18 +12,23 @@ A KGRL run simply never calls :meth:`ScaleModel.update` and keeps L = L0.
 
 The model is plain data (:meth:`to_dict` / :meth:`from_dict`: numbers and lists only), so the actor can
 publish it as msgpack; refitting is deterministic (fixed kernel hyperparameters, no optimiser restarts).
+scikit-learn is imported at the first fit, or by :func:`prepare` (the actor calls it at start when it will learn
+L, so that the first refit does not stall its loop), not with this module.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
-from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import RBF as SkRBF
-from sklearn.gaussian_process.kernels import WhiteKernel
 
-__all__ = ["ScaleConfig", "ScaleModel"]
+__all__ = ["ScaleConfig", "ScaleModel", "prepare"]
+
+
+def prepare() -> None:
+    """Import the regression's code now (scikit-learn's Gaussian process, ~1.5 s the first time in a process)."""
+    import sklearn.gaussian_process  # noqa: F401
 
 
 @dataclass(frozen=True)
@@ -66,7 +71,7 @@ class ScaleModel:
         self.config = config
         self._x = np.zeros((0, 1 if config.input == "phase" else 2))
         self._y = np.zeros((0, default.size))  # log targets minus log default
-        self._gps: list[GaussianProcessRegressor] | None = None
+        self._gps: list[Any] | None = None  # one GaussianProcessRegressor per output, once fitted
         self.n_updates = 0
 
     @property
@@ -126,6 +131,10 @@ class ScaleModel:
         self._x, self._y = x[order], y[order]
 
     def _fit(self) -> None:
+        from sklearn.gaussian_process import GaussianProcessRegressor
+        from sklearn.gaussian_process.kernels import RBF as SkRBF
+        from sklearn.gaussian_process.kernels import WhiteKernel
+
         c = self.config
         kernel = c.signal_var * SkRBF(length_scale=c.length_scale, length_scale_bounds="fixed") + WhiteKernel(
             c.noise_var, noise_level_bounds="fixed"

@@ -25,8 +25,10 @@ def test_a_human_client_loads_a_task_without_the_numerical_stack(spec: str) -> N
     assert out.stdout.split() == ["none"], f"{spec}: imported {out.stdout.strip()}"
 
 
-def test_fitting_a_model_still_imports_what_it_needs() -> None:
+def test_fitting_a_model_still_imports_what_it_needs(tmp_path, monkeypatch) -> None:
     from khgrl.common.kmp.fit import KMPConfig, fit_model
+
+    monkeypatch.setenv("KHGRL_CACHE_DIR", str(tmp_path))  # (an empty cache: the fit runs)
     from khgrl.common.tasks.passage.task import make_task
 
     model, ref = fit_model(make_task("low_cov").demos, KMPConfig())
