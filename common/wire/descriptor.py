@@ -22,6 +22,7 @@ import json
 import re
 from dataclasses import asdict, dataclass, field, fields
 from functools import cached_property
+from typing import ClassVar
 
 import numpy as np
 from khgrl.common.wire.checks import ProtocolError, pack_array, typ, unpack_array
@@ -99,6 +100,7 @@ class TaskDescriptor:
     reward_bound: float = REWARD_BOUND
     obs_bound: float = OBS_BOUND
     cameras: dict[str, tuple[int, int, int]] = field(default_factory=dict)
+    WIRE_OPTIONAL: ClassVar[tuple[str, ...]] = ("cameras",)  # on the wire and in the digest only when not empty
 
     @cached_property
     def obs_limits(self) -> tuple[np.ndarray, np.ndarray]:
@@ -115,8 +117,9 @@ class TaskDescriptor:
         """16 hex characters identifying the task (see the module docstring); computed once (the learner checks it
         on every batch)."""
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("mean", "demos", "projector")}
-        if not self.cameras:  # (a vector task's digest as before the field existed)
-            d.pop("cameras")
+        for name in self.WIRE_OPTIONAL:  # (a vector task's digest as before the field existed)
+            if not d[name]:
+                del d[name]
         text = json.dumps(d, sort_keys=True, default=list)
         h = hashlib.sha256(text.encode())
         h.update(np.ascontiguousarray(self.demos, dtype="<f8").tobytes())
@@ -130,8 +133,9 @@ class TaskDescriptor:
         """The descriptor as a map for msgpack (arrays as array maps)."""
         arrays = ("mean", "demos", "projector")
         d = {k: _lists(v) for k, v in asdict(self).items() if k not in arrays}
-        if not self.cameras:
-            d.pop("cameras")
+        for name in self.WIRE_OPTIONAL:
+            if not d[name]:
+                del d[name]
         d.update({k: pack_array(np.asarray(getattr(self, k), "<f8")) for k in arrays})
         return d
 
