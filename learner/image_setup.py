@@ -16,6 +16,7 @@ buffer and the frames it stores.
 
 from __future__ import annotations
 
+from importlib import import_module
 from typing import Any
 
 import numpy as np
@@ -45,11 +46,12 @@ def image_policy(algo: str, space: spaces.Dict) -> tuple[type, dict[str, Any]]:
     :param space: the camera task's Dict observation space
     :raises ValueError: the algorithm has no image policy
     """
-    from khgrl.learner import image_policy as ip
-
     if algo not in IMAGE_POLICIES:
         raise ValueError(f"--algo {algo} has no image policy (camera tasks: {', '.join(IMAGE_POLICIES)})")
-    return getattr(ip, IMAGE_POLICIES[algo])(space, features_dim=FEATURES)
+    # (imported by name, as the algorithm registry imports its classes: the image policies import the algorithms'
+    # policy classes, whose modules import the SB3 adapter that calls this)
+    helper = getattr(import_module("khgrl.learner.image_policy"), IMAGE_POLICIES[algo])
+    return helper(space, features_dim=FEATURES)
 
 
 def buffer_frames(buffer: Any, frames: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
