@@ -19,7 +19,8 @@ from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
 
 CAMERA = "khgrl.deploy.examples.camera_task:make_task"
 UP = [sys.executable, "-m", "khgrl.deploy.cli", "up"]
-SMALL = ["--net-arch", "64", "64", "--batch-size", "32", "--learning-starts", "32", "--buffer-size", "5000"]
+SMALL = ["--net-arch", "64", "64", "--batch-size", "32", "--learning-starts", "32", "--buffer-size", "5000",
+         "--gradient-steps", "2"]
 
 
 def _env() -> dict:
@@ -39,6 +40,11 @@ def _replay(ckpt_dir: Path):
 
 def _episodes(run_dir: Path) -> int:
     return len((run_dir / "actor-a0" / "episodes.csv").read_text().strip().splitlines()) - 1
+
+
+def _steps(run_dir: Path) -> list[int]:
+    rows = (run_dir / "actor-a0" / "episodes.csv").read_text().strip().splitlines()[1:]
+    return [int(r.split(",")[1]) for r in rows]
 
 
 def _assert_frames_once(rb, n: int, episodes: int) -> None:
@@ -76,6 +82,9 @@ def test_camera_task_through_khgrl_up(tmp_path: Path) -> None:
     _assert_frames_once(rb, n, _episodes(run_dir))
     assert rb.store.shapes == {"cam": (3, 16, 16)}  # channel-first, as SB3 holds the model's images
     assert "task passage-camera" in (run_dir / "learner" / "learner.log").read_text()
+    for path, steps in zip(sorted((run_dir / "actor-a0" / "steps").glob("episode-*.npz")), _steps(run_dir)):
+        with np.load(path, allow_pickle=False) as z:  # the step records keep the state, not the images
+            assert z["obs"].shape == (steps, 5) and z["final_obs"].shape == (5,)
 
 
 def _journal_rows(ckpt_dir: Path) -> int:
@@ -92,7 +101,8 @@ def _journal_rows(ckpt_dir: Path) -> int:
 def test_camera_learner_killed_and_resumed_loses_nothing(tmp_path: Path) -> None:
     from khgrl.benchmarks.scale import provenance_check
 
-    learner_args = ["--learning-starts", "16", "--max-lead", "8", "--checkpoint-every", "100", "--buffer-size", "5000"]
+    learner_args = ["--learning-starts", "16", "--max-lead", "8", "--checkpoint-every", "100", "--buffer-size", "5000",
+                    "--gradient-steps", "2"]
     actor_args = ["--task", CAMERA, "--method", "kgrl", "--learning-starts", "16", "--max-lead", "8", "--episodes",
                   "2", "--id", "a0", "--flush-timeout", "90"]
     run, run_dir = unique_run("cam"), tmp_path / "run"
