@@ -36,7 +36,8 @@ def run(tmp_path_factory):
     env = KGRLEnv(make_task(), seed=0)
     task = descriptor(env)
     sent: list[bytes] = []
-    stream = TransitionStream("a0", "s1", Outbox(64, tmp_path_factory.mktemp("outbox")), sent.append, RejectCounter("actor"), task=task.digest)
+    outbox = Outbox(64, tmp_path_factory.mktemp("outbox"))
+    stream = TransitionStream("a0", "s1", outbox, sent.append, RejectCounter("actor"), task=task.digest)
     steps, rng = 0, np.random.default_rng(0)
     for episode in range(2):
         obs, _ = env.reset(seed=episode)
