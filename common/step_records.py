@@ -22,7 +22,7 @@ name                shape, dtype  meaning
 ``physical``        (N,) bool     ... and it was a hand on the arm (``--physical``)
 ``clipped``         (N,) bool     the human's action was clipped to [-1, 1]
 ``rate_limited``    (N,) bool     P_t was slowed to the rate limits
-``obs``             (N, D) f4     the policy's observation before the step
+``obs``             (N, D) f4     the policy's observation before the step (a camera task's: its state)
 ``action``          (N, A) f4     the stored action (the human's a_h where intervened)
 ``reward``          (N,) f8       the step's reward
 ``terminated``      (N,) bool     the task ended at the step (success or failure)
@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from khgrl.common.delivery.camera_rows import state_of
 
 __all__ = ["StepRecord", "read_steps", "steps_dir", "actor_dirs", "STEP_FIELDS"]
 
@@ -134,7 +135,7 @@ class StepRecord:
                "desired": info["desired"], "mean": env.mapping.mean(int(info["t"])), "scale": info["scale"],
                "p_h": p_h if iv and p_h is not None else np.full(len(env.position), np.nan), "intervened": iv,
                "physical": iv and bool(physical), "clipped": bool(info["clipped"]),
-               "rate_limited": bool(info.get("rate_limited", False)), "obs": obs, "action": info["action"],
+               "rate_limited": bool(info.get("rate_limited", False)), "obs": state_of(obs), "action": info["action"],
                "reward": float(reward), "terminated": bool(terminated), "truncated": bool(truncated)}
         for k, v in row.items():
             self._ep.rows[k].append(v)
@@ -151,7 +152,7 @@ class StepRecord:
         if ep is None or not ep.rows["t"]:
             return None
         arrays = {k: np.asarray(v, dtype=_DTYPES[k]) for k, v in ep.rows.items()}
-        arrays.update(ep.scene, final_obs=np.asarray(final_obs, np.float32), episode=np.int64(ep.episode))
+        arrays.update(ep.scene, final_obs=np.asarray(state_of(final_obs), np.float32), episode=np.int64(ep.episode))
         for lis in self.listeners:
             lis.finish(ep.episode, arrays, stats)
         if self.dir is None:

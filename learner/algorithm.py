@@ -106,8 +106,12 @@ class LearnerAlgorithm(Protocol):
         ...
 
     def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: np.ndarray, done: np.ndarray,
-              timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int, first_step: int) -> None:
-        """Store one batch of one actor's consecutive transitions (:meth:`StreamReplayBuffer.add_batch`)."""
+              timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int, first_step: int,
+              frames: dict[str, np.ndarray] | None = None, obs_frame: np.ndarray | None = None,
+              next_frame: np.ndarray | None = None) -> None:
+        """Store one batch of one actor's consecutive transitions (:meth:`StreamReplayBuffer.add_batch`); a camera
+        task's with its frames in the wire's batch form (:mod:`khgrl.common.wire.frames`), ``obs``/``next_obs``
+        its state vectors (:meth:`~khgrl.learner.frame_replay.FrameReplayBuffer.add_frames`)."""
         ...
 
     def train(self, gradient_steps: int, *, timestep: int, sample_limit: int | None) -> None:

@@ -42,17 +42,21 @@ def critic_values(model: Any, obs: np.ndarray, actions: np.ndarray) -> np.ndarra
     (n, k) float64, under ``torch.no_grad``.
 
     :param model: the SB3 model (TQC: ``critic`` gives (n, critics, quantiles); SAC: a tuple of (n, 1)).
-    :param obs: observations.
+    :param obs: observations (a camera task's: a Dict of its state vectors and images).
     :param actions: the stored (scaled) actions.
     """
     import torch
 
     with torch.no_grad():
-        o = torch.as_tensor(obs, dtype=torch.float32, device=model.device)
+        if isinstance(obs, dict):  # a camera task's: images stay uint8, the encoder scales them
+            o = {k: torch.as_tensor(v, device=model.device) for k, v in obs.items()}
+        else:
+            o = torch.as_tensor(obs, dtype=torch.float32, device=model.device)
         a = torch.as_tensor(actions, dtype=torch.float32, device=model.device)
+        n = len(a)
         q = model.critic(o, a)
-        q = torch.cat([t.reshape(len(o), -1) for t in q], dim=1) if isinstance(q, (tuple, list)) else q
-        return q.reshape(len(o), -1).double().cpu().numpy()
+        q = torch.cat([t.reshape(n, -1) for t in q], dim=1) if isinstance(q, (tuple, list)) else q
+        return q.reshape(n, -1).double().cpu().numpy()
 
 
 class CriticWatch:
@@ -104,6 +108,8 @@ class CriticWatch:
         with rb.lock:
             rows = self._rows(rb, limit)
             obs, act = rb.observations[rows, 0].copy(), rb.actions[rows, 0].copy()
+            if hasattr(rb, "frame_arrays"):  # a FrameReplayBuffer: the rows' images with their state vectors
+                obs = {**rb.store.get(rb.obs_frame[rows]), rb.state_key: obs}
         if not len(rows):
             return None
         q = critic_values(model, obs, act)

@@ -16,40 +16,11 @@ from __future__ import annotations
 
 import numpy as np
 from gymnasium import spaces
+from khgrl.common.wire.frames import PREV, pack_frames
 
 __all__ = ["PREV", "pack_frames", "split_space"]
 
-PREV = -1  # ``obs_frame[0]``: the actor stream's last stored next-observation frame (the learner's pin)
-
-
-def pack_frames(obs: dict[str, np.ndarray], next_obs: dict[str, np.ndarray], done: np.ndarray,
-                cameras: list[str], continues: bool) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
-    """The batch form of per-row observations: the distinct frames and each row's ``obs_frame``/``next_frame``.
-
-    :param obs: camera -> observations of the rows, shape (n, H, W, C)
-    :param next_obs: camera -> next observations, shape (n, H, W, C)
-    :param done: per row: terminated or truncated (the next row starts an episode)
-    :param cameras: the camera keys to pack
-    :param continues: row 0's observation is the previous batch's last next observation (:data:`PREV`)
-    """
-    n = len(done)
-    new_obs = np.ones(n, dtype=bool)  # rows whose observation is a frame of its own: an episode's first
-    new_obs[1:] = np.asarray(done[:-1], dtype=bool)
-    if n:
-        new_obs[0] = not continues
-    next_frame = np.cumsum(new_obs.astype(np.int64) + 1) - 1
-    obs_frame = np.empty(n, dtype=np.int64)
-    obs_frame[new_obs] = next_frame[new_obs] - 1
-    cont = np.flatnonzero(~new_obs)
-    obs_frame[cont] = np.where(cont > 0, next_frame[np.maximum(cont - 1, 0)], PREV)
-    m = int(next_frame[-1]) + 1 if n else 0
-    frames = {}
-    for k in cameras:
-        out = np.empty((m, *next_obs[k].shape[1:]), dtype=next_obs[k].dtype)
-        out[next_frame] = next_obs[k]
-        out[obs_frame[new_obs]] = obs[k][new_obs]
-        frames[k] = out
-    return frames, obs_frame, next_frame
+# (the batch form is the wire's too: :mod:`khgrl.common.wire.frames`, where it lives)
 
 
 def split_space(space: spaces.Dict, state_key: str = "state") -> tuple[list[str], spaces.Box]:

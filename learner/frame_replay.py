@@ -29,8 +29,8 @@ allocates (and a checkpoint pickles) ``frame_capacity`` frames: 10.3 GB with ``m
 
 Save and load: the store, the frame ids and the pins are attributes, pickled with the buffer as the side arrays
 are (:mod:`khgrl.learner.checkpoint`); ``copy.copy`` (the checkpoint's ``copy_buffer``) copies the store too.
-Not frame-aware yet: :func:`khgrl.learner.sound.drop_bad_rows` moves the rows of ``side_arrays`` only -- for this
-buffer it must move :meth:`FrameReplayBuffer.frame_arrays` too and call :meth:`FrameReplayBuffer.recount`.
+:func:`khgrl.learner.sound.drop_bad_rows` moves :meth:`FrameReplayBuffer.frame_arrays` too and calls :meth:`recount`.
+From the wire (:meth:`add_frames` with ``dedupe``): row 0's frame, always sent, is the pin's when pixel-equal.
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ class FrameReplayBuffer(StreamReplayBuffer):
     def add_frames(self, frames: dict[str, np.ndarray], obs_frame: np.ndarray, next_frame: np.ndarray,
                    state: np.ndarray, next_state: np.ndarray, action: np.ndarray, reward: np.ndarray,
                    done: np.ndarray, timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int,
-                   first_step: int) -> None:
+                   first_step: int, dedupe: bool = False) -> None:
         """One batch of one actor's consecutive transitions in the batch form (the module docstring), into the
         slots :meth:`StreamReplayBuffer.add_batch` chooses.
 
@@ -135,6 +135,8 @@ class FrameReplayBuffer(StreamReplayBuffer):
         :param clipped: per transition: the safety layer clipped the action
         :param actor: provenance code of the actor stream
         :param first_step: the running index of the first transition in that stream (-1: unknown)
+        :param dedupe: row 0's observation frame, when it equals the stream's pinned frame at ``first_step``, is
+            that frame (the module docstring: a batch from the wire)
         :raises ValueError: indices out of range, or PREV without a pin for this stream at ``first_step``
         :raises FrameStoreFull: more frames alive than the store was sized for (``min_episode_steps``,
             ``max_streams``); the batch is then stored in part and the buffer is not to be used further
@@ -149,6 +151,9 @@ class FrameReplayBuffer(StreamReplayBuffer):
             raise ValueError(f"frame indices outside the batch's {m} frames (PREV only for row 0)")
         with self.lock:
             prev = -1
+            if dedupe and obs_frame[0] >= 0 and self._continues(actor, first_step, frames, int(obs_frame[0])):
+                obs_frame = obs_frame.copy()
+                obs_frame[0] = PREV
             if obs_frame[0] == PREV:
                 pin = self.pins.get(actor)
                 if pin is None or (first_step >= 0 and pin[1] != first_step):
@@ -187,9 +192,7 @@ class FrameReplayBuffer(StreamReplayBuffer):
         """
         with self.lock:
             if continues is None:
-                pin = self.pins.get(actor)
-                continues = (pin is not None and len(done) > 0 and (first_step < 0 or pin[1] == first_step)
-                             and all(np.array_equal(self.store.frames[k][pin[0]], obs[k][0]) for k in self.cameras))
+                continues = len(done) > 0 and self._continues(actor, first_step, obs, 0)
             frames, obs_frame, next_frame = pack_frames(obs, next_obs, done, self.cameras, continues)
             self.add_frames(frames, obs_frame, next_frame, obs[self.state_key], next_obs[self.state_key], action,
                             reward, done, timeout, intervened=intervened, clipped=clipped, actor=actor,
@@ -238,6 +241,12 @@ class FrameReplayBuffer(StreamReplayBuffer):
         self.obs_frame[dst], self.next_frame[dst] = o, nx
         self.store.incref(np.concatenate([o, nx]))
 
+    def _continues(self, actor: int, first_step: int, frames: dict[str, np.ndarray], i: int) -> bool:
+        """Whether the actor stream's pin is at ``first_step`` and its pixels are ``frames[k][i]`` for every camera."""
+        pin = self.pins.get(actor)
+        return (pin is not None and (first_step < 0 or pin[1] == first_step)
+                and all(np.array_equal(self.store.frames[k][pin[0]], frames[k][i]) for k in self.cameras))
+
     def _pin(self, actor: int, frame: int | None, step: int) -> None:
         """Pin ``frame`` as the actor stream's last next observation (None: its episode ended; no pin)."""
         old = self.pins.pop(actor, None)
@@ -266,10 +275,7 @@ class FrameReplayBuffer(StreamReplayBuffer):
             rewards=self.to_torch(self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env)))
 
     def sample_into(self, out: np.ndarray) -> None:
-        """Not for image observations (flat float32 rows): use :meth:`sample`.
-
-        :param out: unused
-        """
+        """Not for image observations (flat float32 rows): use :meth:`sample`. :param out: unused"""
         raise NotImplementedError("FrameReplayBuffer holds images: sample() gives the minibatch, not sample_into")
 
     def frame_arrays(self) -> dict[str, np.ndarray]:

@@ -5,11 +5,13 @@ Layout: ``CHECKPOINT_DIR/journal/segment-000123.bin``. A segment is a sequence o
 the replay buffer, in the order it was stored. A record is a 12-byte header -- ``b"KJ01"``, the body's length and
 its CRC-32 (little endian) -- and a body: a 4-byte length, a JSON map (``actor``, ``stream``, ``seq``, ``base``,
 ``first``, ``n``, ``obs``, ``out``) and the arrays of the batch as raw little-endian bytes (``obs``, ``next_obs``,
-``action``, ``reward`` float32; ``terminated``, ``truncated``, ``intervened``, ``clipped`` uint8). A record whose
-header, length or checksum is wrong is either the torn tail of a learner killed while writing (bytes never
-confirmed: the rest of its segment is ignored) or damage to what was confirmed -- :mod:`khgrl.learner.journal_scan`
-tells them apart with the journal's mark (:mod:`khgrl.learner.journal_mark`), which every group written updates
-before its batches are acked durable; a resumed learner refuses damage (:mod:`khgrl.learner.resume`).
+``action``, ``reward`` float32; ``terminated``, ``truncated``, ``intervened``, ``clipped`` uint8); a camera
+batch's meta adds ``cams`` ([name, H, W, C] each, in name order) and ``m`` (its frames), and its ``obs_frame``,
+``next_frame`` (int32) and frames (uint8, per camera) follow. A record whose header, length or checksum is wrong
+is either the torn tail of a learner killed while writing (bytes never confirmed: the rest of its segment is
+ignored) or damage to what was confirmed -- :mod:`khgrl.learner.journal_scan` tells them apart with the journal's
+mark (:mod:`khgrl.learner.journal_mark`), which every group written updates before its batches are acked durable;
+a resumed learner refuses damage (:mod:`khgrl.learner.resume`).
 
 Writing (group commit): the ingest thread :meth:`Journal.append`\\ s each stored batch to a list in memory (no I/O
 on the ingest path); :meth:`Journal.sync` -- the learner's *journal thread* calls it as soon as something waits,
@@ -26,7 +28,7 @@ snapshot records (``journal.next`` in its ``state.json``); once the snapshot is 
 deleted (:meth:`Journal.snapshot_saved`). A resumed learner loads the snapshot and replays the records of the
 segments from that index on (:func:`khgrl.learner.journal_scan.read_records`).
 
-One module of ~320 lines on purpose: the journal's record format, its writer and its reader must stay in one file;
+One module of ~360 lines on purpose: the journal's record format, its writer and its reader must stay in one file;
 scanning and damage are apart (journal_scan, journal_loss).
 """
 
@@ -43,6 +45,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from khgrl.common.wire.frames import cameras_of
 from khgrl.common.wire.protocol import Envelope, Transitions
 from khgrl.learner.journal_mark import JournalMark, load_mark, remove_mark, save_mark
 
@@ -114,14 +117,30 @@ def encode_record(msg: Transitions, seq: int, skipped: int = 0) -> bytes:
     :param skipped: the batches its stream had skipped when it was stored (``ActorStream.skipped``: a replay tells
         the learner's own skips from batches the journal lost)
     """
-    meta = json.dumps({"actor": msg.actor, "stream": msg.stream or "", "seq": int(seq),
-                       "base": int(msg.base_seq or 0), "first": int(msg.first_step), "n": msg.n,
-                       "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1]),
-                       "skipped": int(skipped)}).encode()
-    parts = [_META.pack(len(meta)), meta]
+    meta = {"actor": msg.actor, "stream": msg.stream or "", "seq": int(seq), "base": int(msg.base_seq or 0),
+            "first": int(msg.first_step), "n": msg.n, "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1]),
+            "skipped": int(skipped)}
+    if msg.frames is not None:  # a camera batch: its cameras and frame count (the arrays follow the others)
+        meta.update(cams=[[k, *map(int, shape)] for k, shape in cameras_of(msg.frames)], m=_frame_count(msg))
+    text = json.dumps(meta).encode()
+    parts = [_META.pack(len(text)), text]
     parts += [np.ascontiguousarray(getattr(msg, name), dtype=dt).tobytes() for name, dt, _ in ARRAYS]
+    parts += [np.ascontiguousarray(a).tobytes() for a in _frame_parts(msg)]
     body = b"".join(parts)
     return HEAD.pack(MAGIC, len(body), zlib.crc32(body)) + body
+
+
+def _frame_count(msg: Transitions) -> int:
+    return int(len(next(iter(msg.frames.values()))))
+
+
+def _frame_parts(msg: Transitions) -> list[np.ndarray]:
+    """A camera batch's arrays after :data:`ARRAYS` in a record: ``obs_frame``, ``next_frame`` (int32), then each
+    camera's frames in name order (none: a vector batch)."""
+    if msg.frames is None:
+        return []
+    return [np.asarray(msg.obs_frame, "<i4"), np.asarray(msg.next_frame, "<i4"),
+            *(np.asarray(msg.frames[k], np.uint8) for k, _ in cameras_of(msg.frames))]
 
 
 def decode_body(body: memoryview) -> tuple[Transitions, int | None]:
@@ -140,6 +159,15 @@ def decode_body(body: memoryview) -> tuple[Transitions, int | None]:
         arr = np.frombuffer(body, dtype=dt, count=count, offset=off).reshape(shape)
         arrays[name] = arr
         off += arr.nbytes
+    if "cams" in meta:  # a camera batch's frame indices and frames
+        m = int(meta["m"])
+        specs = [("obs_frame", "<i4", (n,)), ("next_frame", "<i4", (n,))]
+        specs += [(f"cam:{c[0]}", "|u1", (m, *map(int, c[1:]))) for c in meta["cams"]]
+        for name, dt, shape in specs:
+            arr = np.frombuffer(body, dtype=dt, count=int(np.prod(shape)), offset=off).reshape(shape)
+            arrays[name] = arr
+            off += arr.nbytes
+        arrays["frames"] = {k[4:]: arrays.pop(k) for k in list(arrays) if k.startswith("cam:")}
     if off != len(body):
         raise ValueError(f"{len(body) - off} bytes left over")
     msg = Transitions(actor=meta["actor"], first_step=int(meta["first"]), stream=meta["stream"] or None,
@@ -200,7 +228,7 @@ class Journal:
         :param stream: its actor's :class:`~khgrl.common.delivery.ingest.ActorStream` (``durable`` is raised there
             once the record is on disk)
         """
-        size = sum(getattr(msg, name).nbytes for name, _, _ in ARRAYS)
+        size = sum(getattr(msg, name).nbytes for name, _, _ in ARRAYS) + sum(a.nbytes for a in _frame_parts(msg))
         with self._mu:
             if self.error:
                 return

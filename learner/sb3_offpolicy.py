@@ -10,7 +10,10 @@ passes ``replay_buffer_kwargs={"prior_fraction": 0.5}`` (RLPD's symmetric sampli
 :mod:`khgrl.learner.replay`). The actors get the policy's ``actor`` network (its ``state_dict``); an actor builds
 the same policy class on the CPU and loads them into its ``actor``.
 
-One module of ~330 lines on purpose: the whole adapter between the learner-algorithm interface and SB3's off-policy
+A camera task (a Dict observation space) gets DrQ's image policy and a
+:class:`~khgrl.learner.frame_replay.FrameReplayBuffer` (:mod:`khgrl.learner.image_setup`).
+
+One module of ~360 lines on purpose: the whole adapter between the learner-algorithm interface and SB3's off-policy
 classes, used by every algorithm.
 """
 
@@ -23,6 +26,7 @@ import numpy as np
 from khgrl.common.config.settings import TQCSettings
 from khgrl.common.tasks.spaces import SpacesEnv
 from khgrl.learner.algorithm import BUFFER_FILE, MODEL_FILE
+from khgrl.learner.image_setup import buffer_frames, describe_space, image_policy, is_camera_space
 from khgrl.learner.replay import StreamReplayBuffer, prior_fraction
 
 __all__ = ["SB3OffPolicy", "SB3ActorPolicy", "LOSSES"]
@@ -67,7 +71,7 @@ class SB3OffPolicy:
 
     :param model: the SB3 model, its replay buffer a :class:`StreamReplayBuffer`
     :param cuda_graph: train with each gradient step one CUDA graph (:mod:`khgrl.learner.cuda_graph`; the model on
-        a CUDA device); False: SB3's own ``train()``
+        a CUDA device; not for a camera task, whose minibatches are not flat rows); False: SB3's own ``train()``
     :param compile_loss: without CUDA graphs, train with the step function and TQC's loss compiled
         (``--compile-loss``, opt-in: it rounds differently from SB3's ``train()``)
     """
@@ -81,7 +85,7 @@ class SB3OffPolicy:
         self.gradient_steps = int(model.gradient_steps)
         self.batch_size = int(model.batch_size)
         self.graphed = None  # the CUDA-graph trainer (or, --compile-loss, its eager iteration), where one trains
-        if cuda_graph or compile_loss:
+        if (cuda_graph or compile_loss) and not is_camera_space(model.observation_space):  # (flat rows only)
             from khgrl.learner.cuda_graph import GraphedTrainer
 
             self.graphed = GraphedTrainer(model, graph=cuda_graph, compile_loss=compile_loss)
@@ -142,7 +146,14 @@ class SB3OffPolicy:
         fraction = prior_fraction(settings.sampling)
         if fraction > 0:  # (uniform: no buffer kwargs at all, the model SB3 builds without them)
             kwargs["replay_buffer_kwargs"] = {"prior_fraction": fraction}
-        model = cls.sb3_class()(cls.policy_class(), env, **kwargs, replay_buffer_class=StreamReplayBuffer)
+        policy, extra = cls._policy(env.observation_space)
+        buffer_class = StreamReplayBuffer
+        if extra:  # a camera task (khgrl.learner.image_setup): DrQ's policy, each frame stored once
+            from khgrl.learner.frame_replay import FrameReplayBuffer
+
+            kwargs["policy_kwargs"] = {**kwargs.get("policy_kwargs", {}), **extra}
+            buffer_class = FrameReplayBuffer
+        model = cls.sb3_class()(policy, env, **kwargs, replay_buffer_class=buffer_class)
         return cls(model, cuda_graph=cls.graphs_on(settings, device), compile_loss=cls.compiled_on(settings, device))
 
     @classmethod
@@ -163,11 +174,19 @@ class SB3OffPolicy:
         return cls(model, cuda_graph=cls.graphs_on(settings, device), compile_loss=cls.compiled_on(settings, device))
 
     @classmethod
+    def _policy(cls, observation_space: Any) -> tuple[type, dict[str, Any]]:
+        """The policy class and the ``policy_kwargs`` beyond the run's for this observation space: the vector
+        policy, or a camera task's DrQ image policy (:mod:`khgrl.learner.image_setup`)."""
+        if not is_camera_space(observation_space):
+            return cls.policy_class(), {}
+        return image_policy(cls.name, observation_space)
+
+    @classmethod
     def actor_policy(cls, observation_space: Any, action_space: Any, settings: TQCSettings) -> SB3ActorPolicy:
         """The policy class on the CPU with the run's network sizes (see :meth:`LearnerAlgorithm.actor_policy`)."""
-        return SB3ActorPolicy(cls.policy_class()(observation_space, action_space,
-                                                 lr_schedule=lambda _: settings.learning_rate,
-                                                 net_arch=list(settings.net_arch)))
+        policy, extra = cls._policy(observation_space)
+        return SB3ActorPolicy(policy(observation_space, action_space, lr_schedule=lambda _: settings.learning_rate,
+                                     net_arch=list(settings.net_arch), **extra))
 
     @classmethod
     def checkpoint_policy(cls, model_file: Path, observation_space: Any, action_space: Any,
@@ -187,8 +206,9 @@ class SB3OffPolicy:
         got = {k: tuple(v.shape) for k, v in state.items()}
         if want != got:
             bad = sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))
-            raise ValueError(f"the policy does not fit this task's spaces (observation {observation_space.shape[0]}, "
-                             f"action {action_space.shape[0]}) and net_arch {list(settings.net_arch)} of a "
+            raise ValueError(f"the policy does not fit this task's spaces (observation "
+                             f"{describe_space(observation_space)}, action {action_space.shape[0]}) and net_arch "
+                             f"{list(settings.net_arch)} of a "
                              f"{cls.name} policy: {bad[0]} is {got.get(bad[0])} in the checkpoint, "
                              f"{want.get(bad[0])} here")
         wrapped.policy.load_state_dict(state)
@@ -213,10 +233,19 @@ class SB3OffPolicy:
         self.model.set_logger(configure(str(folder), list(formats)))
 
     def store(self, obs: np.ndarray, next_obs: np.ndarray, action: np.ndarray, reward: np.ndarray, done: np.ndarray,
-              timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int, first_step: int) -> None:
-        """One batch into the replay buffer (:meth:`StreamReplayBuffer.add_batch`, same arguments)."""
-        self.buffer.add_batch(obs, next_obs, action, reward, done, timeout, intervened=intervened, clipped=clipped,
-                              actor=actor, first_step=first_step)
+              timeout: np.ndarray, *, intervened: np.ndarray, clipped: np.ndarray, actor: int, first_step: int,
+              frames: dict[str, np.ndarray] | None = None, obs_frame: np.ndarray | None = None,
+              next_frame: np.ndarray | None = None) -> None:
+        """One batch into the replay buffer (:meth:`StreamReplayBuffer.add_batch`, same arguments); a camera
+        task's with its frames (``obs``/``next_obs`` its state vectors): :meth:`FrameReplayBuffer.add_frames`, row
+        0's frame deduplicated against the stream's pin."""
+        if frames is None:
+            self.buffer.add_batch(obs, next_obs, action, reward, done, timeout, intervened=intervened,
+                                  clipped=clipped, actor=actor, first_step=first_step)
+            return
+        self.buffer.add_frames(buffer_frames(self.buffer, frames), obs_frame, next_frame, obs, next_obs, action,
+                               reward, done, timeout, intervened=intervened, clipped=clipped, actor=actor,
+                               first_step=first_step, dedupe=True)
 
     def train(self, gradient_steps: int, *, timestep: int, sample_limit: int | None) -> None:
         """SB3's ``train(gradient_steps, batch_size)`` at environment step ``timestep``, sampling within

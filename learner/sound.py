@@ -69,7 +69,9 @@ def drop_bad_rows(buffer: Any, task: Any) -> dict[int, int]:
     others move to its front in their order (oldest first), the buffer is then not full, its position after them
     and the freed slots empty (provenance -1). Returns the transitions dropped per provenance code (empty: none).
 
-    :param buffer: a :class:`~khgrl.learner.replay.StreamReplayBuffer`
+    :param buffer: a :class:`~khgrl.learner.replay.StreamReplayBuffer` (a
+        :class:`~khgrl.learner.frame_replay.FrameReplayBuffer`: its slots' frame ids move too, its frame store's counts
+        are rebuilt; the state vectors are what is checked)
     :param task: the run's task descriptor (None: finiteness and +-1e12 only)
     """
     from khgrl.common.wire.bounds import bad_rows
@@ -86,8 +88,12 @@ def drop_bad_rows(buffer: Any, task: Any) -> dict[int, int]:
         order = np.arange(size) if not buffer.full else np.roll(np.arange(size), -buffer.pos)  # oldest first
         keep = order[~bad[order]]
         arrays = [getattr(buffer, name) for name in _BUFFER_ARRAYS] + list(buffer.side_arrays().values())
-        for arr in arrays:
+        frame_ids = list(buffer.frame_arrays().values()) if hasattr(buffer, "frame_arrays") else []
+        for arr in arrays + frame_ids:
             arr[:len(keep)] = arr[keep]
-            arr[len(keep):] = -1 if arr is buffer.provenance_actor or arr is buffer.provenance_step else 0
+            empty = arr is buffer.provenance_actor or arr is buffer.provenance_step or any(arr is f for f in frame_ids)
+            arr[len(keep):] = -1 if empty else 0
         buffer.pos, buffer.full = len(keep), False
+        if frame_ids:  # a FrameReplayBuffer: the dropped slots' frames freed (those the kept slots and pins hold kept)
+            buffer.recount()
     return {int(c): int(n) for c, n in zip(codes, counts)}

@@ -109,6 +109,14 @@ def build_model(tqc: TQCSettings, seed: int, task=None):
     return build_algorithm(tqc, seed, task).model
 
 
+def _frames(msg: Transitions) -> dict[str, Any]:
+    """A camera batch's ``frames``, ``obs_frame`` and ``next_frame`` for the algorithm's ``store`` (none: a vector
+    batch's, stored as before)."""
+    if msg.frames is None:
+        return {}
+    return {"frames": msg.frames, "obs_frame": msg.obs_frame, "next_frame": msg.next_frame}
+
+
 class Trainer:
     """Owns the learner algorithm (:class:`~khgrl.learner.algorithm.LearnerAlgorithm`): stores transitions, keeps
     the schedule of due iterations, trains them, and reports what the latest weights cover. One per learner
@@ -172,7 +180,7 @@ class Trainer:
         n, first, base = msg.n, msg.first_step, self.total
         self.algo.store(msg.obs, msg.next_obs, msg.action, msg.reward, (term | trunc).astype(np.float32),
                         (trunc & ~term).astype(np.float32), intervened=msg.intervened, clipped=msg.clipped,
-                        actor=stream.code, first_step=first)
+                        actor=stream.code, first_step=first, **_frames(msg))
         if self.schedule:  # an iteration comes due at every multiple of train_freq past learning_starts
             lo = max(base, self.learning_starts) + 1
             for at in range(-(-lo // self.train_freq) * self.train_freq, base + n + 1, self.train_freq):

@@ -134,7 +134,7 @@ class LearnerIngest:
         :param teacher_demos: demonstrations a0's scripted teacher records first (prior data, like the task's)
         """
         self.task = task
-        self.dims = Dims(obs=task.obs_dim, out=task.out_dim)
+        self.dims = Dims.of_task(task)
         self.vouching.demo_limit = demo_rows(task, teacher_demos)
 
     # ------------------------------------------------------------------------------------ input

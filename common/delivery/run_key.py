@@ -121,6 +121,28 @@ def _array_part(arr: np.ndarray) -> tuple[str, list, Any]:
     return arr.dtype.str, list(arr.shape), arr.data.cast("B") if arr.size else b""
 
 
+def _frame_head(names: Any) -> list:
+    """A camera batch's cameras as one more head field (nothing without frames: a vector batch's mac is as it was)."""
+    return [] if names is None else [["frames", sorted(names)]]
+
+
+def _frame_arrays(msg: Any) -> list[tuple[str, list, Any]]:
+    """A camera batch's ``obs_frame``, ``next_frame`` and frames (cameras in name order) as :func:`_array_part`."""
+    if msg.frames is None:
+        return []
+    return [_array_part(msg.obs_frame), _array_part(msg.next_frame), *(_array_part(msg.frames[k])
+                                                                        for k in sorted(msg.frames))]
+
+
+def _wire_frame_arrays(m: dict) -> list[tuple[str, list, Any]]:
+    """:func:`_frame_arrays` of a batch's msgpack map."""
+    frames = m.get("frames")
+    if frames is None:
+        return []
+    parts = [m["obs_frame"], m["next_frame"], *(frames[k] for k in sorted(frames))]
+    return [(a["dtype"], list(a["shape"]), a["data"]) for a in parts]
+
+
 def _vouch_part(vouch: Any) -> list:
     """A batch's ``vouch`` evidence (khgrl.common.wire.batch) as one more head field: the hex BLAKE2b of its entries
     as canonical JSON (signatures as hex); nothing without evidence (so a batch without it has the mac it had)."""
@@ -132,14 +154,16 @@ def _vouch_part(vouch: Any) -> list:
 
 def batch_mac(msg: Any, key: bytes, seq: int) -> bytes:
     """The ``mac`` of a ``transitions`` batch sent with envelope ``seq``: over actor, stream, seq, first_step,
-    base_seq, task digest and the arrays (dtype, shape, bytes), its own ``mac`` left out.
+    base_seq, task digest and the arrays (dtype, shape, bytes; a camera batch's frame indices and frames too), its own
+    ``mac`` left out.
 
     :param msg: a :class:`~khgrl.common.wire.messages.Transitions`.
     :param key: the run's key.
     :param seq: the envelope's seq (the batch's number in its stream).
     """
-    head = [msg.actor, msg.stream, int(seq), msg.first_step, msg.base_seq, msg.task, *_vouch_part(msg.vouch)]
-    return _batch_digest(key, head, [_array_part(getattr(msg, n)) for n in BATCH_ARRAYS])
+    head = [msg.actor, msg.stream, int(seq), msg.first_step, msg.base_seq, msg.task, *_vouch_part(msg.vouch),
+            *_frame_head(msg.frames)]
+    return _batch_digest(key, head, [_array_part(getattr(msg, n)) for n in BATCH_ARRAYS] + _frame_arrays(msg))
 
 
 def wire_batch_mac(m: dict, key: bytes) -> bytes:
@@ -149,8 +173,9 @@ def wire_batch_mac(m: dict, key: bytes) -> bytes:
     :param key: the run's key.
     """
     head = [m.get(f) for f in ("actor", "stream", "seq", "first_step", "base_seq", "task")]
-    head += _vouch_part(m.get("vouch"))
-    return _batch_digest(key, head, [(m[n]["dtype"], list(m[n]["shape"]), m[n]["data"]) for n in BATCH_ARRAYS])
+    head += _vouch_part(m.get("vouch")) + _frame_head(m.get("frames"))
+    arrays = [(m[n]["dtype"], list(m[n]["shape"]), m[n]["data"]) for n in BATCH_ARRAYS]
+    return _batch_digest(key, head, arrays + _wire_frame_arrays(m))
 
 
 def sign_batch(msg: Any, key: bytes | None, seq: int) -> Any:

@@ -35,6 +35,7 @@ from typing import Any, Callable
 
 import numpy as np
 from khgrl.common.delivery import data_keys
+from khgrl.common.delivery.camera_rows import batch_arrays, row_limit, state_of
 from khgrl.common.delivery.outbox import Outbox
 from khgrl.common.delivery.vouching import evidence
 from khgrl.common.wire.bounds import check_bounds, limits
@@ -114,6 +115,7 @@ class TransitionStream:
         self.bounds: Any = None  # the task descriptor whose value bounds a transition must keep to be sent (None: any)
         self.out_of_bounds = 0  # transitions not sent: a value outside the task's bounds (the learner refuses them)
         self._limits: tuple | None = None  # (bounds, obs low, obs high, reward bound), computed once per bounds
+        self.rows: int | None = None  # rows per batch at most (0: the caller's cuts only; camera observations: set)
         if len(outbox):  # batches an earlier process left: re-send them all shortly (as to a new learner)
             self.resend_at = clock() + LEARNER_APPEARED_RESEND_S
 
@@ -131,7 +133,7 @@ class TransitionStream:
             clipped: bool, word: Any = None) -> None:
         """Collect one transition (it goes out with the next :meth:`cut`).
 
-        :param obs: observation before the step.
+        :param obs: observation before the step (a camera task's: its Dict, :mod:`~.camera_rows`).
         :param next_obs: observation after it.
         :param action: the stored action (the human's a_h when intervened).
         :param reward: the step's reward.
@@ -142,11 +144,15 @@ class TransitionStream:
         :param word: what drove an intervened step: the signed correction (its evidence goes out in the batch's
             ``vouch``), :data:`~khgrl.common.delivery.vouching.DEMO` for a demonstration, None (no evidence).
         """
-        if self.bounds is not None and self._out_of_bounds(obs, next_obs, action, reward):
+        if self.bounds is not None and self._out_of_bounds(state_of(obs), state_of(next_obs), action, reward):
             return
         self._buf.append((obs, next_obs, action, reward, terminated, truncated, intervened, clipped))
         self._words.append(word if intervened else None)
         self.count += 1
+        if self.rows is None:
+            self.rows = row_limit(obs) or 0
+        if self.rows and len(self._buf) >= self.rows:  # a camera batch's frames: within the wire's limit
+            self.cut()
 
     def _out_of_bounds(self, obs, next_obs, action, reward: float) -> bool:
         """Whether a transition holds a value the learner would refuse (not finite, outside the task's bounds: a
@@ -177,9 +183,9 @@ class TransitionStream:
         cols = list(zip(*self._buf))
         seq = self.next_seq
         oldest = self.outbox.oldest()
+        done = np.logical_or(cols[4], cols[5])
         batch = Transitions(
-            actor=self.actor, first_step=self._buf_first,
-            obs=np.asarray(cols[0], dtype=np.float32), next_obs=np.asarray(cols[1], dtype=np.float32),
+            actor=self.actor, first_step=self._buf_first, **batch_arrays(cols[0], cols[1], done),
             action=np.asarray(cols[2], dtype=np.float32), reward=np.asarray(cols[3], dtype=np.float32),
             terminated=np.asarray(cols[4], dtype=np.uint8), truncated=np.asarray(cols[5], dtype=np.uint8),
             intervened=np.asarray(cols[6], dtype=np.uint8), clipped=np.asarray(cols[7], dtype=np.uint8),

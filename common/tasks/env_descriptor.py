@@ -34,13 +34,15 @@ def descriptor(env: Any, spec: str = ""):
     :param spec: the task's spec as given (``passage:low_cov``, ``module:callable``; default: its name).
 
     A task with cameras: the observation fields (``obs_dim``, ``obs_low``, ``obs_high``, ``obs_bound``) describe the
-    policy observation's ``"state"`` vector only; the images are not in the wire's descriptor yet (issue 37).
+    policy observation's ``"state"`` vector; ``cameras`` names its images and their (H, W, C) (issue 37).
     """
     from khgrl.common.wire.descriptor import TaskDescriptor
 
-    w, ob = env.world, env.observation_space
-    if getattr(env, "cameras", None) is not None:  # the descriptor has no images yet: it states the state part
+    w, ob, cameras = env.world, env.observation_space, {}
+    layout = getattr(env, "cameras", None)
+    if layout is not None:  # the observation fields state the state part; the images their shapes
         ob = ob[STATE]
+        cameras = {k: tuple(int(d) for d in box.shape) for k, box in layout.images.items()}
     big = 1e30
     reward_bound, obs_bound = value_bounds(task_bounds(env)[0], (w.low, w.high), (ob.low, ob.high))
     return TaskDescriptor(
@@ -54,7 +56,7 @@ def descriptor(env: Any, spec: str = ""):
         view_third=-1 if w.view.third is None else int(w.view.third),
         shapes=tuple(_shape_dict(s) for s in w.view.shapes), mean=np.asarray(w.model.grid_mean, np.float64),
         demos=np.asarray(w.demos, np.float64), projector=np.asarray(w.model.grid_projector, np.float64),
-        reward_bound=reward_bound, obs_bound=obs_bound)
+        reward_bound=reward_bound, obs_bound=obs_bound, cameras=cameras)
 
 
 def _shape_dict(s) -> dict:

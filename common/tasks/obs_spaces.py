@@ -17,7 +17,8 @@ vector in place of the environment's observation), plus every image unchanged (u
 without cameras (``image_keys`` empty) keeps its 1-D Box observation: :func:`camera_layout` gives None and nothing
 here applies.
 
-The limits keep one transition small enough to ship and store (4 RGBA cameras of 256 x 256 are 1 MiB); every
+The limits (the wire's: the task descriptor's ``cameras`` carries what is checked here) keep one transition
+small enough to ship and store (4 RGBA cameras of 256 x 256 are 1 MiB); every
 mistake is one :class:`~khgrl.common.tasks.api.TaskError` naming the key.
 """
 
@@ -29,14 +30,10 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 from khgrl.common.tasks.api import MAX_DIM, Task, TaskError
+from khgrl.common.wire.descriptor import CAMERA_NAME, CHANNELS, MAX_CAMERAS, MAX_SIDE, STATE
 
 __all__ = ["MAX_CAMERAS", "MAX_SIDE", "CHANNELS", "STATE", "CameraLayout", "camera_layout", "policy_space",
            "policy_obs", "state_of"]
-
-MAX_CAMERAS = 4  # images per observation
-MAX_SIDE = 256  # pixels, height and width of one image
-CHANNELS = (1, 3, 4)  # grey, RGB, RGBA
-STATE = "state"  # the policy observation's key of the state vector, phase and deviation
 
 
 @dataclass(frozen=True)
@@ -64,9 +61,9 @@ def _declared(task: Task) -> tuple[str, tuple[str, ...]] | None:
     if len(keys) > MAX_CAMERAS:
         raise TaskError(f"task {task.name!r}: {len(keys)} image keys {keys!r}, at most {MAX_CAMERAS} cameras")
     for k in keys:
-        if not isinstance(k, str) or not k or k == STATE or k == state_key or keys.count(k) > 1:
-            raise TaskError(f"task {task.name!r}: image key {k!r} must be a unique non-empty name other than "
-                            f"{STATE!r} and the state key {state_key!r}")
+        if not isinstance(k, str) or not CAMERA_NAME.match(k) or k == STATE or k == state_key or keys.count(k) > 1:
+            raise TaskError(f"task {task.name!r}: image key {k!r} must be a unique short identifier (letters, "
+                            f"digits, _ . -) other than {STATE!r} and the state key {state_key!r}")
     return state_key, keys
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
+from khgrl.common.wire.descriptor import STATE
 
 __all__ = ["OBS_DIM", "ACT_DIM", "observation_space", "action_space", "SpacesEnv"]
 
@@ -13,8 +14,9 @@ OBS_DIM = 5  # the passage world: (x, y, phase, deviation from the KMP mean in x
 ACT_DIM = 2  # the passage world's null-space action a in [-1, 1]^2 (paper eq. 5)
 
 
-def observation_space(task=None) -> spaces.Box:
-    """The policy's observation space.
+def observation_space(task=None) -> spaces.Box | spaces.Dict:
+    """The policy's observation space: a Box, or for a camera task (``task.cameras``) a Dict of the ``"state"`` Box
+    and each camera's uint8 (H, W, C) Box -- what the actor's :class:`~khgrl.common.tasks.kgrl_env.KGRLEnv` observes.
 
     :param task: a :class:`~khgrl.common.wire.descriptor.TaskDescriptor` (None: the passage world's).
     """
@@ -23,8 +25,13 @@ def observation_space(task=None) -> spaces.Box:
                           high=np.array([1.0, 1.0, 1.0, 1.0, 1.0], dtype=np.float32), dtype=np.float32)
     low = np.asarray(task.obs_low, dtype=np.float64)
     high = np.asarray(task.obs_high, dtype=np.float64)
-    return spaces.Box(low=np.where(low <= -1e30, -np.inf, low).astype(np.float32),
-                      high=np.where(high >= 1e30, np.inf, high).astype(np.float32), dtype=np.float32)
+    state = spaces.Box(low=np.where(low <= -1e30, -np.inf, low).astype(np.float32),
+                       high=np.where(high >= 1e30, np.inf, high).astype(np.float32), dtype=np.float32)
+    cameras = getattr(task, "cameras", None)
+    if not cameras:
+        return state
+    images = {k: spaces.Box(0, 255, tuple(shape), np.uint8) for k, shape in cameras.items()}
+    return spaces.Dict({STATE: state, **images})
 
 
 def action_space(task=None) -> spaces.Box:

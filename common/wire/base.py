@@ -16,13 +16,23 @@ __all__ = ["Dims", "ANY_DIMS", "Message", "MAC_BYTES", "SIG_BYTES"]
 
 @dataclass(frozen=True)
 class Dims:
-    """The sizes a receiver expects (from the run's task descriptor): the policy's observation, the command O
-    (= the policy's action) and the KMP grid's N. None: any size up to the protocol's bound, consistent within the
-    message."""
+    """The sizes a receiver expects (from the run's task descriptor): the policy's observation (a camera task's:
+    its state vector), the command O (= the policy's action), the KMP grid's N and the cameras. None: any size up to
+    the protocol's bound, consistent within the message."""
 
     obs: int | None = None
     out: int | None = None
     horizon: int | None = None  # N, the KMP grid's points (a frame's scene arrays have N rows)
+    cameras: tuple[tuple[str, tuple[int, int, int]], ...] | None = None  # (name, (H, W, C)) in name order; (): none
+
+    @classmethod
+    def of_task(cls, task) -> "Dims":
+        """The sizes of a task descriptor's batches (observation, command, cameras).
+
+        :param task: the run's :class:`~khgrl.common.wire.descriptor.TaskDescriptor`
+        """
+        cams = getattr(task, "cameras", None) or {}
+        return cls(obs=task.obs_dim, out=task.out_dim, cameras=tuple((k, tuple(cams[k])) for k in sorted(cams)))
 
 
 ANY_DIMS = Dims()
@@ -57,6 +67,18 @@ class Message:
 
     def replace(self, **changes):
         return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def limit(cls, dims: Dims = ANY_DIMS) -> int:
+        """Bytes a message of this kind may take for a receiver of ``dims`` (default: :attr:`MAX_BYTES`).
+
+        :param dims: the receiver's sizes
+        """
+        return cls.MAX_BYTES
+
+    def max_bytes(self) -> int:
+        """Bytes this message may take encoded (its sender's check; default: :attr:`MAX_BYTES`)."""
+        return self.MAX_BYTES
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS):

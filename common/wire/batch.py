@@ -1,5 +1,7 @@
 """The ``transitions`` message: a batch of one actor's transitions, and the evidence that a human vouched for its
-intervened rows (``vouch``: :mod:`khgrl.common.delivery.vouching` makes and checks it)."""
+intervened rows (``vouch``: :mod:`khgrl.common.delivery.vouching` makes and checks it). A camera task's batch
+carries its images as frames, each once (:mod:`khgrl.common.wire.frames`); its size limit grows with the cameras
+(:meth:`Transitions.limit`), a vector task's is :attr:`Transitions.MAX_BYTES`."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import numpy as np
 from khgrl.common.wire.base import ANY_DIMS, Dims, Message, _mac, _sig
 from khgrl.common.wire.checks import ProtocolError, ident, opt, typ, unpack_array, vec
 from khgrl.common.wire.descriptor import MAX_DIM
+from khgrl.common.wire.frames import cameras_of, check_frames, frame_bytes, max_frames
 
 __all__ = ["Transitions", "MAX_BATCH", "Evidence", "DEMO_ENTRY", "HUMAN_ENTRY"]
 
@@ -74,10 +77,29 @@ class Transitions(Message):
     signer: str | None = None  # the key id that signed it (``actor:<actor>``; khgrl.common.delivery.data_keys)
     sig: bytes | None = None  # its Ed25519 signature
     vouch: tuple[Evidence, ...] | None = None  # per intervened row, the evidence a human drove it (see above)
+    frames: dict[str, np.ndarray] | None = None  # a camera task's: camera -> uint8 (m, H, W, C), each frame once
+    obs_frame: np.ndarray | None = None  # (n,) int32: the frame each row observed (khgrl.common.wire.frames)
+    next_frame: np.ndarray | None = None  # (n,) int32: the frame each row observed next
 
     @property
     def n(self) -> int:
         return int(self.reward.shape[0])
+
+    @classmethod
+    def limit(cls, dims: Dims = ANY_DIMS) -> int:
+        """Bytes a batch may take for a receiver of ``dims``: :attr:`MAX_BYTES`, plus a camera task's frames (as
+        many as :func:`~khgrl.common.wire.frames.max_frames` allows). A receiver that knows no cameras (``dims``
+        None: any) takes a vector batch's size: one that decodes camera batches knows its task's cameras.
+
+        :param dims: the receiver's sizes
+        """
+        if not dims.cameras:
+            return cls.MAX_BYTES
+        return cls.MAX_BYTES + frame_bytes(dims.cameras) * max_frames(dims.cameras, MAX_BATCH)
+
+    def max_bytes(self) -> int:
+        """Bytes this batch may take encoded: :meth:`limit` of its own cameras."""
+        return self.limit(Dims(cameras=cameras_of(self.frames) if self.frames else ()))
 
     @classmethod
     def from_wire(cls, m: dict, dims: Dims = ANY_DIMS) -> "Transitions":
@@ -106,6 +128,9 @@ class Transitions(Message):
         actor, first = ident("actor", m.get("actor")), typ("first_step", m.get("first_step"), int, low=0)
         if m.get("task") is None:
             raise ProtocolError("task: missing (the digest of the actor's task descriptor is required)")
+        frames, obs_frame, next_frame = check_frames(m, dims.cameras, n, arrays["terminated"] | arrays["truncated"],
+                                                     MAX_BATCH)
         return cls(actor=actor, first_step=first, base_seq=base, stream=opt(m, "stream", ident),
                    task=ident("task", m.get("task")), mac=opt(m, "mac", _mac), signer=opt(m, "signer", ident),
-                   sig=opt(m, "sig", _sig), vouch=opt(m, "vouch", _vouch, n), **arrays)
+                   sig=opt(m, "sig", _sig), vouch=opt(m, "vouch", _vouch, n), frames=frames, obs_frame=obs_frame,
+                   next_frame=next_frame, **arrays)

@@ -20,7 +20,7 @@ __all__ = ["ProtocolError", "RejectCounter", "pack_array", "unpack_array", "typ"
 
 log = logging.getLogger("khgrl.protocol")
 
-_DTYPES = {"<f4": np.float32, "<f8": np.float64, "|u1": np.uint8, "<i8": np.int64}
+_DTYPES = {"<f4": np.float32, "<f8": np.float64, "|u1": np.uint8, "<i4": np.int32, "<i8": np.int64}
 
 
 class ProtocolError(ValueError):

@@ -19,13 +19,16 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass, fields
+import re
+from dataclasses import asdict, dataclass, field, fields
 from functools import cached_property
+from typing import ClassVar
 
 import numpy as np
 from khgrl.common.wire.checks import ProtocolError, pack_array, typ, unpack_array
 
-__all__ = ["TaskDescriptor", "MAX_DIM", "REWARD_BOUND", "OBS_BOUND", "MAX_BOUND", "OBS_MARGIN"]
+__all__ = ["TaskDescriptor", "MAX_DIM", "REWARD_BOUND", "OBS_BOUND", "MAX_BOUND", "OBS_MARGIN", "MAX_CAMERAS",
+           "MAX_SIDE", "CHANNELS", "STATE", "CAMERA_NAME"]
 
 MAX_DIM = 64
 MAX_CONSTRAINTS = 1024
@@ -34,6 +37,11 @@ REWARD_BOUND = 1e6  # default |reward| of a task's environment (khgrl.task.Task.
 OBS_BOUND = 1e6  # default |observation| in every dimension, bounded by the space or not (Task.obs_bound)
 MAX_BOUND = 1e12  # the largest bound a descriptor may carry: squares stay far below float32's 3.4e38
 OBS_MARGIN = 0.1  # an observation may lie this fraction of its dimension's width (+ 1e-3) outside the space
+MAX_CAMERAS = 4  # a camera task's images per observation (as khgrl.common.tasks.obs_spaces checks a task)
+MAX_SIDE = 256  # pixels, height and width of one image
+CHANNELS = (1, 3, 4)  # grey, RGB, RGBA
+STATE = "state"  # the policy observation's key of the state vector (never a camera's name)
+CAMERA_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_.-]{0,31}$")
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,6 +72,9 @@ class TaskDescriptor:
     :param reward_bound: the largest |reward| of a transition (the environment's bound plus the largest action
         cost the workspace allows).
     :param obs_bound: the largest |observation| in any dimension (where the space is unbounded, or wider).
+    :param cameras: a camera task's images: name -> (H, W, C) uint8 (issue 37); the observation fields above then
+        describe the policy observation's ``"state"`` vector. Empty for a vector task: then neither the wire map nor
+        the digest has the field (a vector task's descriptor is byte for byte what it was before cameras).
     """
 
     name: str
@@ -88,6 +99,8 @@ class TaskDescriptor:
     projector: np.ndarray
     reward_bound: float = REWARD_BOUND
     obs_bound: float = OBS_BOUND
+    cameras: dict[str, tuple[int, int, int]] = field(default_factory=dict)
+    WIRE_OPTIONAL: ClassVar[tuple[str, ...]] = ("cameras",)  # on the wire and in the digest only when not empty
 
     @cached_property
     def obs_limits(self) -> tuple[np.ndarray, np.ndarray]:
@@ -104,6 +117,9 @@ class TaskDescriptor:
         """16 hex characters identifying the task (see the module docstring); computed once (the learner checks it
         on every batch)."""
         d = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("mean", "demos", "projector")}
+        for name in self.WIRE_OPTIONAL:  # (a vector task's digest as before the field existed)
+            if not d[name]:
+                del d[name]
         text = json.dumps(d, sort_keys=True, default=list)
         h = hashlib.sha256(text.encode())
         h.update(np.ascontiguousarray(self.demos, dtype="<f8").tobytes())
@@ -117,6 +133,9 @@ class TaskDescriptor:
         """The descriptor as a map for msgpack (arrays as array maps)."""
         arrays = ("mean", "demos", "projector")
         d = {k: _lists(v) for k, v in asdict(self).items() if k not in arrays}
+        for name in self.WIRE_OPTIONAL:
+            if not d[name]:
+                del d[name]
         d.update({k: pack_array(np.asarray(getattr(self, k), "<f8")) for k in arrays})
         return d
 
@@ -150,7 +169,27 @@ class TaskDescriptor:
                    demos=unpack_array(m.get("demos"), "demos", dtype="<f8", shape=(None, n, o)),
                    projector=unpack_array(m.get("projector"), "projector", dtype="<f8", shape=(n, o, o)),
                    reward_bound=_bound("reward_bound", m.get("reward_bound")),
-                   obs_bound=_bound("obs_bound", m.get("obs_bound")))
+                   obs_bound=_bound("obs_bound", m.get("obs_bound")), cameras=_cameras(m.get("cameras")))
+
+
+def _cameras(v) -> dict[str, tuple[int, int, int]]:
+    """The ``cameras`` map, checked: at most :data:`MAX_CAMERAS` names (ident-like, not ``state``), each [H, W, C]
+    with 1 <= H, W <= :data:`MAX_SIDE` and C in :data:`CHANNELS`; absent: none (a vector task)."""
+    if v is None:
+        return {}
+    if not isinstance(v, dict) or not 1 <= len(v) <= MAX_CAMERAS:
+        raise ProtocolError(f"cameras: expected a map of 1..{MAX_CAMERAS} cameras")
+    out = {}
+    for name, shape in v.items():
+        if not isinstance(name, str) or not CAMERA_NAME.match(name) or name == STATE:
+            raise ProtocolError(f"cameras: name {name!r} is not a short identifier other than {STATE!r}")
+        if not isinstance(shape, list) or len(shape) != 3 or not all(type(d) is int for d in shape):
+            raise ProtocolError(f"cameras[{name}]: expected [H, W, C] integers, got {shape!r}")
+        h, w, c = shape
+        if not (1 <= h <= MAX_SIDE and 1 <= w <= MAX_SIDE) or c not in CHANNELS:
+            raise ProtocolError(f"cameras[{name}]: shape {shape}: at most {MAX_SIDE} x {MAX_SIDE}, C in {CHANNELS}")
+        out[name] = (h, w, c)
+    return out
 
 
 def _lists(v):

@@ -21,6 +21,7 @@ import msgpack
 import numpy as np
 from khgrl.common.wire.checks import ProtocolError, RejectCounter, ident, pack_array, typ, unpack_array
 from khgrl.common.wire.control import LAUNCHER
+from khgrl.common.wire.frames import MAX_FRAME_BYTES
 from khgrl.common.wire.keys import Keys
 from khgrl.common.wire.messages import (
     ANY_DIMS,
@@ -67,8 +68,12 @@ def _to_wire(value: Any, as_list: bool = False) -> Any:
         return np.asarray(value, dtype=np.float64).reshape(-1).tolist()
     if isinstance(value, (str, bool, int, float)):  # most fields: nothing to convert
         return value
-    if dataclasses.is_dataclass(value):
-        return _to_wire(dataclasses.asdict(value))
+    if dataclasses.is_dataclass(value):  # (a field named in WIRE_OPTIONAL goes only when it holds something)
+        d = dataclasses.asdict(value)
+        for name in getattr(value, "WIRE_OPTIONAL", ()):
+            if not d[name]:
+                del d[name]
+        return _to_wire(d)
     if isinstance(value, np.ndarray):
         return pack_array(value)
     if isinstance(value, dict):
@@ -96,8 +101,8 @@ def encode(msg: Message, sender: str, seq: int, ts: float | None = None) -> byte
             body[f.name] = _to_wire(value, f.name in msg.VECTORS)
     _validate(type(msg), body)  # the sender's own check, on the map itself: never publish what receivers reject
     payload = msgpack.packb(body, use_bin_type=True)
-    if len(payload) > msg.MAX_BYTES:
-        raise ProtocolError(f"{len(payload)} bytes exceeds the {msg.KIND} limit of {msg.MAX_BYTES}")
+    if len(payload) > msg.max_bytes():
+        raise ProtocolError(f"{len(payload)} bytes exceeds the {msg.KIND} limit of {msg.max_bytes()}")
     return payload
 
 
@@ -131,7 +136,7 @@ def decode(cls: type[M], payload: bytes, dims: Dims = ANY_DIMS) -> M:
 
     :param dims: the observation and command sizes the receiver's task has (default: any, consistent).
     """
-    return _validate(cls, _unpack(payload, cls.MAX_BYTES, cls.KIND), dims)
+    return _validate(cls, _unpack(payload, cls.limit(dims), cls.KIND), dims)
 
 
 def _validate(cls: type[M], msg: dict, dims: Dims = ANY_DIMS) -> M:
@@ -165,7 +170,7 @@ def with_base_seq(payload: bytes, base_seq: int, mac: Callable[[dict], bytes | d
         set (``data_keys.wire_sign``: ``mac``, ``signer``, ``sig``); None: no ``mac`` nor signature (those the payload
         had are dropped, as they no longer match).
     """
-    msg = _unpack(payload, Transitions.MAX_BYTES, Transitions.KIND)
+    msg = _unpack(payload, Transitions.MAX_BYTES + MAX_FRAME_BYTES, Transitions.KIND)  # (our own: any cameras)
     env = _envelope(msg, Transitions.KIND)
     base = typ("base_seq", base_seq, int, low=0)
     if base > env.seq:

@@ -3,16 +3,14 @@
 ``check_env`` clean on ``panda:pick-pixels``' KGRLEnv, the robot's position read from the state vector, bad camera
 declarations refused with a TaskError naming the key, and a vector task's observation space as before.
 
-The camera variant of the passage world (:class:`CameraRobot`, a real environment drawing the robot as a dot in a
-small image) checks the general path without MuJoCo; one ``panda:pick-pixels`` environment serves the Panda tests
-(building its world and gym-hil's model takes ~10 s)."""
+The camera variant of the passage world (``CameraRobot`` of deploy/examples/camera_task.py, a real environment
+drawing the robot as a dot in a small image) checks the general path without MuJoCo; one ``panda:pick-pixels``
+environment serves the Panda tests (building its world and gym-hil's model takes ~10 s)."""
 
 from __future__ import annotations
 
 import warnings
-from dataclasses import replace
 
-import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium import spaces
@@ -20,49 +18,13 @@ from gymnasium.utils.env_checker import check_env
 from khgrl.common.tasks.api import TaskError, load_task
 from khgrl.common.tasks.kgrl_env import KGRLEnv, make_inner_env
 from khgrl.common.tasks.obs_spaces import MAX_CAMERAS, MAX_SIDE
-from khgrl.common.tasks.passage.task import PassageRobot
 from khgrl.common.tasks.spaces import observation_space as passage_space
-
-SIDE = 16  # the passage camera's image side (pixels)
-
-
-class CameraRobot(gym.Env):
-    """The passage robot observed as ``{"pos": position (2,), "cam": an image of the robot as a white dot}``;
-    ``images`` overrides the image spaces it declares (for the refused declarations).
-
-    :param robot: the passage world's robot.
-    :param images: key -> image space (default: ``cam``, SIDE x SIDE x 3 uint8).
-    """
-
-    metadata = {"render_modes": []}
-
-    def __init__(self, robot: PassageRobot, images: dict | None = None) -> None:
-        self.robot = robot
-        self.images = images or {"cam": spaces.Box(0, 255, (SIDE, SIDE, 3), np.uint8)}
-        self.observation_space = spaces.Dict({"pos": robot.observation_space, **self.images})
-        self.action_space = robot.action_space
-
-    def _observe(self, pos: np.ndarray) -> dict:
-        img = np.zeros((SIDE, SIDE, 3), np.uint8)
-        r, c = (np.clip(pos, 0.0, 1.0) * (SIDE - 1)).round().astype(int)
-        img[SIDE - 1 - c, r] = 255
-        return {"pos": pos, "cam": img}
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        pos, info = self.robot.reset(seed=seed)
-        return self._observe(pos), info
-
-    def step(self, action):
-        pos, reward, term, trunc, info = self.robot.step(action)
-        return self._observe(pos), reward, term, trunc, info
+from khgrl.deploy.examples.camera_task import SIDE, make_task
 
 
 def camera_passage(images: dict | None = None, state_key: str | None = "pos", image_keys=("cam",)):
-    """``passage:high_cov`` observing :class:`CameraRobot`."""
-    base = load_task("passage:high_cov")
-    return replace(base, make_env=lambda s: CameraRobot(base.make_env(s), images), position=lambda obs: obs["pos"],
-                   scripted_human=None, state_key=state_key, image_keys=tuple(image_keys))
+    """``passage:high_cov`` observing :class:`CameraRobot` (deploy/examples/camera_task.py)."""
+    return make_task(images, state_key, image_keys)
 
 
 @pytest.fixture(scope="module")

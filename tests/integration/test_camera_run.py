@@ -1,0 +1,126 @@
+"""A camera task through the real system (issue 37): the passage world observed as a state vector and a 16 x 16
+image (deploy/examples/camera_task.py). ``khgrl up`` runs it to the end: the actor's batches carry frames, the
+learner's TQC with DrQ's image policy stores exactly what the actor sent, each step once, and each frame once
+(the replay's live frames: one per stored transition and one per episode, plus a stream's pin). Then a learner
+SIGKILLed after a full checkpoint with batches in its journal and ``--resume``d: nothing lost, nothing twice, the
+frames still stored once."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
+
+CAMERA = "khgrl.deploy.examples.camera_task:make_task"
+UP = [sys.executable, "-m", "khgrl.deploy.cli", "up"]
+SMALL = ["--net-arch", "64", "64", "--batch-size", "32", "--learning-starts", "32", "--buffer-size", "5000",
+         "--gradient-steps", "2"]
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONUNBUFFERED"] = "1"
+    env.setdefault("RUST_LOG", "error")
+    return env
+
+
+def _replay(ckpt_dir: Path):
+    """The learner's replay buffer in its checkpoint (its own file, written by this test's run)."""
+    from khgrl.learner.checkpoint import find_checkpoint
+    from stable_baselines3.common.save_util import load_from_pkl
+
+    return load_from_pkl(find_checkpoint(ckpt_dir) / "replay_buffer.pkl")
+
+
+def _episodes(run_dir: Path) -> int:
+    return len((run_dir / "actor-a0" / "episodes.csv").read_text().strip().splitlines()) - 1
+
+
+def _steps(run_dir: Path) -> list[int]:
+    rows = (run_dir / "actor-a0" / "episodes.csv").read_text().strip().splitlines()[1:]
+    return [int(r.split(",")[1]) for r in rows]
+
+
+def _assert_frames_once(rb, n: int, episodes: int) -> None:
+    """Every stored transition's frames alive, each frame once: n transitions of ``episodes`` episodes hold
+    n + episodes frames (+1: a stream's pin after a batch that did not end its episode)."""
+    from khgrl.learner.frame_replay import FrameReplayBuffer
+
+    assert isinstance(rb, FrameReplayBuffer) and rb.pos == n
+    assert np.all(rb.obs_frame[:n] >= 0) and np.all(rb.next_frame[:n] >= 0)
+    assert n + episodes <= rb.store.live <= n + episodes + 1, (rb.store.live, n, episodes)
+    held = np.concatenate([rb.obs_frame[:n], rb.next_frame[:n], [p[0] for p in rb.pins.values()]]).astype(int)
+    assert len(np.unique(held)) == rb.store.live  # no frame alive that no slot or pin holds
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(180)
+def test_camera_task_through_khgrl_up(tmp_path: Path) -> None:
+    from khgrl.benchmarks.scale import provenance_check
+
+    run_dir = tmp_path / "run"
+    proc = subprocess.run([*UP, "--task", CAMERA, "--human", "none", "--episodes", "2", *SMALL, "--run-dir",
+                           str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True, text=True,
+                          timeout=150)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    summary = read_json(run_dir / "summary.json")
+    actor = read_json(run_dir / "actor-a0" / "summary.json")
+    n = actor["transitions"]
+    assert actor["episodes"] == 2 and actor["unconfirmed_transitions"] == 0 and actor["rejects"] == {}
+    assert summary["a0"]["transitions"] == n == actor["sent"] > 0
+    state = read_json(run_dir / "learner" / "checkpoint" / "state.json")
+    assert state["total_ingested"] == n
+    check = provenance_check(run_dir)
+    assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] == n, check
+    rb = _replay(run_dir / "learner")
+    _assert_frames_once(rb, n, _episodes(run_dir))
+    assert rb.store.shapes == {"cam": (3, 16, 16)}  # channel-first, as SB3 holds the model's images
+    assert "task passage-camera" in (run_dir / "learner" / "learner.log").read_text()
+    for path, steps in zip(sorted((run_dir / "actor-a0" / "steps").glob("episode-*.npz")), _steps(run_dir)):
+        with np.load(path, allow_pickle=False) as z:  # the step records keep the state, not the images
+            assert z["obs"].shape == (steps, 5) and z["final_obs"].shape == (5,)
+
+
+def _journal_rows(ckpt_dir: Path) -> int:
+    from khgrl.learner.journal_scan import read_records
+
+    state_file = ckpt_dir / "checkpoint" / "state.json"
+    if not state_file.exists():
+        return 0
+    return sum(m.n for m in read_records(ckpt_dir / "journal", read_json(state_file)["journal"]["next"]))
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(300)
+def test_camera_learner_killed_and_resumed_loses_nothing(tmp_path: Path) -> None:
+    from khgrl.benchmarks.scale import provenance_check
+
+    learner_args = ["--learning-starts", "16", "--max-lead", "8", "--checkpoint-every", "100", "--buffer-size", "5000",
+                    "--gradient-steps", "2"]
+    actor_args = ["--task", CAMERA, "--method", "kgrl", "--learning-starts", "16", "--max-lead", "8", "--episodes",
+                  "2", "--id", "a0", "--flush-timeout", "90"]
+    run, run_dir = unique_run("cam"), tmp_path / "run"
+    with ProcGroup(tmp_path) as g:
+        ep = g.router()
+        learner = g.learner(run, ep, *learner_args)
+        actor = g.actor(run, ep, *actor_args)
+        wait_for(lambda: _journal_rows(run_dir / "learner") >= 24, 120, "a full checkpoint, then the journal",
+                 procs=[learner, actor])
+        learner.kill()
+        learner.wait(30)
+        resumed = g.learner(run, ep, *learner_args, "--resume")
+        assert actor.wait(180) == 0, actor.tail()
+        assert resumed.stop(60) == 0, resumed.text()[-3000:]
+        log = resumed.text()
+    assert "journal: replayed" in log, log[-3000:]
+    summary = read_json(run_dir / "actor-a0" / "summary.json")
+    assert summary["episodes"] == 2 and summary["unconfirmed_transitions"] == 0, summary
+    check = provenance_check(run_dir)
+    assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] == summary["next_index"], check
+    _assert_frames_once(_replay(run_dir / "learner"), summary["next_index"], _episodes(run_dir))
