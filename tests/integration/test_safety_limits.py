@@ -46,8 +46,11 @@ RATE, TIMEOUT = 20.0, 3.0
 ARGS = [*FAST, "--task", "driver_log_task:make_task", "--method", "khgrl", "--human", "scripted",
         "--human-episodes", "1", "--episodes", "3", "--seed", "4", "--rate", str(RATE), "--rate-limit", "on",
         "--reset-path", "on", "--correction-timeout", str(TIMEOUT),
-        "--net-arch", "256", "256", "--batch-size", "256"]  # the default sizes: the seeded episodes this test's
-# faults are timed against (with FAST's small networks the scripted human still holds when the dying client drags)
+        "--net-arch", "256", "256", "--batch-size", "256",  # the default sizes: the seeded episodes this test's
+        # faults are timed against (with FAST's small networks the scripted human still holds when the dying client
+        # drags); a lease longer than any SIGSTOP here: a learner stopped past the lease is gone for the actor, which
+        # then acts on to the run's end (on a loaded machine the lead cap's hold came after 3 s: no step was left)
+        "--lease-ms", "10000"]
 HUMAN = """
 import sys, time
 import numpy as np
