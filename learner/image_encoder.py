@@ -2,17 +2,18 @@
 named camera images (``H x W x C`` uint8) and state vectors, with DrQ's random-shift augmentation.
 
 Architecture, per camera (the encoder of DrQ, Kostrikov, Yarats & Fergus 2020, and of SAC-AE, Yarats et al. 2019,
-whose conv stack DrQ-v2, Yarats et al. 2021, keeps): a *trunk* of 4 conv layers of 32 channels, 3 x 3, the first
-of stride 2, each followed by ReLU; then a *head* Linear -> LayerNorm -> tanh to ``features_dim``. The features of
-all cameras and then the state vectors (the space's other keys, in its order) are concatenated. Images are scaled
-to [0, 1] here (the policy must not scale them: ``normalize_images=False``, :mod:`khgrl.learner.image_policy` sets
-it) and permuted to channel-first when the space is channel-last. (SB3 itself wraps an environment whose Dict holds
-channel-last images in ``VecTransposeImage``; then the model's space, the replay buffer's arrays and what reaches
-this module are channel-first already, and nothing is permuted.)
+whose conv stack DrQ-v2, Yarats et al. 2021, keeps): a *trunk* of 4 conv layers of 32 channels, 3 x 3, the first of
+stride 2 (DrQ's, for 84 x 84 images; larger images a larger first stride, :func:`first_stride`: 3 for 128 x 128, so
+that the trunk's output stays about DrQ's size), each followed by ReLU; then a *head* Linear -> LayerNorm -> tanh to
+``features_dim``. The features of all cameras and then the state vectors (the space's other keys, in its order) are
+concatenated. Images are scaled to [0, 1] here (the policy must not scale them: ``normalize_images=False``,
+:mod:`khgrl.learner.image_policy` sets it) and permuted to channel-first when the space is channel-last. (SB3 itself
+wraps an environment whose Dict holds channel-last images in ``VecTransposeImage``; then the model's space, the
+replay buffer's arrays and what reaches this module are channel-first already, and nothing is permuted.)
 
 One trunk and head per camera, not one shared across cameras: the cameras see different things (a wrist camera
 the gripper and the object close up, a front camera the scene), and may differ in size; a shared trunk would save
-only the trunk's 28 k parameters per camera (the head's Linear, ``32 x 57 x 57 x 50`` = 5.2 M for a 128 x 128
+only the trunk's 28 k parameters per camera (the head's Linear, ``32 x 36 x 36 x 50`` = 2.1 M for a 128 x 128
 image, cannot be shared between cameras of different sizes anyway), and the compute is the same, each image goes
 through one trunk once. A weights file of one trunk still loads into every camera's
 (:mod:`khgrl.learner.encoder_weights`).
@@ -44,6 +45,7 @@ __all__ = ["ImageEncoder", "RandomShift", "random_shift", "conv_trunk", "image_k
 
 DEFAULT_FEATURES = 50  # per camera: DrQ's and DrQ-v2's feature_dim
 PAD = 4  # DrQ's random-shift padding, pixels
+DRQ_INPUT = 84  # the image side DrQ's stack was made for (stride 2 first)
 CHANNELS = 32  # DrQ's conv width
 
 
@@ -98,15 +100,29 @@ class RandomShift(nn.Module):
         return random_shift(images, self.pad, self.generator)
 
 
-def conv_trunk(in_channels: int) -> nn.Sequential:
-    """DrQ's conv stack: 4 conv layers of 32 channels, 3 x 3, the first of stride 2, ReLU after each, flattened.
-    Its ``state_dict`` keys are ``{0,2,4,6}.{weight,bias}``.
+def first_stride(height: int, width: int) -> int:
+    """The first conv layer's stride: 2, DrQ's, for its 84 x 84 images and smaller, and larger for larger images so
+    that the trunk's output stays about DrQ's 35 x 35 (:data:`DRQ_INPUT` / 2 per first-layer pixel): 3 for 128 x 128
+    (an output of 36 x 36 instead of 57 x 57: the head's Linear 2.6x smaller, the three later layers 2.5x cheaper).
+
+    :param height: the image's height (pixels)
+    :param width: its width
+    """
+    return max(2, round(max(height, width) / (DRQ_INPUT / 2)))
+
+
+def conv_trunk(in_channels: int, stride: int = 2) -> nn.Sequential:
+    """DrQ's conv stack: 4 conv layers of 32 channels, 3 x 3, the first of stride ``stride`` (DrQ's 2;
+    :func:`first_stride`), ReLU after each, flattened. Its ``state_dict`` keys are ``{0,2,4,6}.{weight,bias}``
+    (the stride is not a parameter: a weights file loads into a trunk of any stride).
 
     :param in_channels: the image's channels
+    :param stride: the first layer's stride
     """
     layers: list[nn.Module] = []
     for i in range(4):
-        layers += [nn.Conv2d(in_channels if i == 0 else CHANNELS, CHANNELS, 3, stride=2 if i == 0 else 1), nn.ReLU()]
+        layers += [nn.Conv2d(in_channels if i == 0 else CHANNELS, CHANNELS, 3, stride=stride if i == 0 else 1),
+                   nn.ReLU()]
     return nn.Sequential(*layers, nn.Flatten())
 
 
@@ -155,7 +171,7 @@ class ImageEncoder(BaseFeaturesExtractor):
         for key in cameras:
             shape = observation_space[key].shape
             c, h, w = (shape[2], shape[0], shape[1]) if self.channels_last[key] else shape
-            trunk = conv_trunk(c)
+            trunk = conv_trunk(c, first_stride(h, w))
             with torch.no_grad():
                 flat = int(trunk(torch.zeros(1, c, h, w)).shape[1])
             self.trunks[key] = trunk

@@ -6,9 +6,10 @@ buffer and the frames it stores.
   (:mod:`khgrl.learner.image_policy`: one image encoder shared by actor and critics, trained by the critic loss),
   on the learner and on the actors alike, with :data:`FEATURES` features per camera. The actors get the policy's
   ``actor`` network -- the encoder included: its bytes grow with the image (DrQ's conv stack keeps the image's size
-  but for a first stride of 2, so the head's Linear has ``32 x (H/2 - 3) x (W/2 - 3) x 50`` weights: one 16 x 16
-  camera gives a 154 kB actor with 64 x 64 hidden layers (122 kB of it the encoder), two 128 x 128 cameras a
-  42 MB one with 256 x 256 (41.8 MB the encoder; the weights message allows 64 MiB).
+  but for its first stride, so the head's Linear has about ``32 x (H/s - 3) x (W/s - 3) x 50`` weights, ``s`` the
+  first stride, 2 up to 84 x 84 and more above, :func:`~khgrl.learner.image_encoder.first_stride`): one 16 x 16
+  camera gives a 154 kB actor with 64 x 64 hidden layers (122 kB of it the encoder), two 128 x 128 cameras (stride
+  3) a 17.2 MB one with 256 x 256 (42 MB with DrQ's stride 2; the weights message allows 64 MiB).
 * The replay buffer: :class:`~khgrl.learner.frame_replay.FrameReplayBuffer` (each frame once) through SB3's
   ``replay_buffer_class`` hook.
 * SB3 holds channel-last images channel-first (its ``VecTransposeImage`` wraps the learner's spaces-only env), so

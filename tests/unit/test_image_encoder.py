@@ -316,3 +316,14 @@ def test_an_actors_policy_on_the_tasks_channel_last_space_takes_the_learners_act
     model.policy.set_training_mode(False)
     np.testing.assert_allclose(actor_side.predict(obs, deterministic=True)[0],
                                model.predict(obs, deterministic=True)[0], rtol=1e-5, atol=1e-6)
+
+
+def test_the_first_stride_keeps_the_trunk_output_about_drqs() -> None:
+    """DrQ's 84 x 84 (and smaller) keep its stride 2; 128 x 128 gets 3: an output of 36 x 36 x 32, not 57 x 57 x 32."""
+    from khgrl.learner.image_encoder import first_stride
+
+    assert [first_stride(s, s) for s in (16, 84, 96, 128, 256)] == [2, 2, 2, 3, 6]
+    out = {s: conv_trunk(3, first_stride(s, s))(torch.zeros(1, 3, s, s)).shape[1] for s in (84, 128)}
+    assert out == {84: 32 * 35 * 35, 128: 32 * 36 * 36}
+    space = spaces.Dict({"cam": spaces.Box(0, 255, (128, 128, 3), np.uint8), "state": spaces.Box(-1, 1, (4,))})
+    assert ImageEncoder(space).heads["cam"][0].in_features == 32 * 36 * 36
