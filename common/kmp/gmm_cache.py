@@ -100,6 +100,7 @@ def store_gmm(key: str, fit: FittedGMM) -> None:
     where = cache_dir()
     if where is None:
         return
+    tmp = None
     try:
         where.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".gmm-{key}.", suffix=".npz", dir=where)
@@ -107,7 +108,5 @@ def store_gmm(key: str, fit: FittedGMM) -> None:
             np.savez(fh, weights=fit.weights_, means=fit.means_, covariances=fit.covariances_)
         os.replace(tmp, where / f"gmm-{key}.npz")
     except OSError:
-        try:
-            os.unlink(tmp)
-        except (OSError, UnboundLocalError):
-            pass
+        if tmp is not None:  # (only the temporary file this call made)
+            Path(tmp).unlink(missing_ok=True)

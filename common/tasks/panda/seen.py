@@ -59,14 +59,16 @@ class PandaSeen(PandaPosition):
         flat, info = super().reset(seed=seed, options=options)
         truth = flat[CUBE][:2].copy()
         seen = self._estimate()
-        if seen is not None:
+        found = seen is not None
+        if found:
             self.seen += 1
             self.last_error_m = float(np.linalg.norm(seen - truth))
         else:
             self.not_seen += 1
             low, high = self.region if self.region is not None else (truth, truth)
-        flat[CUBE.start:CUBE.start + 2] = seen if seen is not None else (np.asarray(low) + np.asarray(high)) / 2
-        return flat, {**info, "cube_seen": seen is not None}
+            seen = (np.asarray(low) + np.asarray(high)) / 2
+        flat[CUBE.start:CUBE.start + 2] = seen
+        return flat, {**info, "cube_seen": found}
 
     def close(self) -> None:
         if self._renderer is not None:
