@@ -104,10 +104,11 @@ def _answer_frames(watch: Watch, seconds: float, answer) -> tuple[float, float]:
     return t0, time.monotonic()
 
 
-def _flood_queries(session, key: str, qps: float, seconds: float) -> tuple[int, list[int]]:
+def _flood_queries(session, key: str, qps: float, count: int, seconds: float) -> tuple[int, list[int]]:
+    """Send ``count`` queries at up to ``qps`` (a loaded machine sends them slower), giving up after ``seconds``."""
     got = [0]
     t0, n = time.monotonic(), 0
-    while time.monotonic() - t0 < seconds:
+    while n < count and time.monotonic() - t0 < seconds:
         session.get(key, lambda r: got.__setitem__(0, got[0] + (r.ok is not None)), timeout=2.0)
         n += 1
         delay = t0 + n / qps - time.monotonic()
@@ -174,7 +175,7 @@ def test_human_and_monitor_attacks_are_bounded(tmp_path):
 
             # 4. weights query flood from the monitor
             t0 = time.monotonic()
-            n, answered = _flood_queries(monitor, keys.weights, 1000.0, 6.0)
+            n, answered = _flood_queries(monitor, keys.weights, 1000.0, 4000, 20.0)
             t1 = time.monotonic()
             time.sleep(2.5)
             flood_grad = watch.grad_rate(t0, t1)
