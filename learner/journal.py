@@ -28,7 +28,7 @@ snapshot records (``journal.next`` in its ``state.json``); once the snapshot is 
 deleted (:meth:`Journal.snapshot_saved`). A resumed learner loads the snapshot and replays the records of the
 segments from that index on (:func:`khgrl.learner.journal_scan.read_records`).
 
-One module of ~360 lines on purpose: the journal's record format, its writer and its reader must stay in one file;
+One module of ~370 lines on purpose: the journal's record format, its writer and its reader must stay in one file;
 scanning and damage are apart (journal_scan, journal_loss).
 """
 
@@ -303,9 +303,22 @@ class Journal:
         with self._io:
             if self.size or _segment(self.dir, self.index).exists():
                 self.index, self.size = self.index + 1, 0
+            try:  # the new segment on disk now: once the snapshot deletes the old ones, it is what a resumed
+                self._create_segment()  # learner numbers on from (else it would start at 0, before journal.next)
+            except OSError as err:  # (as a failed write: off, claiming nothing, until a snapshot holds it all)
+                with self._mu:
+                    self.error, self.failures = str(err) or type(err).__name__, self.failures + 1
+                exc = exc or err
             self.rows = 0
             self._cut_failures, self._cut_synced = self.failures, self.synced_rows
             return self.index, marks, exc
+
+    def _create_segment(self) -> None:
+        """Create the current segment, empty, with its directory entry fsynced."""
+        path = _segment(self.dir, self.index)
+        if not path.exists():
+            os.close(os.open(path, os.O_WRONLY | os.O_CREAT, 0o644))
+            _fsync_dir(self.dir)
 
     def snapshot_saved(self, index: int) -> list[Path]:
         """A full snapshot holding everything before segment ``index`` is in place: delete those segments, and

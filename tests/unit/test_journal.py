@@ -191,6 +191,29 @@ def test_the_journal_makes_batches_durable_and_a_killed_learner_resumes_exactly_
     assert again.trainer.total == total + 8 and again.streams["a0"].duplicates == 1
 
 
+def test_a_learner_resumed_after_its_final_checkpoint_journals_where_the_next_resume_reads(tmp_path):
+    """A clean stop's final checkpoint deletes every segment before its ``journal.next``; the learner resumed from it
+    must journal from that segment on, or its batches are confirmed durable and then missing at the next resume (a
+    grid run lost 332 confirmed batches this way, 2026-12-06)."""
+    loop, _ = _loop(tmp_path)
+    for seq in range(4):
+        loop.offer(batch(seq, 8 * seq, 8))
+        loop.step()
+    assert loop.checkpoint() is not None  # the clean stop
+    del loop
+    again, pub = _loop(tmp_path, resume=True)
+    for seq in range(4, 8):
+        again.offer(batch(seq, 8 * seq, 8))
+        again.step()
+    again.control(Control(command="checkpoint"))  # the journal synced: acked durable
+    again.step()
+    assert [a.durable for a in pub.of(Ack) if a.actor == "a0"][-1] == 7
+    expected, total = _provenance(again), again.trainer.total
+    del again  # killed: no final checkpoint
+    third, _ = _loop(tmp_path, resume=True)
+    assert third.trainer.total == total == 64 and _provenance(third) == expected
+
+
 def test_replay_drops_batches_with_bad_rows_but_keeps_the_stream_going(tmp_path):
     tqc = dataclasses.replace(SMALL, learning_starts=1000)  # (no training on the NaN)
     loop, _ = _loop(tmp_path, tqc=tqc)
