@@ -13,7 +13,7 @@ the same policy class on the CPU and loads them into its ``actor``.
 A camera task (a Dict observation space) gets DrQ's image policy and a
 :class:`~khgrl.learner.frame_replay.FrameReplayBuffer` (:mod:`khgrl.learner.image_setup`).
 
-One module of ~360 lines on purpose: the whole adapter between the learner-algorithm interface and SB3's off-policy
+One module of ~330 lines on purpose: the whole adapter between the learner-algorithm interface and SB3's off-policy
 classes, used by every algorithm.
 """
 
@@ -28,41 +28,11 @@ from khgrl.common.tasks.spaces import SpacesEnv
 from khgrl.learner.algorithm import BUFFER_FILE, MODEL_FILE
 from khgrl.learner.image_setup import buffer_frames, describe_space, image_policy, is_camera_space
 from khgrl.learner.replay import StreamReplayBuffer, prior_fraction
+from khgrl.learner.sb3_actor import SB3ActorPolicy, Untrained
 
-__all__ = ["SB3OffPolicy", "SB3ActorPolicy", "LOSSES"]
+__all__ = ["SB3OffPolicy", "SB3ActorPolicy", "Untrained", "LOSSES"]
 
 LOSSES = ("train/critic_loss", "train/actor_loss", "train/ent_coef_loss")  # what SB3's SAC and TQC record
-
-
-class SB3ActorPolicy:
-    """An SB3 policy (evaluation mode) as an :class:`~khgrl.learner.algorithm.ActorPolicy`: actions from
-    ``predict``, weights into its ``actor`` network.
-
-    :param policy: an SB3 actor-critic policy with an ``actor`` network (SAC's, TQC's)
-    """
-
-    def __init__(self, policy: Any) -> None:
-        self.policy = policy
-        policy.set_training_mode(False)
-
-    def predict(self, obs: np.ndarray, deterministic: bool = False) -> tuple[np.ndarray, Any]:
-        """SB3's ``predict`` (squashed into the action space's bounds).
-
-        :param obs: one observation
-        :param deterministic: the mean action (else a sample of the policy)
-        """
-        return self.policy.predict(obs, deterministic=deterministic)
-
-    def weights_template(self) -> dict[str, tuple[int, ...]]:
-        """The ``actor`` network's tensor names and shapes."""
-        return {k: tuple(v.shape) for k, v in self.policy.actor.state_dict().items()}
-
-    def load_weights(self, tensors: dict[str, Any]) -> None:
-        """Load the learner's ``actor`` network.
-
-        :param tensors: torch tensors by name
-        """
-        self.policy.actor.load_state_dict(tensors)
 
 
 class SB3OffPolicy:
@@ -186,7 +156,7 @@ class SB3OffPolicy:
         """The policy class on the CPU with the run's network sizes (see :meth:`LearnerAlgorithm.actor_policy`)."""
         policy, extra = cls._policy(observation_space)
         return SB3ActorPolicy(policy(observation_space, action_space, lr_schedule=lambda _: settings.learning_rate,
-                                     net_arch=list(settings.net_arch), **extra))
+                                     net_arch=list(settings.net_arch), optimizer_class=Untrained, **extra))
 
     @classmethod
     def checkpoint_policy(cls, model_file: Path, observation_space: Any, action_space: Any,

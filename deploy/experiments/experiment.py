@@ -32,6 +32,7 @@ import argparse
 import json
 import os
 import platform
+import shlex
 import shutil
 import signal
 import subprocess
@@ -169,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
                  "system": args.system, "jobs": args.jobs, "max_lead": args.max_lead, "timeout": args.timeout,
                  "ray": args.ray, "ray_cpus": args.ray_cpus, "ray_gpus": args.ray_gpus,
                  "until_success": args.until_success, "success_window": args.success_window,
-                 "resume_interrupted": args.resume_interrupted or None}
+                 "resume_interrupted": args.resume_interrupted or None,
+                 "up_args": shlex.split(args.up_args) if args.up_args is not None else None}
     try:
         cfg = load_config(args.config, overrides)
     except (ValueError, OSError, TypeError) as exc:
@@ -241,6 +243,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume-interrupted", action="store_true",
                    help="continue an interrupted run from its learner checkpoint (khgrl up --resume) instead of "
                         "starting it again (default: off; experiment.json counts its parts)")
+    p.add_argument("--up-args", default=None, metavar="FLAGS",
+                   help="more khgrl up flags for every run, in one string, e.g. --up-args=\"--net-arch 64 64 "
+                        "--batch-size 64\" (default: none; not the flags the grid sets itself)")
     p.add_argument("--dry-run", action="store_true",
                    help="list the runs, their state and commands; run nothing (default: off)")
     p.add_argument("--no-progress", action="store_true", help="plain lines instead of progress bars (default: off)")

@@ -16,8 +16,8 @@ from khgrl.common.tasks.passage.scenarios import SCENARIOS
 from khgrl.deploy.experiments.experiment_ray import DEFAULT_CPUS, check_ray_settings
 from khgrl.deploy.experiments.run_results import METHOD_LABEL
 
-__all__ = ["SYSTEMS", "ExperimentConfig", "RunSpec", "task_label", "load_config", "plan_runs", "run_is_done",
-           "run_argv"]
+__all__ = ["SYSTEMS", "GRID_FLAGS", "ExperimentConfig", "check_up_args", "RunSpec", "task_label", "load_config",
+           "plan_runs", "run_is_done", "run_argv"]
 
 SYSTEMS = ("distributed", "reference")
 
@@ -43,6 +43,7 @@ class ExperimentConfig:
     ray: str = ""  # a Ray cluster's address (or "auto", "local"): each run a Ray task there (experiment_ray.py)
     ray_cpus: float = DEFAULT_CPUS  # per run, with ray
     ray_gpus: float = 0.0  # per run, with ray (> 0: the learner runs with --device cuda)
+    up_args: list[str] = field(default_factory=list)  # more khgrl up flags for every run: ["--net-arch", "64", "64"]
 
     def validate(self) -> "ExperimentConfig":
         bad = [s for s in self.scenarios if s not in SCENARIOS] + [m for m in self.methods if m not in METHOD_LABEL]
@@ -74,7 +75,38 @@ class ExperimentConfig:
         if any(e < 1 for e in self.human_episodes):
             raise ValueError("human_episodes are 1-based episode numbers")
         check_ray_settings(self.ray, self.ray_cpus, self.ray_gpus, self.system)
+        check_up_args(self.up_args, self.system)
         return self
+
+
+# the flags the grid gives each run itself (run_argv): up_args may not set them
+GRID_FLAGS = ("--task", "--scenario", "--method", "--seed", "--episodes", "--run-dir", "--max-lead", "--progress",
+              "--no-progress", "--no-adapt", "--adapt", "--sampling", "--takeover", "--recipe", "--human",
+              "--human-episodes", "--timeout", "--until-success", "--success-window", "--resume", "--overwrite",
+              "--config")
+
+
+def check_up_args(up_args: list[str], system: str) -> None:
+    """``up_args`` are ``khgrl up`` flags that its parser takes, none of them one the grid sets (ValueError if not).
+
+    :param up_args: the flags
+    :param system: the grid's system (up_args need ``distributed``)
+    """
+    if not up_args:
+        return
+    if not isinstance(up_args, list) or not all(isinstance(a, str) for a in up_args):
+        raise ValueError(f"up_args must be a list of strings, got {up_args!r}")
+    if system != "distributed":
+        raise ValueError("up_args are khgrl up's flags: they need system = \"distributed\"")
+    taken = sorted({a.split("=", 1)[0] for a in up_args} & set(GRID_FLAGS))
+    if taken:
+        raise ValueError(f"up_args {taken}: the grid sets these itself for each run")
+    from khgrl.deploy.run.launcher import build_parser  # (khgrl up's own parser; imported only when needed)
+
+    try:
+        build_parser().parse_args(up_args)
+    except SystemExit:  # (argparse has printed why)
+        raise ValueError(f"up_args {up_args} are not flags khgrl up takes (see khgrl up --help)") from None
 
 
 def load_config(path: str | Path | None, overrides: dict) -> ExperimentConfig:
@@ -157,4 +189,4 @@ def run_argv(spec: RunSpec, cfg: ExperimentConfig, run_dir: Path) -> list[str]:
         argv += ["--timeout", str(cfg.timeout)]
     if cfg.until_success > 0:
         argv += ["--until-success", str(cfg.until_success), "--success-window", str(cfg.success_window)]
-    return argv
+    return argv + list(cfg.up_args)

@@ -211,12 +211,12 @@ def _train_from(path, run_dir, demos) -> None:
     import subprocess
     import sys
 
-    from helpers import REPO
+    from helpers import REPO, SMALL
 
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "RUST_LOG": "error"}
     proc = subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", "up", "--demos", str(path), "--episodes", "2",
-                           "--method", "kgrl", "--learning-starts", "32", "--run-dir", str(run_dir), "--no-progress"],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+                           "--method", "kgrl", "--learning-starts", "32", "--run-dir", str(run_dir), "--no-progress",
+                           *SMALL], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     config = json.loads((run_dir / "config.json").read_text())
     kept = run_dir / "demos.csv"

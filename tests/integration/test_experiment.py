@@ -10,7 +10,7 @@ import sys
 import pytest
 from khgrl.deploy.experiments.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
 
-from helpers import REPO, wait_for
+from helpers import REPO, SMALL, wait_for
 
 
 def test_config_file_then_overrides(tmp_path):
@@ -32,6 +32,11 @@ def test_config_file_then_overrides(tmp_path):
     ('tasks = ["fetch"]', "expected"),
     ('tasks = ["a.b:c", "a_b:c"]', "share a run directory"),
     ('tasks = ["fetch:moved"]\nsystem = "reference"', "scenarios only"),
+    ('up_args = ["--seed", "3"]', "the grid sets these itself"),
+    ('up_args = ["--episodes=3"]', "the grid sets these itself"),
+    ('up_args = ["--no-such-flag"]', "not flags khgrl up takes"),
+    ('up_args = "--net-arch 64"', "list of strings"),
+    ('up_args = ["--net-arch", "64"]\nsystem = "reference"', "distributed"),
 ])
 def test_bad_configs_are_refused(tmp_path, text, match):
     f = tmp_path / "bad.toml"
@@ -59,13 +64,15 @@ def test_run_argv_is_a_valid_khgrl_up_command(tmp_path):
     from khgrl.deploy.cli import build_parser as cli_parser
     from khgrl.deploy.run.launcher import build_parser
 
-    cfg = ExperimentConfig(seeds=[3], scenarios=["low_cov"], episodes=7, human_episodes=[2, 3], timeout=99)
+    cfg = ExperimentConfig(seeds=[3], scenarios=["low_cov"], episodes=7, human_episodes=[2, 3], timeout=99,
+                           up_args=["--net-arch", "64", "64", "--batch-size", "32"]).validate()
     for spec in plan_runs(cfg):
         argv = run_argv(spec, cfg, tmp_path / spec.name)
         args = build_parser().parse_args(argv[argv.index("up") + 1:])
         run = resolve(args.config, args)
         assert (run.scenario, run.method, run.seed, run.episodes, run.timeout) == ("low_cov", spec.method, 3, 7, 99.0)
         assert run.run_dir == str(tmp_path / spec.name) and run.stream.max_lead == 8 and not args.progress
+        assert (run.tqc.net_arch, run.tqc.batch_size) == ((64, 64), 32)  # up_args
         if spec.method == "khgrl":
             assert (run.human, run.human_episodes) == ("scripted", (2, 3))
         else:
@@ -125,9 +132,13 @@ def test_until_success_goes_to_every_run_and_is_checked(tmp_path):
             load_config(None, bad)
 
 
+SMALL_UP = "--up-args=" + " ".join(SMALL)  # (a run's learner of 64 x 64: the grid is checked, not learning)
+
+
 def _argv(out, *extra):
     return [sys.executable, "-m", "khgrl.deploy.cli", "experiment", "--out", str(out), "--scenarios", "low_cov",
-            "--methods", "kgrl", "--seeds", "0", "--episodes", "3", "--no-progress", "--timeout", "240", *extra]
+            "--methods", "kgrl", "--seeds", "0", "--episodes", "3", "--no-progress", "--timeout", "240", SMALL_UP,
+            *extra]
 
 
 def _experiment(out, *extra, timeout=300):
@@ -189,3 +200,9 @@ def test_experiment_cli_reports_bad_config(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", "experiment", str(f), "--dry-run"], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "khgrl experiment: error" in proc.stderr
+    grid = [sys.executable, "-m", "khgrl.deploy.cli", "experiment", "--out", str(tmp_path / "o"), "--scenarios",
+            "low_cov", "--methods", "kgrl", "--seeds", "0", "--dry-run"]
+    proc = subprocess.run([*grid, "--up-args=--net-arch 64 64"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.rstrip().endswith("--net-arch 64 64"), proc.stdout + proc.stderr
+    proc = subprocess.run([*grid, "--up-args=--seed 4"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "the grid sets these itself" in proc.stderr, proc.stderr

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import REPO, read_json, untimed
+from helpers import REPO, SMALL, read_json, untimed
 
 pytest.importorskip("gymnasium_robotics", reason="gymnasium-robotics is a project dependency: pip install -e .")
 
@@ -28,7 +28,7 @@ def test_fetch_moved_through_khgrl_up(tmp_path: Path) -> None:
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "RUST_LOG": "error"}
     proc = subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", "up", "--task", "fetch:moved", "--episodes", "2",
                            "--human-episodes", "2", "--learning-starts", "64", "--run-dir", str(run_dir),
-                           "--no-progress"], cwd=REPO, env=env, capture_output=True, text=True, timeout=360)
+                           "--no-progress", *SMALL], cwd=REPO, env=env, capture_output=True, text=True, timeout=360)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     with open(run_dir / "actor-a0" / "episodes.csv") as fh:
         rows = list(csv.DictReader(fh))
@@ -58,7 +58,8 @@ def test_seeded_fetch_runs_give_the_same_episodes(tmp_path: Path) -> None:
     for i in range(2):
         run_dir = tmp_path / f"run{i}"
         proc = subprocess.run([sys.executable, "-m", "khgrl.deploy.cli", "up", "--task", "fetch:moved", "--method",
-                               "khgrl", "--episodes", "2", "--seed", "0", "--run-dir", str(run_dir), "--no-progress"],
+                               "khgrl", "--episodes", "2", "--seed", "0", "--run-dir", str(run_dir), "--no-progress",
+                               *SMALL],
                               cwd=REPO, env=env, capture_output=True, text=True, timeout=180)
         assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
         weights = read_json(run_dir / "actor-a0" / "summary.json")["weights"]

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
+from helpers import REPO, SMALL, ProcGroup, read_json, unique_run, wait_for
 
 OWN = "khgrl.deploy.examples.own_task:make_task"
 UP = [sys.executable, "-m", "khgrl.deploy.cli", "up"]
@@ -35,8 +35,8 @@ def test_own_3d_task_through_khgrl_up(tmp_path: Path) -> None:
 
     run_dir = tmp_path / "run"
     proc = subprocess.run([*UP, "--task", OWN, "--episodes", "2", "--human-episodes", "2", "--learning-starts", "64",
-                           "--run-dir", str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True,
-                          text=True, timeout=360)
+                           *SMALL, "--run-dir", str(run_dir), "--no-progress"], cwd=REPO, env=_env(),
+                          capture_output=True, text=True, timeout=360)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     config = read_json(run_dir / "config.json")
     assert config["task"] == OWN

@@ -13,14 +13,14 @@ import csv
 import numpy as np
 import pytest
 
-from helpers import read_json
+from helpers import SMALL, read_json
 from launch import _run
 
 pytestmark = pytest.mark.integration
 
 ARGS = ["--task", "panda:pick", "--no-adapt", "--method", "khgrl", "--physical", "scripted", "--human", "none",
         "--episodes", "3", "--human-episodes", "2", "--seed", "0", "--learning-starts", "64", "--rate-limit", "on",
-        "--max-speed", "1", "--no-progress"]
+        "--max-speed", "1", "--no-progress", *SMALL]
 
 
 def _csv(path) -> list[dict]:

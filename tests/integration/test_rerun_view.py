@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import REPO, read_json
+from helpers import REPO, SMALL, read_json
 from rrd_read import by_episode, by_step, read_rrd
 
 pytest.importorskip("rerun", reason="the view needs rerun-sdk (pip install -e '.[test]' has it)")
@@ -88,7 +88,7 @@ def _check_recording(rrd: Path, run_dir: Path, live: bool) -> dict:
 def test_passage_run_recorded_and_viewed_again(tmp_path: Path) -> None:
     run_dir, rrd = tmp_path / "run", tmp_path / "live.rrd"
     up = ["up", "--scenario", "low_cov", "--method", "khgrl", "--episodes", "3", "--seed", "3", "--human-episodes",
-          "2", "--run-dir", str(run_dir), "--no-progress", "--view", f"rerun:{rrd}"]
+          "2", *SMALL, "--run-dir", str(run_dir), "--no-progress", "--view", f"rerun:{rrd}"]
     proc = _khgrl(*up)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     live = _check_recording(rrd, run_dir, live=True)
@@ -116,7 +116,8 @@ def test_fetch_run_recorded_with_camera(tmp_path: Path) -> None:
     pytest.importorskip("gymnasium_robotics", reason="gymnasium-robotics is a project dependency: pip install -e .")
     run_dir, rrd = tmp_path / "run", tmp_path / "fetch.rrd"
     proc = _khgrl("up", "--task", "fetch:moved", "--episodes", "2", "--human-episodes", "2", "--learning-starts", "64",
-                  "--run-dir", str(run_dir), "--no-progress", "--view", f"rerun:{rrd}", "--view-camera-every", "25")
+                  *SMALL, "--run-dir", str(run_dir), "--no-progress", "--view", f"rerun:{rrd}",
+                  "--view-camera-every", "25")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     rows = _check_recording(rrd, run_dir, live=True)
     images = rows.get("/actor/a0/camera", [])

@@ -16,7 +16,7 @@ import pytest
 from khgrl.common.tasks.scene import scene_seed
 from khgrl.deploy.tools.intervals import rate_text
 
-from helpers import REPO, kill_pids, pid_alive, read_json
+from helpers import REPO, SMALL, kill_pids, pid_alive, read_json
 
 
 def _run(args: list[str], cwd: Path, timeout: float) -> subprocess.CompletedProcess:
@@ -37,7 +37,8 @@ def test_khgrl_up_then_eval_on_seeded_scenes(tmp_path: Path) -> None:
     run = tmp_path / "runs" / "pts"
     try:
         up = _run(["up", "--task", "scene_point_task:make_task", "--human", "none", "--episodes", "3",
-                   "--learning-starts", "40", "--seed", "2", "--run-dir", "runs/pts", "--no-progress"], tmp_path, 200)
+                   "--learning-starts", "40", "--seed", "2", "--run-dir", "runs/pts", "--no-progress", *SMALL],
+                  tmp_path, 200)
     finally:
         if (run / "pids.json").exists():
             kill_pids([p for p in read_json(run / "pids.json")["children"].values() if pid_alive(p)])

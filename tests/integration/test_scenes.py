@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers import free_port, unique_run
+from helpers import SMALL, free_port, unique_run
 from launch import Launcher
 
 # (task spec, extra flags, episodes, tolerance on |adapted mean - via-point| in command units)
@@ -54,7 +54,7 @@ def test_varying_scene_through_khgrl_up(tmp_path: Path, case: str) -> None:
     run, port = unique_run("scn"), free_port()
     frames: queue.Queue = queue.Queue()
     up = Launcher(tmp_path, tmp_path / "run", "--task", spec, "--episodes", str(episodes), "--seed", "5",
-                  "--run", run, "--port", str(port), "--learning-starts", "32", "--no-progress", *flags)
+                  "--run", run, "--port", str(port), "--learning-starts", "32", "--no-progress", *SMALL, *flags)
     try:
         with open_client(f"tcp/127.0.0.1:{port}", timeout=60) as session:
             sub = session.declare_subscriber(Keys(run).frame("a0"), lambda s: frames.put(s.payload.to_bytes()))
