@@ -25,7 +25,7 @@ from khgrl.deploy.cli import main as khgrl
 from khgrl.deploy.examples.own_task import BOX_HIGH, BOX_LOW, GOAL, PointRobot3D, box_entry, lift_over_box, make_task
 from khgrl.deploy.tools.evaluate import EvalError, evaluate, free_path
 
-from helpers import REPO, kill_pids, pid_alive, read_json
+from helpers import REPO, SMALL, kill_pids, pid_alive, read_json
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # the GIF's renderer (pygame, offscreen)
 
@@ -223,7 +223,7 @@ def test_khgrl_up_on_the_example_task_then_eval(tmp_path):
     run = tmp_path / "run"
     try:
         up = _khgrl("up", "--task", SPEC, "--episodes", "2", "--learning-starts", "100", "--human-episodes", "1",
-                    "--no-progress", "--run-dir", str(run), timeout=300)
+                    *SMALL, "--no-progress", "--run-dir", str(run), timeout=300)
     finally:
         if (run / "pids.json").exists():
             kill_pids([p for p in read_json(run / "pids.json")["children"].values() if pid_alive(p)])

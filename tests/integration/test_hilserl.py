@@ -1,15 +1,15 @@
 """The HIL-SERL baseline (``--method hil-serl``) and RLPD replay (``--sampling rlpd``) in the real system.
 
-Three real runs serve every assertion (CI time):
+Two real runs serve every assertion (CI time):
 
 * the passage world started by hand (router, learner, actor, scripted human; ``--method hil-serl``): the learner
   is SIGKILLed once the demonstrations are in and restarted with ``--resume``. Every transition -- demonstrations,
   the human's takeover, the policy's -- is in the buffer exactly once, the prior data (the intervened slots)
   included; the takeover stored the action towards the human's P_h (recomputed here from corrections.csv and the
   stored observation), and half of every minibatch came from the prior data (the buffer's own counts);
-* the 3-D example task through ``khgrl up`` under ``--method hil-serl`` and under ``--method khgrl --sampling
-  rlpd``, at update-to-data ratio 2 (``--gradient-steps 16``): the achieved ratio equals the setting, half of
-  each batch is prior data, and ``khgrl eval`` evaluates the HIL-SERL policy under its own (delta) control.
+* the 3-D example task through ``khgrl up`` under ``--method hil-serl``, at update-to-data ratio 2
+  (``--gradient-steps 16``): the achieved ratio equals the setting, half of each batch is prior data, and
+  ``khgrl eval`` evaluates the HIL-SERL policy under its own (delta) control.
 """
 
 from __future__ import annotations
@@ -112,17 +112,17 @@ def test_hilserl_passage_takeover_prior_data_and_learner_kill(tmp_path):
 
 @pytest.mark.integration
 @pytest.mark.timeout(500)
-@pytest.mark.parametrize("method", [["--method", "hil-serl"], ["--method", "khgrl", "--sampling", "rlpd"]],
-                         ids=["hil-serl", "khgrl-rlpd"])
-def test_rlpd_on_a_3d_task_through_khgrl_up(tmp_path, method):
+def test_rlpd_on_a_3d_task_through_khgrl_up(tmp_path):
+    """(``--method khgrl --sampling rlpd`` ran here too until 2026-12-06: TQC's buffer with RLPD sampling is
+    tests/unit/test_replay_rlpd.py's, the same path through ``khgrl up`` at UTD 2 is this run's.)"""
     run_dir = tmp_path / "run"
-    proc = subprocess.run([*CLI, "up", "--task", OWN, *method, "--episodes", "3", "--human-episodes", "2",
-                           "--learning-starts", "64", "--gradient-steps", "16", *SMALL, "--seed", "2", "--run-dir",
-                           str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True, text=True,
-                          timeout=400)
+    proc = subprocess.run([*CLI, "up", "--task", OWN, "--method", "hil-serl", "--episodes", "3", "--human-episodes",
+                           "2", "--learning-starts", "64", "--gradient-steps", "16", *SMALL, "--seed", "2",
+                           "--run-dir", str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True,
+                          text=True, timeout=400)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     cfg = read_json(run_dir / "config.json")
-    assert cfg["tqc"]["sampling"] == "rlpd" and cfg["algo"] == ("sac_ln" if "hil-serl" in method else "tqc")
+    assert cfg["tqc"]["sampling"] == "rlpd" and cfg["algo"] == "sac_ln"
     summary = read_json(run_dir / "actor-a0" / "summary.json")
     n, demos = summary["transitions"], summary["demo_transitions"]
     episodes = _rows(run_dir / "actor-a0" / "episodes.csv")
@@ -138,9 +138,8 @@ def test_rlpd_on_a_3d_task_through_khgrl_up(tmp_path, method):
     rb = _buffer(run_dir)
     assert _prior_share(rb) == pytest.approx(0.5) and rb.sampled_prior + rb.sampled_online == 64 * state[
         "gradient_steps"]
-    if "hil-serl" in method:
-        assert _check_takeover(run_dir, OWN, demos) == human_steps
-        assert all(int(r["workspace_exits"]) >= 0 for r in episodes) and "violation_steps" in episodes[0]
-        out = subprocess.run([*CLI, "eval", str(run_dir), "--episodes", "1"], cwd=REPO, env=_env(),
-                             capture_output=True, text=True, timeout=200)
-        assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
+    assert _check_takeover(run_dir, OWN, demos) == human_steps
+    assert all(int(r["workspace_exits"]) >= 0 for r in episodes) and "violation_steps" in episodes[0]
+    out = subprocess.run([*CLI, "eval", str(run_dir), "--episodes", "1"], cwd=REPO, env=_env(),
+                         capture_output=True, text=True, timeout=200)
+    assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]

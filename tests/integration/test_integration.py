@@ -30,6 +30,7 @@ import pytest
 
 from helpers import (
     REPO,
+    SMALL,
     free_port,
     kill_pids,
     pid_alive,
@@ -39,7 +40,7 @@ from helpers import (
 )
 
 UP = [sys.executable, "-m", "khgrl.deploy.cli", "up"]
-FAST = ["--scenario", "low_cov", "--method", "khgrl", "--learning-starts", "64"]
+FAST = ["--scenario", "low_cov", "--method", "khgrl", "--learning-starts", "64", *SMALL]
 HUMAN_EPISODE = 2  # the scripted human helps in this episode only
 
 

@@ -18,7 +18,7 @@ import sys
 
 import pytest
 
-from helpers import REPO, ProcGroup, read_json, unique_run
+from helpers import REPO, SMALL, ProcGroup, read_json, unique_run
 from launch import Launcher, _rows
 
 pytestmark = pytest.mark.integration
@@ -34,7 +34,7 @@ def test_output_to_a_file_has_a_line_per_episode_a_whole_table_and_says_interrup
     then on Ctrl-C (SIGINT to the launcher's process group, as a terminal sends it) the table in plain text with
     every header whole, the last line on a line of its own saying the run was interrupted."""
     up = Launcher(tmp_path, tmp_path / "run", "--scenario", "low_cov", "--learning-starts", "64", "--method", "kgrl",
-                  "--human", "none", "--episodes", "1000", "--max-lead", "100000", "--rate", "100")
+                  "--human", "none", "--episodes", "1000", "--max-lead", "100000", "--rate", "100", *SMALL)
     try:
         up.wait_line("[a0] episode 1:", 180)  # while khgrl up still runs (wait_line checks it)
         os.killpg(up.proc.pid, signal.SIGINT)

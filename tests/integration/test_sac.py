@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from test_learner_actor import FAST, assert_exactly_once, checkpoint
 
-from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
+from helpers import REPO, SMALL, ProcGroup, read_json, unique_run, wait_for
 
 OWN = "khgrl.deploy.examples.own_task:make_task"
 CLI = [sys.executable, "-m", "khgrl.deploy.cli"]
@@ -76,8 +76,8 @@ def test_sac_own_3d_task_through_khgrl_up_and_eval(tmp_path):
 
     run_dir = tmp_path / "run"
     proc = subprocess.run([*CLI, "up", "--algo", "sac", "--task", OWN, "--episodes", "3", "--human-episodes", "2",
-                           "--learning-starts", "64", "--run-dir", str(run_dir), "--no-progress"], cwd=REPO,
-                          env=_env(), capture_output=True, text=True, timeout=400)
+                           "--learning-starts", "64", *SMALL, "--run-dir", str(run_dir), "--no-progress"],
+                          cwd=REPO, env=_env(), capture_output=True, text=True, timeout=400)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert read_json(run_dir / "config.json")["algo"] == "sac"
     rows = _episodes(run_dir / "actor-a0")
