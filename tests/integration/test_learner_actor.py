@@ -132,7 +132,10 @@ def test_learner_killed_and_resumed_loses_and_duplicates_nothing(tmp_path):
     state, arrays = checkpoint(run_dir)
     assert_exactly_once(state, arrays, "a0", n)
     assert state["total_ingested"] == n
-    assert not list((run_dir / "learner" / "journal").glob("segment-*.bin"))  # the final checkpoint holds them
+    # the final checkpoint holds them: the segments before it are gone, the one after it (made at the cut, so that a
+    # learner resumed later numbers on from there) is empty
+    left = list((run_dir / "learner" / "journal").glob("segment-*.bin"))
+    assert [p.stat().st_size for p in left] == [0] and left[0].name == f"segment-{state['journal']['next']:06d}.bin"
     text = (run_dir / "learner" / "learner.log").read_text()
     assert "journal: replayed" in text and "no full checkpoint under" in text, text[-3000:]
 
