@@ -16,7 +16,7 @@ from khgrl.common.tasks.passage.scenarios import SCENARIOS
 from khgrl.deploy.experiments.experiment_ray import DEFAULT_CPUS, check_ray_settings
 from khgrl.deploy.experiments.run_results import METHOD_LABEL
 
-__all__ = ["SYSTEMS", "GRID_FLAGS", "ExperimentConfig", "check_up_args", "RunSpec", "task_label", "load_config",
+__all__ = ["SYSTEMS", "GRID_DESTS", "ExperimentConfig", "check_up_args", "RunSpec", "task_label", "load_config",
            "plan_runs", "run_is_done", "run_argv"]
 
 SYSTEMS = ("distributed", "reference")
@@ -79,15 +79,15 @@ class ExperimentConfig:
         return self
 
 
-# the flags the grid gives each run itself (run_argv): up_args may not set them
-GRID_FLAGS = ("--task", "--scenario", "--method", "--seed", "--episodes", "--run-dir", "--max-lead", "--progress",
-              "--no-progress", "--no-adapt", "--adapt", "--sampling", "--takeover", "--recipe", "--human",
-              "--human-episodes", "--timeout", "--until-success", "--success-window", "--resume", "--overwrite",
-              "--config")
+# what the grid sets in each run itself (run_argv), by khgrl up's argument names: up_args may not set them
+GRID_DESTS = frozenset({"task", "scenario", "method", "seed", "episodes", "run_dir", "max_lead", "progress", "adapt",
+                        "sampling", "takeover", "recipe", "human", "human_episodes", "timeout", "until_success",
+                        "success_window", "resume", "overwrite", "config"})
 
 
 def check_up_args(up_args: list[str], system: str) -> None:
-    """``up_args`` are ``khgrl up`` flags that its parser takes, none of them one the grid sets (ValueError if not).
+    """``up_args`` are ``khgrl up`` flags that its parser takes, none of them one the grid sets (ValueError if not;
+    read by the parser itself, so an abbreviation or ``--flag=value`` counts as the flag).
 
     :param up_args: the flags
     :param system: the grid's system (up_args need ``distributed``)
@@ -98,15 +98,18 @@ def check_up_args(up_args: list[str], system: str) -> None:
         raise ValueError(f"up_args must be a list of strings, got {up_args!r}")
     if system != "distributed":
         raise ValueError("up_args are khgrl up's flags: they need system = \"distributed\"")
-    taken = sorted({a.split("=", 1)[0] for a in up_args} & set(GRID_FLAGS))
-    if taken:
-        raise ValueError(f"up_args {taken}: the grid sets these itself for each run")
     from khgrl.deploy.run.launcher import build_parser  # (khgrl up's own parser; imported only when needed)
 
+    parser = build_parser()
     try:
-        build_parser().parse_args(up_args)
+        given = vars(parser.parse_args(up_args))
     except SystemExit:  # (argparse has printed why)
         raise ValueError(f"up_args {up_args} are not flags khgrl up takes (see khgrl up --help)") from None
+    unset = vars(parser.parse_args([]))
+    taken = sorted("--" + k.split("__")[-1].replace("_", "-") for k, v in given.items()  # (dests: cfg__tqc__x)
+                   if k.split("__")[-1] in GRID_DESTS and (k not in unset or unset[k] != v))
+    if taken:
+        raise ValueError(f"up_args set {taken}: the grid sets these itself for each run")
 
 
 def load_config(path: str | Path | None, overrides: dict) -> ExperimentConfig:

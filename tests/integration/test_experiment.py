@@ -34,6 +34,7 @@ def test_config_file_then_overrides(tmp_path):
     ('tasks = ["fetch:moved"]\nsystem = "reference"', "scenarios only"),
     ('up_args = ["--seed", "3"]', "the grid sets these itself"),
     ('up_args = ["--episodes=3"]', "the grid sets these itself"),
+    ('up_args = ["--see", "3"]', "the grid sets these itself"),  # (an abbreviation of --seed)
     ('up_args = ["--no-such-flag"]', "not flags khgrl up takes"),
     ('up_args = "--net-arch 64"', "list of strings"),
     ('up_args = ["--net-arch", "64"]\nsystem = "reference"', "distributed"),
