@@ -93,6 +93,7 @@ def read_json(path: str | Path) -> Any:
 # give their own --net-arch / --batch-size, or use the defaults through their own command lines).
 SMALL_NETS = ["--net-arch", "64", "64"]
 SMALL = [*SMALL_NETS, "--batch-size", "64"]
+SMALL_UP = "--up-args=" + " ".join(SMALL)  # the same for every run of a khgrl experiment grid
 
 
 def _unless_given(extra: tuple[str, ...], flags: list[str]) -> list[str]:

@@ -13,6 +13,7 @@ three arrays of the expected shapes is ignored (the fit runs again and replaces 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import tempfile
@@ -108,5 +109,6 @@ def store_gmm(key: str, fit: FittedGMM) -> None:
             np.savez(fh, weights=fit.weights_, means=fit.means_, covariances=fit.covariances_)
         os.replace(tmp, where / f"gmm-{key}.npz")
     except OSError:
-        if tmp is not None:  # (only the temporary file this call made)
-            Path(tmp).unlink(missing_ok=True)
+        if tmp is not None:  # (only the temporary file this call made; a cache that cannot be written is skipped)
+            with contextlib.suppress(OSError):
+                Path(tmp).unlink(missing_ok=True)

@@ -10,7 +10,7 @@ import sys
 import pytest
 from khgrl.deploy.experiments.experiment import ExperimentConfig, RunSpec, load_config, plan_runs, run_argv, run_is_done
 
-from helpers import REPO, SMALL, wait_for
+from helpers import REPO, SMALL_UP, wait_for
 
 
 def test_config_file_then_overrides(tmp_path):
@@ -131,9 +131,6 @@ def test_until_success_goes_to_every_run_and_is_checked(tmp_path):
     for bad in ({"until_success": 1.5}, {"success_window": 0}, {"until_success": 0.8, "system": "reference"}):
         with pytest.raises(ValueError):
             load_config(None, bad)
-
-
-SMALL_UP = "--up-args=" + " ".join(SMALL)  # (a run's learner of 64 x 64: the grid is checked, not learning)
 
 
 def _argv(out, *extra):

@@ -20,11 +20,11 @@ import pytest
 from khgrl.common.delivery.transport import free_port
 from khgrl.deploy.experiments.experiment import ExperimentConfig, run_is_done
 
-from helpers import REPO, SMALL
+from helpers import REPO, SMALL_UP
 
 RAY = str(Path(sys.executable).with_name("ray"))
 GRID = ["--scenarios", "low_cov", "--methods", "khgrl", "kgrl", "--seeds", "0", "--episodes", "2",
-        "--human-episodes", "2", "--no-progress", "--timeout", "240", "--up-args=" + " ".join(SMALL)]
+        "--human-episodes", "2", "--no-progress", "--timeout", "240", SMALL_UP]
 # Ray's token authentication (its default) with a token of this test's: the cluster, the workers and the driver
 # (khgrl experiment) get it from the environment, not from the user's ~/.ray/auth_token
 _AUTH = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32)}
