@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from khgrl.common.kmp import scale
 from khgrl.common.kmp.scale import ScaleModel
 from khgrl.common.wire.messages import Scale
 
@@ -33,8 +32,6 @@ class ExplorationScale:
         self.actor = actor
         self.khgrl = khgrl
         self.learns = khgrl and env.task.learn_scale
-        if self.learns:
-            scale.prepare()  # (now, not at the first refit inside the control loop)
         self.publish_fn = publish
         self.updates = 0
         self.history: list[tuple[int, np.ndarray]] = []  # (episode, L table over the grid) after each refit

@@ -92,7 +92,10 @@ def read_json(path: str | Path) -> Any:
 # code at a quarter of the learner's CPU time (the tests that check learning, or compare with the paper's sizes,
 # give their own --net-arch / --batch-size, or use the defaults through their own command lines).
 SMALL_NETS = ["--net-arch", "64", "64"]
-SMALL = [*SMALL_NETS, "--batch-size", "64"]
+# the tests check the system, not how fast it learns: small networks and a quarter of the default update-to-data
+# ratio (2 gradient steps per 8 transitions), which leaves the learner's CPU to the processes under test
+SMALL_GRADIENT_STEPS = 2
+SMALL = [*SMALL_NETS, "--batch-size", "64", "--gradient-steps", str(SMALL_GRADIENT_STEPS)]
 SMALL_UP = "--up-args=" + " ".join(SMALL)  # the same for every run of a khgrl experiment grid
 
 

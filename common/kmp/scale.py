@@ -1,7 +1,7 @@
 """The learned exploration scale L (paper Section III-C, math.md §5).
 
 KGRL unscales the policy action a in [-1, 1]^O into the null-space action xi = L (.) a. KhGRL learns L
-from the human: after each intervention, a Gaussian-process regression (scikit-learn) maps the task
+from the human: after each intervention, a Gaussian-process regression (:class:`~khgrl.common.kmp.gpr.GPR`) maps the task
 region -- the KMP input s by default, the robot position as an option -- to the per-dimension magnitude
 that covers the human's xi_h, with the default L as prior mean. The regression runs on log L, so L stays
 positive and its prior is exactly the default away from the data:
@@ -12,23 +12,17 @@ A KGRL run simply never calls :meth:`ScaleModel.update` and keeps L = L0.
 
 The model is plain data (:meth:`to_dict` / :meth:`from_dict`: numbers and lists only), so the actor can
 publish it as msgpack; refitting is deterministic (fixed kernel hyperparameters, no optimiser restarts).
-scikit-learn is imported at the first fit, or by :func:`prepare` (the actor calls it at start when it will learn
-L, so that the first refit does not stall its loop), not with this module.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-__all__ = ["ScaleConfig", "ScaleModel", "prepare"]
+from khgrl.common.kmp.gpr import GPR
 
-
-def prepare() -> None:
-    """Import the regression's code now (scikit-learn's Gaussian process, ~1.5 s the first time in a process)."""
-    import sklearn.gaussian_process  # noqa: F401
+__all__ = ["ScaleConfig", "ScaleModel"]
 
 
 @dataclass(frozen=True)
@@ -71,7 +65,7 @@ class ScaleModel:
         self.config = config
         self._x = np.zeros((0, 1 if config.input == "phase" else 2))
         self._y = np.zeros((0, default.size))  # log targets minus log default
-        self._gps: list[Any] | None = None  # one GaussianProcessRegressor per output, once fitted
+        self._gp: GPR | None = None  # once fitted: one regression per output, on shared inputs
         self.n_updates = 0
 
     @property
@@ -131,27 +125,16 @@ class ScaleModel:
         self._x, self._y = x[order], y[order]
 
     def _fit(self) -> None:
-        from sklearn.gaussian_process import GaussianProcessRegressor
-        from sklearn.gaussian_process.kernels import RBF as SkRBF
-        from sklearn.gaussian_process.kernels import WhiteKernel
-
         c = self.config
-        kernel = c.signal_var * SkRBF(length_scale=c.length_scale, length_scale_bounds="fixed") + WhiteKernel(
-            c.noise_var, noise_level_bounds="fixed"
-        )
-        self._gps = []
-        for d in range(self.dim):
-            gp = GaussianProcessRegressor(kernel=kernel, optimizer=None, normalize_y=False, alpha=1e-10)
-            gp.fit(self._x, self._y[:, d])
-            self._gps.append(gp)
+        self._gp = GPR(c.signal_var, c.length_scale, c.noise_var).fit(self._x, self._y)
 
     def __call__(self, phase=None, position=None) -> np.ndarray:
         """L at the given input(s): (O,) for one input, (k, O) for k."""
         x = self._features(phase, position)
-        if self._gps is None:
+        if self._gp is None:
             out = np.broadcast_to(self.default, (x.shape[0], self.dim)).copy()
         else:
-            log_l = np.stack([gp.predict(x) for gp in self._gps], axis=1) + np.log(self.default)
+            log_l = self._gp.predict(x) + np.log(self.default)
             out = np.maximum(np.exp(log_l), self.config.min_scale)
         single = (np.ndim(phase) == 0) if self.config.input == "phase" else (np.ndim(position) == 1)
         return out[0] if single else out
