@@ -96,6 +96,9 @@ SMALL_NETS = ["--net-arch", "64", "64"]
 # ratio (2 gradient steps per 8 transitions), which leaves the learner's CPU to the processes under test
 SMALL_GRADIENT_STEPS = 2
 SMALL = [*SMALL_NETS, "--batch-size", "64", "--gradient-steps", str(SMALL_GRADIENT_STEPS)]
+# the default ratio (8 per 8), after SMALL, for a test whose timing or scripted behaviour was set on it: a run
+# that must last through an attack's phases, a scripted human that acts only where the policy gets to
+FULL_UTD = ["--gradient-steps", "8"]
 SMALL_UP = "--up-args=" + " ".join(SMALL)  # the same for every run of a khgrl experiment grid
 
 

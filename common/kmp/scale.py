@@ -1,8 +1,8 @@
 """The learned exploration scale L (paper Section III-C, math.md §5).
 
 KGRL unscales the policy action a in [-1, 1]^O into the null-space action xi = L (.) a. KhGRL learns L
-from the human: after each intervention, a Gaussian-process regression (:class:`~khgrl.common.kmp.gpr.GPR`) maps the task
-region -- the KMP input s by default, the robot position as an option -- to the per-dimension magnitude
+from the human: after each intervention, a Gaussian-process regression (:class:`~khgrl.common.kmp.gpr.GPR`) maps
+the task region -- the KMP input s by default, the robot position as an option -- to the per-dimension magnitude
 that covers the human's xi_h, with the default L as prior mean. The regression runs on log L, so L stays
 positive and its prior is exactly the default away from the data:
 
@@ -19,7 +19,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
 from khgrl.common.kmp.gpr import GPR
 
 __all__ = ["ScaleConfig", "ScaleModel"]

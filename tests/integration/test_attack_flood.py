@@ -28,13 +28,13 @@ import pytest
 from test_attack_shares import Watch, _session
 
 import launch
-from helpers import actor_signer, read_json, wait_for
+from helpers import FULL_UTD, actor_signer, read_json, wait_for
 from launch import FAST, Launcher, up_with_actor_certs
 
 pytestmark = pytest.mark.integration
 
 ATTACKER = "f9"
-ARGS = [*FAST, "--method", "kgrl", "--human", "none", "--episodes", "20", "--rate", "0", "--secure"]
+ARGS = [*FAST, *FULL_UTD, "--method", "kgrl", "--human", "none", "--episodes", "20", "--rate", "0", "--secure"]
 QUIET_S, FLOOD_S = 8.0, 10.0
 FLOOD_PER_S = 1725  # the issue's rate: 43,132 batches in 25 s
 # the issue's target is 0.8; a0's rate on the 2 shared cores of the development machine moves by +-30 % from one

@@ -32,7 +32,7 @@ import time
 
 import pytest
 
-from helpers import REPO, ProcGroup, read_json, unique_run, wait_for
+from helpers import FULL_UTD, REPO, ProcGroup, read_json, unique_run, wait_for
 from launch import KGRL, Launcher, _env
 
 pytestmark = pytest.mark.integration
@@ -371,7 +371,7 @@ def test_plain_mode_batches_of_fake_actor_ids_without_the_key_are_never_admitted
 
     with ProcGroup(tmp_path) as g:
         ep = g.router()
-        learner = g.learner(run, ep, "--learning-starts", "64", "--checkpoint-every", "0", "--max-lead", "8")
+        learner = g.learner(run, ep, "--learning-starts", "64", "--checkpoint-every", "0", "--max-lead", "8", *FULL_UTD)
         a0 = g.actor(run, ep, "--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "64",
                      "--episodes", "5", "--id", "a0")
         with open_client(ep) as s:

@@ -117,7 +117,7 @@ def test_rlpd_on_a_3d_task_through_khgrl_up(tmp_path):
     tests/unit/test_replay_rlpd.py's, the same path through ``khgrl up`` at UTD 2 is this run's.)"""
     run_dir = tmp_path / "run"
     proc = subprocess.run([*CLI, "up", "--task", OWN, "--method", "hil-serl", "--episodes", "3", "--human-episodes",
-                           "2", "--learning-starts", "64", "--gradient-steps", "16", *SMALL, "--seed", "2",
+                           "2", "--learning-starts", "64", *SMALL, "--gradient-steps", "16", "--seed", "2",
                            "--run-dir", str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True,
                           text=True, timeout=400)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]

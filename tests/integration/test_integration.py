@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 
 from helpers import (
+    FULL_UTD,
     REPO,
     SMALL,
     free_port,
@@ -713,7 +714,7 @@ def test_hostile_messages_on_every_topic_are_rejected_counted_and_harmless(tmp_p
     run_dir, port, run = tmp_path / "run", free_port(), unique_run("evil")
     endpoint = f"tcp/127.0.0.1:{port}"
     keys = Keys(run)
-    argv = _up_argv(run_dir, port, run, *FAST, "--episodes", "3", "--human-episodes", str(HUMAN_EPISODE),
+    argv = _up_argv(run_dir, port, run, *FAST, *FULL_UTD, "--episodes", "3", "--human-episodes", str(HUMAN_EPISODE),
                     "--no-progress")
     out_path, err_path = tmp_path / "up.stdout", tmp_path / "up.stderr"
     launcher = None

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from helpers import pid_alive, read_json, untimed, wait_for
+from helpers import FULL_UTD, pid_alive, read_json, untimed, wait_for
 from launch import FAST, HUMAN_EPISODE, KGRL, Launcher, _env, _ingested, _rows, _run
 
 pytestmark = pytest.mark.integration
@@ -116,7 +116,7 @@ def test_children_die_with_a_killed_launcher(tmp_path):
 def first_part(tmp_path_factory):
     """Two episodes of a KhGRL run whose scripted human helps in episode 3 (so not yet)."""
     run_dir = tmp_path_factory.mktemp("first") / "run"
-    proc = _run(run_dir, *FAST, "--episodes", "2", "--human-episodes", str(HUMAN_EPISODE))
+    proc = _run(run_dir, *FAST, *FULL_UTD, "--episodes", "2", "--human-episodes", str(HUMAN_EPISODE))
     assert proc.returncode == 0, f"khgrl up exited {proc.returncode}\n{proc.stdout}\n{proc.stderr}"
     return run_dir
 

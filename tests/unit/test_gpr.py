@@ -6,11 +6,10 @@ import sys
 
 import numpy as np
 import pytest
-from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import RBF, WhiteKernel
-
 from khgrl.common.kmp.gpr import GPR
 from khgrl.common.kmp.scale import ScaleConfig, ScaleModel
+from sklearn.gaussian_process import GaussianProcessRegressor
+from sklearn.gaussian_process.kernels import RBF, WhiteKernel
 
 
 def _sklearn_means(x, y, q, signal_var, length_scale, noise_var):
