@@ -17,6 +17,7 @@ from typing import Any, Callable
 
 import numpy as np
 from khgrl.common.rerun_log import RunLogger, ViewTarget, blueprint, open_recording
+from khgrl.common.step_records import IMAGE
 
 __all__ = ["LiveView", "live_listeners"]
 
@@ -46,8 +47,11 @@ class LiveView:
             self._render()
         w = env.world
         self._guard(self.logger.scene, w.demos, (w.low, w.high), tuple(w.view.shapes))
+        layout = getattr(env, "cameras", None)  # a camera task's images (what the policy sees)
+        self.images = tuple(layout.images) if layout is not None and target.camera_every > 0 else ()
         if target.actors and target.actors[0] == actor:  # one actor sends the layout (it knows of a camera)
-            self._guard(self.logger.rec.send_blueprint, blueprint(list(target.actors), self.camera is not None))
+            self._guard(self.logger.rec.send_blueprint, blueprint(list(target.actors), self.camera is not None,
+                                                                  self.images))
 
     def _guard(self, fn: Callable, *args: Any) -> None:
         if not self.on:
@@ -64,13 +68,16 @@ class LiveView:
         self._guard(self.logger.start, episode, scene)
 
     def step(self, episode: int, row: dict[str, Any]) -> None:
-        """A step was taken (and, every ``camera_every`` steps, the camera's image)."""
+        """A step was taken (and, every ``camera_every`` steps, the camera's image and a camera task's images)."""
         if not self.on or self._projector is None:
             return
         t = int(row["t"])
         self._guard(self.logger.step, episode, row, self._projector[min(t, len(self._projector) - 1)])
         if self.camera is not None and t % self.target.camera_every == 0:
             self._image(episode, t)
+        if self.images and t % self.target.camera_every == 0:
+            for key in self.images:
+                self._guard(self.logger.image, episode, t, row[IMAGE + key], 80, f"images/{key}")
 
     def _render(self) -> np.ndarray | None:
         try:

@@ -25,6 +25,9 @@ entity                                  what                             when
 ``/actor/ID/scale``                     Scalars: L_t, one per output     each step
 ``/actor/ID/camera``                    EncodedImage (JPEG): MuJoCo's    every K steps (``--view-camera-every``)
                                         camera
+``/actor/ID/images/KEY``                EncodedImage (JPEG; Image if     every K steps (live), every step
+                                        not RGB): a camera task's image  (``khgrl view``)
+                                        KEY, what the policy saw
 ``/actor/ID/band``                      LineStrips3D: the band's low and episode end (last step)
                                         high edge over the episode
 ``/actor/ID/episode/return``, ``.../    Scalars                          episode end (no ``step``)
@@ -162,21 +165,25 @@ def open_recording(recording_id: str, *, url: str | None = None, save: str | Non
     return rec
 
 
-def blueprint(actors: list[str], camera: bool = True) -> Any:
-    """The layout a recording opens with: the 3-D scene (task and actors) beside the first actor's camera, L over the
-    run and the episodes' returns and successes; the time panel on ``run_step``.
+def blueprint(actors: list[str], camera: bool = True, images: tuple[str, ...] = ()) -> Any:
+    """The layout a recording opens with: the 3-D scene (task and actors) beside the first actor's camera and
+    images, L over the run and the episodes' returns and successes; the time panel on ``run_step``.
 
     :param actors: the actor ids.
     :param camera: show the camera view (a task with a simulator camera).
+    :param images: a camera task's image keys (one 2-D view each).
     """
     import rerun.blueprint as rrb
 
-    scene = ["/task/**", *(f"/actor/{a}/**" for a in actors), *(f"- /actor/{a}/camera" for a in actors)]
+    scene = ["/task/**", *(f"/actor/{a}/**" for a in actors), *(f"- /actor/{a}/camera" for a in actors),
+             *(f"- /actor/{a}/images/**" for a in actors)]
     side = [rrb.TimeSeriesView(name="L (exploration scale)", contents=[f"/actor/{a}/scale" for a in actors]),
             rrb.TimeSeriesView(name="episodes", contents=[f"/actor/{a}/episode/**" for a in actors]),
             rrb.TimeSeriesView(name="intervened", contents=[f"/actor/{a}/intervened" for a in actors])]
     if camera and actors:
         side.insert(0, rrb.Spatial2DView(name="camera", origin=f"/actor/{actors[0]}/camera"))
+    if images and actors:
+        side[:0] = [rrb.Spatial2DView(name=key, origin=f"/actor/{actors[0]}/images/{key}") for key in images]
     return rrb.Blueprint(rrb.Horizontal(rrb.Spatial3DView(name="scene", origin="/", contents=scene),
                                         rrb.Vertical(*side), column_shares=[3, 2]),
                          rrb.TimePanel(timeline="run_step"), rrb.BlueprintPanel(state="collapsed"),
@@ -279,16 +286,20 @@ class RunLogger:
         log(f"{p}/intervened", rr.Scalars([float(iv)]))
         log(f"{p}/scale", rr.Scalars(np.asarray(row["scale"], np.float64)))
 
-    def image(self, episode: int, t: int, rgb: np.ndarray, quality: int = 80) -> None:
-        """A camera image at step ``t`` (JPEG-compressed).
+    def image(self, episode: int, t: int, rgb: np.ndarray, quality: int = 80, entity: str = "camera") -> None:
+        """A camera image at step ``t`` (JPEG-compressed if RGB).
 
         :param episode: the episode.
         :param t: the step.
-        :param rgb: (H, W, 3) uint8.
+        :param rgb: (H, W, 3) uint8 (another channel count is logged uncompressed).
         :param quality: JPEG quality.
+        :param entity: its entity under ``/actor/ID``: ``camera`` (the simulator's), ``images/KEY`` (a camera
+            task's image KEY)
         """
         self._time(episode, t)
-        self.rec.log(f"{self.prefix}/camera", self.rr.Image(rgb).compress(jpeg_quality=quality))
+        image = self.rr.Image(rgb)
+        self.rec.log(f"{self.prefix}/{entity}", image.compress(jpeg_quality=quality) if rgb.shape[-1:] == (3,)
+                     else image)
 
     def finish(self, episode: int, arrays: dict[str, np.ndarray], ret: float, success: bool,
                weights_version: int | None = None) -> None:

@@ -32,7 +32,10 @@ name                shape, dtype  meaning
 ``kmp_projector``   (H, O, O) f8  its null-space projector N (the band's shape)
 ``via``             (V, 1+O) f8   the episode's via-points, [phase, position...] per row (V = 0: none)
 ``episode``         () int64      the episode (whole run, 1-based)
+``image/KEY``       (N, H, W, C)  a camera task's image KEY before the step (uint8): what the policy saw
 ==================  ============  =======================================================================
+
+A camera task's file is compressed (``np.savez_compressed``: its images are most of it); the others are not.
 """
 
 from __future__ import annotations
@@ -44,8 +47,9 @@ from pathlib import Path
 
 import numpy as np
 from khgrl.common.delivery.camera_rows import state_of
+from khgrl.common.wire.descriptor import STATE
 
-__all__ = ["StepRecord", "read_steps", "steps_dir", "actor_dirs", "STEP_FIELDS"]
+__all__ = ["StepRecord", "read_steps", "steps_dir", "actor_dirs", "images_of", "STEP_FIELDS", "IMAGE"]
 
 STEP_FIELDS = ("t", "phase", "robot", "desired", "mean", "scale", "p_h", "intervened", "physical", "clipped",
                "rate_limited", "obs", "action", "reward", "terminated", "truncated")
@@ -54,6 +58,15 @@ _DTYPES = {"t": np.int32, "phase": np.float64, "robot": np.float64, "desired": n
            "rate_limited": bool, "obs": np.float32, "action": np.float32, "reward": np.float64, "terminated": bool,
            "truncated": bool}
 _NAME = re.compile(r"^episode-(\d{6,})\.npz$")
+IMAGE = "image/"  # a camera image's field: IMAGE + its key in the observation
+
+
+def images_of(rec: dict) -> dict[str, np.ndarray]:
+    """A step file's (or a row's) camera images by their observation key: ``{KEY: rec["image/KEY"]}``.
+
+    :param rec: a dict of :func:`read_steps` or a listener's row
+    """
+    return {k[len(IMAGE):]: v for k, v in rec.items() if k.startswith(IMAGE)}
 
 
 def steps_dir(actor_dir: Path) -> Path:
@@ -137,8 +150,10 @@ class StepRecord:
                "physical": iv and bool(physical), "clipped": bool(info["clipped"]),
                "rate_limited": bool(info.get("rate_limited", False)), "obs": state_of(obs), "action": info["action"],
                "reward": float(reward), "terminated": bool(terminated), "truncated": bool(truncated)}
+        if isinstance(obs, dict):
+            row.update({IMAGE + k: np.array(v) for k, v in obs.items() if k != STATE})  # (a copy: no aliasing)
         for k, v in row.items():
-            self._ep.rows[k].append(v)
+            self._ep.rows.setdefault(k, []).append(v)
         for lis in self.listeners:
             lis.step(self._ep.episode, row)
 
@@ -151,7 +166,7 @@ class StepRecord:
         ep, self._ep = self._ep, None
         if ep is None or not ep.rows["t"]:
             return None
-        arrays = {k: np.asarray(v, dtype=_DTYPES[k]) for k, v in ep.rows.items()}
+        arrays = {k: np.asarray(v, dtype=_DTYPES.get(k, np.uint8)) for k, v in ep.rows.items()}
         arrays.update(ep.scene, final_obs=np.asarray(state_of(final_obs), np.float32), episode=np.int64(ep.episode))
         for lis in self.listeners:
             lis.finish(ep.episode, arrays, stats)
@@ -160,7 +175,7 @@ class StepRecord:
         self.dir.mkdir(parents=True, exist_ok=True)
         path = self.dir / f"episode-{ep.episode:06d}.npz"
         tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, **arrays)
+        (np.savez_compressed if images_of(arrays) else np.savez)(tmp, **arrays)
         os.replace(tmp, path)
         self.written += 1
         return path
@@ -190,7 +205,7 @@ def read_steps(actor_dir: Path) -> list[dict[str, np.ndarray]]:
         if missing:
             raise ValueError(f"{path}: missing {', '.join(missing)}")
         n = len(data["t"])
-        if any(len(data[k]) != n for k in STEP_FIELDS):
+        if any(len(data[k]) != n for k in (*STEP_FIELDS, *(IMAGE + c for c in images_of(data)))):
             raise ValueError(f"{path}: the per-step arrays differ in length")
         out.append(data)
     return out

@@ -11,7 +11,9 @@ frame per step. Features (:data:`FEATURES` says what each is):
   ``is_intervention`` in each transition's complementary_info, its ReplayBuffer writes it under this name);
 * KhGRL's extras: ``next.terminated``, ``observation.phase``, ``action.desired_position`` (P_t),
   ``next.observation.position`` (the robot after the step), ``complementary_info.kmp_mean`` (eta0_t),
-  ``complementary_info.human_position`` (P_h; 0 where none) with ``complementary_info.human_position_valid``.
+  ``complementary_info.human_position`` (P_h; 0 where none) with ``complementary_info.human_position_valid``;
+* a camera task's images, LeRobot's ``observation.images.KEY`` (dtype ``image``, (H, W, C) uint8 frames: what the
+  policy saw before the step; ``observation.state`` is then its state vector).
 
 Every frame's task is the run's task spec. Provenance (KhGRL's version, the run id, each dataset episode's actor
 and run episode) goes to ``OUT/meta/khgrl.json``: LeRobot's ``meta/info.json`` has no field for it.
@@ -26,6 +28,7 @@ from typing import Any
 
 import numpy as np
 from khgrl.common.lerobot.library import ACTION, DONE, INTERVENTION, REWARD, STATE
+from khgrl.common.step_records import images_of
 from khgrl.deploy.run.rundir import still_running
 
 __all__ = ["add_parser", "export_run", "FEATURES", "DEFAULT_FPS"]
@@ -47,6 +50,9 @@ FEATURES = {  # name: (step-record field, dtype, meaning)
 }
 
 
+IMAGES = "observation.images."  # + a camera task's image key (LeRobot's name for a camera's frames)
+
+
 class ExportError(RuntimeError):
     """A run directory that cannot be exported (the message says why)."""
 
@@ -61,11 +67,15 @@ def _columns(rec: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     cols = {name: np.asarray(rec[field]) for name, (field, _, _) in FEATURES.items() if field is not None}
     cols.update({DONE: done, "complementary_info.human_position": np.where(valid[:, None], p_h, 0.0),
                  "complementary_info.human_position_valid": valid})
-    return {name: np.ascontiguousarray(c.reshape(f, -1), dtype=FEATURES[name][1]) for name, c in cols.items()}
+    out = {name: np.ascontiguousarray(c.reshape(f, -1), dtype=FEATURES[name][1]) for name, c in cols.items()}
+    return {**out, **{IMAGES + key.replace("/", "_"): np.asarray(frames, np.uint8)
+                      for key, frames in images_of(rec).items()}}
 
 
 def _features(columns: dict[str, np.ndarray]) -> dict[str, dict]:
-    return {name: {"dtype": FEATURES[name][1], "shape": (int(c.shape[1]),), "names": None}
+    return {name: {"dtype": "image", "shape": tuple(int(d) for d in c.shape[1:]), "names": ["height", "width",
+                                                                                            "channels"]}
+            if name.startswith(IMAGES) else {"dtype": FEATURES[name][1], "shape": (int(c.shape[1]),), "names": None}
             for name, c in columns.items()}
 
 
@@ -132,7 +142,9 @@ def export_run(run_dir: str | Path, out: str | Path, *, fps: int | None = None, 
     episodes = [Episode(task, _columns(rec)) for _, rec in found]
     provenance = {"khgrl_version": __version__, "run": runtime.get("run"), "run_dir": str(run_dir.resolve()),
                   "task": task, "fps": fps_used, "fps_from": fps_from,
-                  "features": {name: meaning for name, (_, _, meaning) in FEATURES.items()},
+                  "features": {**{name: meaning for name, (_, _, meaning) in FEATURES.items()},
+                               **{name: "a camera's frame before the step" for name in episodes[0].columns
+                                  if name.startswith(IMAGES)}},
                   "episodes": [{"index": i, "actor": actor, "episode": int(rec["episode"]), "frames": len(rec["t"])}
                                for i, (actor, rec) in enumerate(found)]}
     with _Bar(len(episodes), progress) as bar:

@@ -7,9 +7,10 @@ What it reads: each actor's steps (``RUN_DIR/actor-ID/steps/episode-N.npz``, :fu
 read_steps`), its ``episodes.csv`` (return and success per episode), the learner's ``learner/tb/progress.csv`` (if
 present) and the run's configuration (the task: demonstrations, workspace and shapes). It logs them through the
 same :class:`~khgrl.common.rerun_log.RunLogger` as the live view of ``khgrl up --view``, so the entities and
-timelines are the same (listed in :mod:`khgrl.common.rerun_log`); the recording id is the run id. Camera images
-exist only in a live recording (they are not kept in the run's records). The learner's ``progress.csv`` numbers
-(``version``, ``n_updates``, losses) go to ``/learner/...`` on the ``ingested`` timeline.
+timelines are the same (listed in :mod:`khgrl.common.rerun_log`); the recording id is the run id. A camera task's
+images (what the policy saw, kept in the step records) are logged at every step under ``/actor/ID/images/KEY``; the
+simulator's own camera exists only in a live recording (it is not kept in the run's records). The learner's
+``progress.csv`` numbers (``version``, ``n_updates``, losses) go to ``/learner/...`` on the ``ingested`` timeline.
 
 Exit codes: 0 written (or the viewer opened), 2 a bad run directory or output file, no Rerun SDK.
 """
@@ -25,11 +26,12 @@ from pathlib import Path
 from typing import Any
 
 from khgrl.common.rerun_log import RunLogger, blueprint, has_display, import_rerun, open_recording
-from khgrl.common.step_records import actor_dirs, read_steps
+from khgrl.common.step_records import actor_dirs, images_of, read_steps
 from khgrl.deploy.run.rundir import still_running
 
 __all__ = ["main", "build_parser", "log_run", "episode_results"]
 
+_ROW = ("t", "robot", "desired", "mean", "scale", "p_h", "intervened")  # what RunLogger.step reads of a step
 _LEARNER_COLUMNS = {"learner/version": "version", "train/n_updates": "n_updates", "train/critic_loss": "critic_loss",
                     "train/actor_loss": "actor_loss", "train/ent_coef": "ent_coef"}
 
@@ -81,21 +83,24 @@ def log_run(run_dir: Path, rec: Any, world: Any) -> dict[str, int]:
     :param world: the run's :class:`~khgrl.common.tasks.world.TaskWorld` (its demonstrations, workspace, shapes).
     """
     counts = {"actors": 0, "episodes": 0, "steps": 0, "learner_rows": 0}
-    actors = actor_dirs(run_dir)
-    rec.send_blueprint(blueprint([actor for actor, _ in actors], camera=False))
-    for actor, actor_dir in actors:
+    actors = [(actor, read_steps(actor_dir), actor_dir) for actor, actor_dir in actor_dirs(run_dir)]
+    keys = next((tuple(images_of(recs[0])) for _, recs, _ in actors if recs), ())
+    rec.send_blueprint(blueprint([actor for actor, _, _ in actors], camera=False, images=keys))
+    for actor, records, actor_dir in actors:
         logger = RunLogger(rec, actor)
         logger.scene(world.demos, (world.low, world.high), tuple(world.view.shapes))
         results = episode_results(actor_dir)
-        for arrays in read_steps(actor_dir):
+        for arrays in records:
             ep = int(arrays["episode"])
             scene = {k: arrays[k] for k in ("kmp_mean", "kmp_projector", "via")}
             logger.start(ep, scene)
             proj = arrays["kmp_projector"]
-            keys = ("t", "robot", "desired", "mean", "scale", "p_h", "intervened")
+            images = images_of(arrays)
             for i in range(len(arrays["t"])):
-                row = {k: arrays[k][i] for k in keys}
+                row = {k: arrays[k][i] for k in _ROW}
                 logger.step(ep, row, proj[min(int(row["t"]), len(proj) - 1)])
+                for key, frames in images.items():
+                    logger.image(ep, int(row["t"]), frames[i], entity=f"images/{key}")
             ret, success = results.get(ep, (float(arrays["reward"].sum()), bool(arrays["terminated"][-1:].any())))
             logger.finish(ep, arrays, ret, success)
             counts["episodes"] += 1

@@ -64,10 +64,10 @@ def _assert_frames_once(rb, n: int, episodes: int) -> None:
 def test_camera_task_through_khgrl_up(tmp_path: Path) -> None:
     from khgrl.benchmarks.scale import provenance_check
 
-    run_dir = tmp_path / "run"
+    run_dir, rrd = tmp_path / "run", tmp_path / "live.rrd"
     proc = subprocess.run([*UP, "--task", CAMERA, "--human", "none", "--episodes", "2", *SMALL, "--run-dir",
-                           str(run_dir), "--no-progress"], cwd=REPO, env=_env(), capture_output=True, text=True,
-                          timeout=150)
+                           str(run_dir), "--no-progress", "--view", f"rerun:{rrd}", "--view-camera-every", "5"],
+                          cwd=REPO, env=_env(), capture_output=True, text=True, timeout=150)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     summary = read_json(run_dir / "summary.json")
     actor = read_json(run_dir / "actor-a0" / "summary.json")
@@ -83,8 +83,41 @@ def test_camera_task_through_khgrl_up(tmp_path: Path) -> None:
     assert rb.store.shapes == {"cam": (3, 16, 16)}  # channel-first, as SB3 holds the model's images
     assert "task passage-camera" in (run_dir / "learner" / "learner.log").read_text()
     for path, steps in zip(sorted((run_dir / "actor-a0" / "steps").glob("episode-*.npz")), _steps(run_dir)):
-        with np.load(path, allow_pickle=False) as z:  # the step records keep the state, not the images
+        with np.load(path, allow_pickle=False) as z:  # the step records keep the state and, apart, the images
             assert z["obs"].shape == (steps, 5) and z["final_obs"].shape == (5,)
+            assert z["image/cam"].shape == (steps, 16, 16, 3) and z["image/cam"].dtype == np.uint8
+    _people_see_the_frames(run_dir, rrd, tmp_path)
+
+
+def _people_see_the_frames(run_dir: Path, live_rrd: Path, tmp_path: Path) -> None:
+    """The policy's images in the live Rerun view (every 5th step), in ``khgrl view`` (every step) and in
+    ``khgrl export --lerobot`` as ``observation.images.cam``, read back by LeRobot's own loader."""
+    from khgrl.common.step_records import images_of, read_steps
+
+    from lerobot_data import load_with_library
+    from rrd_read import read_rrd
+
+    steps = _steps(run_dir)
+    frames = [images_of(r)["cam"] for r in read_steps(run_dir / "actor-a0")]
+    assert [len(f) for f in frames] == steps and all(f.max() == 255 for f in frames)  # the robot's white dot
+    _, live = read_rrd(live_rrd)
+    assert sorted((r["episode"], r["step"]) for r in live["/actor/a0/images/cam"]) == \
+        [(e + 1, t) for e, n in enumerate(steps) for t in range(0, n, 5)]
+    rrd = tmp_path / "view.rrd"
+    view = subprocess.run([*UP[:-1], "view", str(run_dir), "--out", str(rrd)], cwd=REPO, env=_env(),
+                          capture_output=True, text=True, timeout=120)
+    assert view.returncode == 0, view.stdout + view.stderr
+    assert len(read_rrd(rrd)[1]["/actor/a0/images/cam"]) == sum(steps)
+    out = tmp_path / "export"
+    export = subprocess.run([*UP[:-1], "export", str(run_dir), "--lerobot", str(out)], cwd=REPO, env=_env(),
+                            capture_output=True, text=True, timeout=120)
+    assert export.returncode == 0, export.stdout + export.stderr
+    ds = load_with_library(out)
+    assert ds.meta.features["observation.images.cam"]["shape"] == (16, 16, 3)
+    for k in (0, steps[0] - 1, steps[0], sum(steps) - 1):  # first and last frames of both episodes
+        e, i = (0, k) if k < steps[0] else (1, k - steps[0])
+        image = ds[k]["observation.images.cam"].numpy()  # (C, H, W) floats in [0, 1], as LeRobot gives images
+        np.testing.assert_array_equal(np.rint(image.transpose(1, 2, 0) * 255).astype(np.uint8), frames[e][i])
 
 
 def _journal_rows(ckpt_dir: Path) -> int:
