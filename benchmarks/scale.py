@@ -92,11 +92,12 @@ def child_env() -> dict[str, str]:
 
 
 def scale_case(work: Path, actors: int, rate: float, mode: str, seconds: float, seed: int,
-               secure: bool = False, device: str = "auto") -> dict:
+               secure: bool = False, device: str = "auto", extra: tuple[str, ...] = ()) -> dict:
     """One ``khgrl up`` for ``seconds`` from its first ingested batch, then Ctrl-C; its numbers (module docstring).
 
     :param secure: ``khgrl up --secure`` (mutual TLS and access control) instead of plain TCP
     :param device: the learner's ``--device``
+    :param extra: more ``khgrl up`` flags (``khgrl bench images``: the task, no training)
     """
     port = free_port()
     run = f"scale{actors}r{int(rate)}{mode[0]}{'m' if secure else ''}{os.getpid()}-{next(_CASES)}"
@@ -104,7 +105,7 @@ def scale_case(work: Path, actors: int, rate: float, mode: str, seconds: float, 
     argv = [sys.executable, "-m", "khgrl.deploy.cli", "up", "--actors", str(actors), "--rate", str(rate),
             "--mode", mode,
             "--episodes", "1000000", "--human", "none", "--run", run, "--run-dir", str(run_dir), "--port", str(port),
-            "--seed", str(seed), "--no-progress", "--device", device, *(["--secure"] if secure else [])]
+            "--seed", str(seed), "--no-progress", "--device", device, *(["--secure"] if secure else []), *extra]
     ep = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
     load0 = os.getloadavg()
     samples: list[tuple[float, dict]] = []

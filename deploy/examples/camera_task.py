@@ -19,7 +19,7 @@ import numpy as np
 from gymnasium import spaces
 from khgrl.common.tasks.api import Task, load_task
 
-__all__ = ["CameraRobot", "make_task", "SIDE"]
+__all__ = ["CameraRobot", "make_task", "make_two_cameras", "SIDE"]
 
 SIDE = 16  # the image's side, pixels
 
@@ -41,10 +41,14 @@ class CameraRobot(gym.Env):
         self.action_space = robot.action_space
 
     def _observe(self, pos: np.ndarray) -> dict:
-        img = np.zeros((SIDE, SIDE, 3), np.uint8)
-        r, c = (np.clip(pos, 0.0, 1.0) * (SIDE - 1)).round().astype(int)
-        img[SIDE - 1 - c, r] = 255
-        return {"pos": pos, "cam": img}
+        out = {"pos": pos}
+        for key, box in self.images.items():  # each declared image: black, the robot a white dot
+            h, w = box.shape[:2]
+            img = np.zeros(box.shape, np.uint8)
+            r, c = (np.clip(pos, 0.0, 1.0) * (np.array([w, h]) - 1)).round().astype(int)
+            img[h - 1 - c, r] = 255
+            out[key] = img
+        return out
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """The robot's reset, observed.
@@ -76,3 +80,13 @@ def make_task(images: dict | None = None, state_key: str | None = "pos", image_k
     return replace(base, name="passage-camera", make_env=lambda s: CameraRobot(base.make_env(s), images),
                    position=lambda obs: obs["pos"], scripted_human=None, state_key=state_key,
                    image_keys=tuple(image_keys))
+
+
+def make_two_cameras(side: int = 128) -> Task:
+    """The same world seen by two ``side`` x ``side`` RGB cameras, ``front`` and ``wrist`` (the size of gym-hil's
+    Panda): what ``khgrl bench images`` sends (``--task khgrl.deploy.examples.camera_task:make_two_cameras``).
+
+    :param side: each image's side, pixels
+    """
+    box = spaces.Box(0, 255, (side, side, 3), np.uint8)
+    return make_task({"front": box, "wrist": box}, image_keys=("front", "wrist"))

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 
 from khgrl.benchmarks import scale
@@ -35,3 +36,13 @@ def test_scale_takes_the_learners_device():
     args = build_parser().parse_args(["scale", "--device", "cuda", "--actors", "1", "8", "14"])
     assert args.device == "cuda" and args.actors == [1, 8, 14]
 
+
+
+def test_images_bench_refuses_bad_settings_and_counts_resident_bytes(capsys):
+    from khgrl.benchmarks.cli import main
+    from khgrl.benchmarks.images import _bytes_per_transition
+
+    assert main(["images", "--rate", "0"]) == 2 and "--rate 0.0" in capsys.readouterr().err
+    case = {"rss_mb_series": [300.0, 310.0, 400.0], "produced": 1024}
+    assert _bytes_per_transition(case) == 100 * 2**20 / 1024
+    assert math.isnan(_bytes_per_transition({"rss_mb_series": [300.0], "produced": 5}))
