@@ -91,7 +91,9 @@ def test_camera_task_through_khgrl_up(tmp_path: Path) -> None:
 
 def _people_see_the_frames(run_dir: Path, live_rrd: Path, tmp_path: Path) -> None:
     """The policy's images in the live Rerun view (every 5th step), in ``khgrl view`` (every step) and in
-    ``khgrl export --lerobot`` as ``observation.images.cam``, read back by LeRobot's own loader."""
+    ``khgrl export --lerobot`` as ``observation.images.cam``, read back by LeRobot's own loader and by
+    ``--demos lerobot:``."""
+    from khgrl.common.lerobot.demos import load_lerobot_demos
     from khgrl.common.step_records import images_of, read_steps
 
     from lerobot_data import load_with_library
@@ -118,6 +120,11 @@ def _people_see_the_frames(run_dir: Path, live_rrd: Path, tmp_path: Path) -> Non
         e, i = (0, k) if k < steps[0] else (1, k - steps[0])
         image = ds[k]["observation.images.cam"].numpy()  # (C, H, W) floats in [0, 1], as LeRobot gives images
         np.testing.assert_array_equal(np.rint(image.transpose(1, 2, 0) * 255).astype(np.uint8), frames[e][i])
+    # the export, images and all, is demonstrations for a next run (the position: the state's first 2 numbers)
+    demos = load_lerobot_demos(f"lerobot:{out}?feature=observation.state&dims=0:2")
+    states = [r["obs"][:, :2] for r in read_steps(run_dir / "actor-a0")]
+    assert demos.shape[0] == 2 and demos.shape[2] == 2
+    np.testing.assert_allclose(demos[:, 0], [s[0] for s in states], atol=1e-6)
 
 
 def _journal_rows(ckpt_dir: Path) -> int:
