@@ -88,8 +88,9 @@ def _check_recording(rrd: Path, run_dir: Path, live: bool) -> dict:
 def test_passage_run_recorded_and_viewed_again(tmp_path: Path) -> None:
     run_dir, rrd = tmp_path / "run", tmp_path / "live.rrd"
     up = ["up", "--scenario", "low_cov", "--method", "khgrl", "--episodes", "3", "--seed", "3", "--human-episodes",
-          "2", "--run-dir", str(run_dir), "--no-progress", "--view", f"rerun:{rrd}"]  # (the default networks: with
-    # 64 x 64 ones the scripted human finds nothing to correct in episode 2 of this seed, and P_h is what is checked)
+          "1", "2", *SMALL, "--run-dir", str(run_dir), "--no-progress", "--view", f"rerun:{rrd}"]
+    # (the scripted human in episodes 1 and 2: in episode 2 alone it finds nothing to correct with SMALL's networks,
+    # and P_h is what is checked)
     proc = _khgrl(*up)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     live = _check_recording(rrd, run_dir, live=True)
