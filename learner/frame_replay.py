@@ -25,7 +25,8 @@ frames until it is stored: only a batch larger than its actor's share, which evi
 bound.) Beyond it :class:`~khgrl.learner.frame_store.FrameStoreFull` says so. Two 128x128x3 cameras: 98,304 bytes
 per frame; 100,000 transitions of 100-step episodes hold 1.01 frames a transition, 9.95 GB with the per-slot
 arrays against SB3's 19.7 GB (:mod:`khgrl.benchmarks.frame_replay`, ``docs/frame_replay.json``); the store
-allocates (and a checkpoint pickles) ``frame_capacity`` frames: 10.3 GB with ``min_episode_steps`` 20.
+allocates ``frame_capacity`` frames, 10.3 GB with ``min_episode_steps`` 20 (pages committed as frames are written);
+a checkpoint pickles, and its copy holds, the live frames only.
 
 Save and load: the store, the frame ids and the pins are attributes, pickled with the buffer as the side arrays
 are (:mod:`khgrl.learner.checkpoint`); ``copy.copy`` (the checkpoint's ``copy_buffer``) copies the store too.

@@ -207,6 +207,27 @@ def test_a_full_store_says_so():
         s.feed(rb, 10)
 
 
+def test_a_pickled_or_copied_store_holds_its_live_frames_only():
+    import pickle
+
+    store = FrameStore({"a": (32, 32, 3), "b": (32, 32, 1)}, capacity=1000)
+    rng = np.random.default_rng(0)
+    frames = {"a": rng.integers(0, 256, (6, 32, 32, 3), np.uint8), "b": rng.integers(0, 256, (6, 32, 32, 1), np.uint8)}
+    ids = store.put_many(frames)
+    store.decref(ids[[1, 4]])  # two freed: four live
+    blob = pickle.dumps(store)
+    assert len(blob) < 10 * store.frame_bytes + 20_000 < store.nbytes // 50  # four frames, not a thousand
+    for other in (pickle.loads(blob), store.copy()):
+        assert other.live == 4 and np.array_equal(other.refs, store.refs) and other._top == store._top
+        got = other.get(ids[[0, 2, 3, 5]])
+        assert all(np.array_equal(got[k], frames[k][[0, 2, 3, 5]]) for k in frames)
+        again = {k: v[:3] for k, v in frames.items()}
+        assert np.array_equal(other.put_many(again), store.copy().put_many(again))  # the same ids reused
+    twin = store.copy()
+    twin.put_many({k: v[:1] for k, v in frames.items()})
+    assert store.live == 4 and twin.live == 5  # independent
+
+
 def test_save_load_and_the_checkpoint_copy():
     rb = FrameReplayBuffer(30, OBS, ACT, device="cpu", min_episode_steps=5, max_streams=2)
     streams = {0: Stream(0, 8, seed=10), 1: Stream(1, 6, seed=11)}
