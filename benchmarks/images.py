@@ -31,8 +31,8 @@ from khgrl.benchmarks.scale import scale_case
 
 __all__ = ["run_images_benchmark", "CASES"]
 
-# no training; a replay of 12,000 transitions (a case's 60 s of 8 actors at 20 Hz is 9,600): the frame replay
-# preallocates (and its checkpoints write) frames for the whole buffer; the supervisor's heartbeat given 5 s
+# no training; a replay of 12,000 transitions (a case's 60 s of 8 actors at 20 Hz is 9,600: none overwritten, the
+# frame store sized to what the case holds); the supervisor's heartbeat given 5 s
 # (0.4 by default) on a machine these actors load fully: a late heartbeat latches the e-stop
 BENCH_FLAGS = ("--learning-starts", str(10**9), "--buffer-size", "12000", "--supervision-timeout", "5")
 CASES = {  # name: khgrl up flags
