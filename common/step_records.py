@@ -49,7 +49,7 @@ import numpy as np
 from khgrl.common.delivery.camera_rows import state_of
 from khgrl.common.wire.descriptor import STATE
 
-__all__ = ["StepRecord", "read_steps", "steps_dir", "actor_dirs", "images_of", "STEP_FIELDS", "IMAGE"]
+__all__ = ["StepRecord", "read_steps", "steps_dir", "actor_dirs", "images_of", "image_keys", "STEP_FIELDS", "IMAGE"]
 
 STEP_FIELDS = ("t", "phase", "robot", "desired", "mean", "scale", "p_h", "intervened", "physical", "clipped",
                "rate_limited", "obs", "action", "reward", "terminated", "truncated")
@@ -67,6 +67,24 @@ def images_of(rec: dict) -> dict[str, np.ndarray]:
     :param rec: a dict of :func:`read_steps` or a listener's row
     """
     return {k[len(IMAGE):]: v for k, v in rec.items() if k.startswith(IMAGE)}
+
+
+def image_keys(actor_dir: Path) -> tuple[str, ...]:
+    """The camera image keys an actor's step files hold (its first file's; no arrays read): () for a vector task
+    or an actor without files.
+
+    :param actor_dir: ``RUN_DIR/actor-ID``.
+    """
+    files = _files(actor_dir)
+    if not files:
+        return ()
+    with np.load(files[0][1], allow_pickle=False) as z:
+        return tuple(k[len(IMAGE):] for k in z.files if k.startswith(IMAGE))
+
+
+def _files(actor_dir: Path) -> list[tuple[int, Path]]:
+    d = steps_dir(actor_dir)
+    return sorted((int(m.group(1)), p) for p in (d.iterdir() if d.is_dir() else []) if (m := _NAME.match(p.name)))
 
 
 def steps_dir(actor_dir: Path) -> Path:
@@ -194,10 +212,8 @@ def read_steps(actor_dir: Path) -> list[dict[str, np.ndarray]]:
 
     :param actor_dir: ``RUN_DIR/actor-ID``.
     """
-    d = steps_dir(actor_dir)
-    files = sorted((int(m.group(1)), p) for p in (d.iterdir() if d.is_dir() else []) if (m := _NAME.match(p.name)))
     out = []
-    for _, path in files:
+    for _, path in _files(actor_dir):
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
         missing = [k for k in (*STEP_FIELDS, "final_obs", "kmp_mean", "kmp_projector", "via", "episode")

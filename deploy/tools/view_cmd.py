@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from khgrl.common.rerun_log import RunLogger, blueprint, has_display, import_rerun, open_recording
-from khgrl.common.step_records import actor_dirs, images_of, read_steps
+from khgrl.common.step_records import actor_dirs, image_keys, images_of, read_steps
 from khgrl.deploy.run.rundir import still_running
 
 __all__ = ["main", "build_parser", "log_run", "episode_results"]
@@ -83,14 +83,14 @@ def log_run(run_dir: Path, rec: Any, world: Any) -> dict[str, int]:
     :param world: the run's :class:`~khgrl.common.tasks.world.TaskWorld` (its demonstrations, workspace, shapes).
     """
     counts = {"actors": 0, "episodes": 0, "steps": 0, "learner_rows": 0}
-    actors = [(actor, read_steps(actor_dir), actor_dir) for actor, actor_dir in actor_dirs(run_dir)]
-    keys = next((tuple(images_of(recs[0])) for _, recs, _ in actors if recs), ())
-    rec.send_blueprint(blueprint([actor for actor, _, _ in actors], camera=False, images=keys))
-    for actor, records, actor_dir in actors:
+    actors = actor_dirs(run_dir)
+    keys = next((k for _, d in actors if (k := image_keys(d))), ())
+    rec.send_blueprint(blueprint([actor for actor, _ in actors], camera=False, images=keys))
+    for actor, actor_dir in actors:
         logger = RunLogger(rec, actor)
         logger.scene(world.demos, (world.low, world.high), tuple(world.view.shapes))
         results = episode_results(actor_dir)
-        for arrays in records:
+        for arrays in read_steps(actor_dir):
             ep = int(arrays["episode"])
             scene = {k: arrays[k] for k in ("kmp_mean", "kmp_projector", "via")}
             logger.start(ep, scene)

@@ -83,3 +83,15 @@ def test_bad_files_are_refused(tmp_path):
     (d / "episode-000001.npz").unlink()
     (d / "notes.txt").write_text("x")
     assert read_steps(tmp_path) == [] and read_steps(tmp_path / "none") == []
+
+
+def test_image_keys_come_from_the_first_step_file_without_reading_its_arrays(tmp_path):
+    from khgrl.common.step_records import image_keys, steps_dir
+
+    assert image_keys(tmp_path / "actor-a0") == ()
+    d = steps_dir(tmp_path / "actor-a0")
+    d.mkdir(parents=True)
+    np.savez(d / "episode-000002.npz", t=np.arange(2))
+    np.savez(d / "episode-000001.npz", t=np.arange(2), **{"image/cam": np.zeros((2, 4, 4, 3), np.uint8),
+                                                         "image/pixels/wrist": np.zeros((2, 4, 4, 3), np.uint8)})
+    assert sorted(image_keys(tmp_path / "actor-a0")) == ["cam", "pixels/wrist"]  # episode 1's, the first
