@@ -35,7 +35,8 @@ name                shape, dtype  meaning
 ``image/KEY``       (N, H, W, C)  a camera task's image KEY before the step (uint8): what the policy saw
 ==================  ============  =======================================================================
 
-A camera task's file is compressed (``np.savez_compressed``: its images are most of it); the others are not.
+Files are not compressed, a camera task's neither: zlib saves ~3 % of camera-like frames (two 128 x 128 cameras,
+100 steps: 9.3 against 9.6 MB) for 0.55 s of the actor's loop at each episode's end, where writing takes 0.04 s.
 """
 
 from __future__ import annotations
@@ -193,7 +194,7 @@ class StepRecord:
         self.dir.mkdir(parents=True, exist_ok=True)
         path = self.dir / f"episode-{ep.episode:06d}.npz"
         tmp = path.with_suffix(".tmp.npz")
-        (np.savez_compressed if images_of(arrays) else np.savez)(tmp, **arrays)
+        np.savez(tmp, **arrays)
         os.replace(tmp, path)
         self.written += 1
         return path
