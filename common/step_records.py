@@ -170,7 +170,7 @@ class StepRecord:
                "rate_limited": bool(info.get("rate_limited", False)), "obs": state_of(obs), "action": info["action"],
                "reward": float(reward), "terminated": bool(terminated), "truncated": bool(truncated)}
         if isinstance(obs, dict):
-            row.update({IMAGE + k: np.array(v) for k, v in obs.items() if k != STATE})  # (a copy: no aliasing)
+            row.update({IMAGE + k: v for k, v in obs.items() if k != STATE})  # (each step's own arrays, as a batch's)
         for k, v in row.items():
             self._ep.rows.setdefault(k, []).append(v)
         for lis in self.listeners:
