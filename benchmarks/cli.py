@@ -117,9 +117,10 @@ BENCHMARKS: dict[str, Benchmark] = {
               help="the learner's --device (default: %(default)s)"),
         OUT)),
     "images": Benchmark("khgrl.benchmarks.images", "run_images_benchmark",
-                        "N actors with two 128x128 cameras into one learner through khgrl up (robot mode, no training) "
-                        "against the same world as a state vector: ingest/s, actor loop p99, learner RSS, resident "
-                        "bytes per transition, exactly once", (
+                        "N actors with two 128x128 cameras into one learner through khgrl up (robot mode, no "
+                        "training), frames as copies and on Zenoh's shared memory, against the same world as a "
+                        "state vector: ingest/s, actor loop p99, CPU per transition by process, learner RSS, "
+                        "resident bytes per transition, exactly once", (
         _flag("--actors", type=_at_least_one, default=8, help="actors of each case (default: %(default)s)"),
         _flag("--rate", type=float, default=20.0, help="their rate in Hz (default: %(default)s)"),
         _flag("--seconds", type=float, default=60.0, help="length of each case (default: %(default)s)"),

@@ -7,6 +7,8 @@ first ingested batch, then Ctrl-C (:func:`~khgrl.benchmarks.scale.scale_case` me
 * **ingest**: transitions per second the learner stored, and **exactly once** after Ctrl-C (lost, duplicated);
 * **actor loop p99** (each actor's loop period, the worst actor), camera against state-only (the issue's target:
   within 2 ms);
+* **CPU per transition** by role (router, learner, actors): the cores each kept busy over the case, over its
+  ingest rate -- what shared memory saves, if anything, is the copies through the router's sockets;
 * **learner RSS** (peak), and the **resident bytes per transition** it took: the growth of its RSS from its first
   status to its last over the transitions it ingested in between (frames stored once: one frame per transition
   and camera, plus one per episode);
@@ -14,8 +16,9 @@ first ingested batch, then Ctrl-C (:func:`~khgrl.benchmarks.scale.scale_case` me
 
 The data path alone: no training (``--learning-starts`` past the run's end, so the actors act uniformly at random
 and the learner only ingests, journals and checkpoints; a gradient step from two 128 x 128 cameras costs seconds on
-a CPU, benchmarks/pixels_step.py). Frames travel as copies through the Zenoh router: shared memory between
-processes of one host is not implemented, so there is no "with shared memory" column.
+a CPU, benchmarks/pixels_step.py). The camera case runs twice: frames as copies through the Zenoh router (KhGRL's
+default), and on Zenoh's shared memory (``--zenoh-config deploy/zenoh/shared-memory.json5``: a put of more than 3 KB
+is written once into its publisher's pool in /dev/shm and handed on by reference).
 
     khgrl bench images --actors 8 --rate 20 --seconds 60 --out docs/bench_images.json
 """
@@ -35,9 +38,12 @@ __all__ = ["run_images_benchmark", "CASES"]
 # frame store sized to what the case holds); the supervisor's heartbeat given 5 s
 # (0.4 by default) on a machine these actors load fully: a late heartbeat latches the e-stop
 BENCH_FLAGS = ("--learning-starts", str(10**9), "--buffer-size", "12000", "--supervision-timeout", "5")
+CAMERAS = ("--task", "khgrl.deploy.examples.camera_task:make_two_cameras")
+SHARED_MEMORY = Path(__file__).resolve().parents[1] / "deploy" / "zenoh" / "shared-memory.json5"
 CASES = {  # name: khgrl up flags
     "state": ("--task", "passage:high_cov"),
-    "2 cameras 128x128": ("--task", "khgrl.deploy.examples.camera_task:make_two_cameras"),
+    "2 cameras 128x128": CAMERAS,
+    "2 cameras, shared memory": (*CAMERAS, "--zenoh-config", str(SHARED_MEMORY)),
 }
 
 
@@ -49,7 +55,7 @@ def _bytes_per_transition(case: dict) -> float:
 
 def run_images_benchmark(actors: int = 8, rate: float = 20.0, seconds: float = 60.0, seed: int = 0,
                          work: str = "runs/bench-images", out: str | None = None) -> list[dict]:
-    """Run the state-only case and the camera case; print a line each and the difference (and write JSON to
+    """Run the state-only case and the camera cases; print a line each and the differences (and write JSON to
     ``out``).
 
     :param actors: actors of each case
@@ -67,14 +73,18 @@ def run_images_benchmark(actors: int = 8, rate: float = 20.0, seconds: float = 6
     for name, flags in CASES.items():
         r = {"case": name, **scale_case(work_dir, actors, rate, "robot", seconds, seed, extra=(*flags, *BENCH_FLAGS))}
         r["resident_bytes_per_transition"] = round(_bytes_per_transition(r))
+        r["cpu_ms_per_transition"] = {k: round(1e3 * v / r["ingest_per_s"], 2) if r["ingest_per_s"] > 0 else None
+                                      for k, v in r["cores_busy"].items()}
         results.append(r)
-        print(f"{name:>18}: {actors} actors at {rate:g} Hz, startup {r['startup_s']:.1f} s, ingest "
+        print(f"{name:>24}: {actors} actors at {rate:g} Hz, startup {r['startup_s']:.1f} s, ingest "
               f"{r['ingest_per_s']:.1f}/s, loop p99 {r['actor_loop_ms_p99']:.2f} ms, learner RSS peak "
               f"{r['rss_mb_peak']:.0f} MB, {r['resident_bytes_per_transition']:,} resident bytes/transition, "
-              f"produced {r['produced']}, lost {r['lost']}, duplicated {r['duplicated']}", flush=True)
-    state, cams = results
-    print(f"cameras - state: loop p99 {cams['actor_loop_ms_p99'] - state['actor_loop_ms_p99']:+.2f} ms, ingest "
-          f"{cams['ingest_per_s'] / max(state['ingest_per_s'], 1e-9):.2f}x", flush=True)
+              f"produced {r['produced']}, lost {r['lost']}, duplicated {r['duplicated']}; CPU ms per transition "
+              f"{r['cpu_ms_per_transition']}", flush=True)
+    state = results[0]
+    for cams in results[1:]:
+        print(f"{cams['case']} - state: loop p99 {cams['actor_loop_ms_p99'] - state['actor_loop_ms_p99']:+.2f} ms, "
+              f"ingest {cams['ingest_per_s'] / max(state['ingest_per_s'], 1e-9):.2f}x", flush=True)
     if out:
         doc = {"machine": {"host": platform.node(), "cpus": os.cpu_count()}, "actors": actors, "rate_hz": rate,
                "seconds": seconds, "seed": seed, "cases": results}

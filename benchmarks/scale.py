@@ -9,6 +9,8 @@ Ctrl-C (a clean stop: the learner's final checkpoint), per case:
   most of that span training (``learner_busy``: its training seconds, from its closing log line, over the span;
   ``learner_bound``: at least :data:`BOUND`; it can read a little over 1: the learner finishes its iteration
   after the Ctrl-C, and its first status comes up to a second after its first batch);
+* **cores busy** by role (router, learner, actors, the rest): CPU seconds of the case's processes over the same
+  span, per second (:mod:`~khgrl.benchmarks.proc_cpu`);
 * **learner memory**: RSS over time (sampled from its status about once a second), the peak and the last value;
 * **inbox depth**: messages waiting in the learner (peak);
 * **update-to-data ratio** achieved (gradient steps per transition; simulation mode keeps the paper's 1);
@@ -41,6 +43,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from khgrl.benchmarks.proc_cpu import cpu_between, tree_cpu
 from khgrl.common.delivery.transport import free_port, open_client, wait_reachable
 from khgrl.common.wire.protocol import Keys, Status, decode
 
@@ -109,7 +112,7 @@ def scale_case(work: Path, actors: int, rate: float, mode: str, seconds: float, 
     ep = f"{'tls' if secure else 'tcp'}/127.0.0.1:{port}"
     load0 = os.getloadavg()
     samples: list[tuple[float, dict]] = []
-    t_launch, first = time.monotonic(), None
+    t_launch, first, cpu0 = time.monotonic(), None, {}
     source = (REPO / "pyproject.toml").is_file()
     proc = subprocess.Popen(argv, cwd=REPO if source else None, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True, env=child_env())
@@ -124,10 +127,11 @@ def scale_case(work: Path, actors: int, rate: float, mode: str, seconds: float, 
                 time.sleep(0.2)
                 if first is None and any(i.ingested > 0 for _, i in list(samples)):
                     first = next(t for t, i in list(samples) if i.ingested > 0)
-                    t_end = first + seconds
+                    t_end, cpu0 = first + seconds, tree_cpu(proc.pid)
             sub.undeclare()
     finally:
         t_stop = time.monotonic()
+        cpu = cpu_between(cpu0, tree_cpu(proc.pid)) if first is not None else {}
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGINT)
         rc = proc.wait(timeout=300)
@@ -135,6 +139,7 @@ def scale_case(work: Path, actors: int, rate: float, mode: str, seconds: float, 
     busy = _train_seconds(run_dir) / (t_stop - first) if first is not None else float("nan")
     return {"transport": "mtls" if secure else "tcp", "device": device, "startup_s": round(startup, 1),
             "learner_busy": round(busy, 2), "learner_bound": bool(busy >= BOUND),
+            "cores_busy": {role: round(c / max(t_stop - first, 1e-9), 3) for role, c in cpu.items()},
             **_summarize(run_dir, samples, actors, rate, mode, rc, load0)}
 
 

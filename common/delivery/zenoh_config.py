@@ -9,7 +9,8 @@ What KhGRL always sets (a different value in the file is reported as a conflict,
 
 What KhGRL tunes only where the file leaves Zenoh's default (the file wins; a value equal to Zenoh's default counts
 as left): the link lease, the time a BLOCK publisher waits before closing a stalled link (clients 60 s, the router
-2 s), shared memory off, the largest message, the client's connect retry.
+2 s), shared memory off (the whole ``transport/shared_memory`` section: a file that sets anything in it keeps its
+own; ``deploy/zenoh/shared-memory.json5`` turns it on for puts), the largest message, the client's connect retry.
 
 Everything else -- TLS certificates (``transport/link/tls``), user/password authentication, access control, buffer
 sizes -- comes from the file untouched. The shipped examples are in ``deploy/zenoh/``.
@@ -31,6 +32,7 @@ ENV = "ZENOH_CONFIG"
 # the largest message any process accepts (the weights' 64 MiB limit, plus slack for the envelope): Zenoh drops a
 # larger (fragmented) message at the link before it is reassembled, and an Inbox drops one before copying it
 MAX_MESSAGE_BYTES = 68 * 1024 * 1024
+SHM = "transport/shared_memory"  # Zenoh's shared memory between processes of one host (one section: _tuned)
 
 
 class ZenohConfigError(ValueError):
@@ -47,7 +49,7 @@ def config_file(path: str | os.PathLike | None = None) -> str | None:
     return str(chosen) if chosen else None
 
 
-def _tuned(mode: str, lease_ms: int) -> dict[str, Any]:
+def _tuned(mode: str, lease_ms: int, default_shm: dict[str, Any]) -> dict[str, Any]:
     tuned: dict[str, Any] = {
         "transport/link/tx/lease": int(lease_ms),
         # clients: a learner pausing to checkpoint must not get its link killed by BLOCK publishers (default 5 s).
@@ -56,8 +58,9 @@ def _tuned(mode: str, lease_ms: int) -> dict[str, Any]:
         # reconnects by itself and its stream re-sends what is missing (tests/integration/test_netns.py)
         "transport/link/tx/queue/congestion_control/block/wait_before_close": 2_000_000 if mode == "router"
         else 60_000_000,
-        # keep queries/replies off shared memory (zenoh#2628: SHM can drop queries when an RX thread stalls)
-        "transport/shared_memory/enabled": False,
+        # shared memory off, as one section: a file that sets anything in it keeps its own (deploy/zenoh/
+        # shared-memory.json5 turns it on for puts only: zenoh#2628, SHM can drop queries when an RX thread stalls)
+        SHM: {**default_shm, "enabled": False},
         "transport/link/rx/max_message_size": MAX_MESSAGE_BYTES,
     }
     if mode == "client":  # wait for (and re-join) the router
@@ -110,11 +113,22 @@ def build_config(mode: str, listen: list[str], connect: list[str], lease_ms: int
             log.warning("Zenoh configuration %s sets %s = %s; KhGRL uses %s (its required setting)", file, key,
                         json.dumps(theirs), json.dumps(ours))
         conf.insert_json5(key, json.dumps(ours))
-    for key, ours in _tuned(mode, lease_ms).items():
+    for key, ours in _tuned(mode, lease_ms, _get(default, SHM)).items():
         if _get(conf, key) == _get(default, key):
             conf.insert_json5(key, json.dumps(ours))
+    _check_shared_memory(conf, file)
     _check_tls(conf, listen + connect, file)
     return conf
+
+
+def _check_shared_memory(conf, file) -> None:
+    """A file that turns shared memory on for queries or replies too: say what that risks (zenoh#2628)."""
+    shm = _get(conf, SHM) or {}
+    opt = shm.get("transport_optimization") or {}
+    risky = sorted({"query", "reply"} & set(opt.get("messages") or []))
+    if shm.get("enabled") and opt.get("enabled") and risky:
+        log.warning("Zenoh configuration %s puts %s on shared memory: a stalled receiver can drop them (zenoh#2628); "
+                    "deploy/zenoh/shared-memory.json5 keeps them off (messages: [\"put\"])", file, " and ".join(risky))
 
 
 def _check_tls(conf, endpoints: list[str], file) -> None:

@@ -2,14 +2,15 @@
 image (deploy/examples/camera_task.py). ``khgrl up`` runs it to the end: the actor's batches carry frames, the
 learner's TQC with DrQ's image policy stores exactly what the actor sent, each step once, and each frame once
 (the replay's live frames: one per stored transition and one per episode, plus a stream's pin). Then a learner
-SIGKILLed after a full checkpoint with batches in its journal and ``--resume``d: nothing lost, nothing twice, the
-frames still stored once."""
+SIGKILLed after a full checkpoint with batches in its journal and ``--resume``d, on Zenoh's shared memory: nothing
+lost, nothing twice, the frames still stored once."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -136,11 +137,21 @@ def _journal_rows(ckpt_dir: Path) -> int:
     return sum(m.n for m in read_records(ckpt_dir / "journal", read_json(state_file)["journal"]["next"]))
 
 
+def _new_pools(since: float) -> list[Path]:
+    """Zenoh shared-memory pools (``/dev/shm/*.zenoh`` of 1 MiB or more) made since ``since``."""
+    shm = Path("/dev/shm")
+    return [f for f in shm.glob("*.zenoh") if f.stat().st_ctime >= since and f.stat().st_size >= 2**20]
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(300)
-def test_camera_learner_killed_and_resumed_loses_nothing(tmp_path: Path) -> None:
+def test_camera_learner_killed_and_resumed_loses_nothing(tmp_path: Path, monkeypatch) -> None:
+    """On Zenoh's shared memory (deploy/zenoh/shared-memory.json5, every process through ``ZENOH_CONFIG``): the
+    frames' path that ``khgrl bench images`` measures; every other test runs on KhGRL's default (copies)."""
     from khgrl.benchmarks.scale import provenance_check
 
+    monkeypatch.setenv("ZENOH_CONFIG", str(REPO / "deploy" / "zenoh" / "shared-memory.json5"))
+    t0 = time.time() - 1.0
     learner_args = ["--learning-starts", "16", "--max-lead", "8", "--checkpoint-every", "100", "--buffer-size", "5000",
                     "--gradient-steps", "2"]
     actor_args = ["--task", CAMERA, "--method", "kgrl", "--learning-starts", "16", "--max-lead", "8", "--episodes",
@@ -152,6 +163,7 @@ def test_camera_learner_killed_and_resumed_loses_nothing(tmp_path: Path) -> None
         actor = g.actor(run, ep, *actor_args)
         wait_for(lambda: _journal_rows(run_dir / "learner") >= 24, 120, "a full checkpoint, then the journal",
                  procs=[learner, actor])
+        assert _new_pools(t0), "no process of this run put its batches on shared memory"
         learner.kill()
         learner.wait(30)
         resumed = g.learner(run, ep, *learner_args, "--resume")

@@ -179,6 +179,7 @@ def test_experiment_runs_resumes_and_redoes_an_interrupted_run(tmp_path):
     (run / "leftover.txt").write_text("half a run")
     third = _experiment(out, "--timeout", "1")
     assert third.returncode == 1, third.stdout + third.stderr
+    assert "no run finished" in third.stdout and "analyse with" not in third.stdout  # (every run failed)
     episodes = run / "actor-a0" / "episodes.csv"  # (the episodes of before gone with the rest)
     assert not (run / "leftover.txt").exists() and (not episodes.is_file() or len(_rows(run)) < 3)
     entry = json.loads((out / "experiment.json").read_text())["runs"][name]

@@ -102,3 +102,19 @@ def test_shipped_secure_router_matches_the_generated_access_control():
     assert settings["transport"]["link"]["tls"]["enable_mtls"] is True
     clients = {p.name.removeprefix("secure-").removesuffix(".json5") for p in SHIPPED.glob("secure-*.json5")}
     assert clients - {"router"} == set(cns)  # one client configuration per identity the router knows
+
+
+def test_shared_memory_is_off_unless_a_file_sets_its_section(tmp_path, caplog):
+    endpoint = ["tcp/127.0.0.1:7447"]
+    assert _get(build_config("client", [], endpoint, 3000), "transport/shared_memory/enabled") is False
+    shipped = build_config("client", [], endpoint, 3000, SHIPPED / "shared-memory.json5")
+    assert _get(shipped, "transport/shared_memory/enabled") is True
+    assert _get(shipped, "transport/shared_memory/transport_optimization/messages") == ["put"]  # zenoh#2628
+    f = tmp_path / "z.json5"  # only enabled: true is Zenoh's default, left to KhGRL's tuning (off)
+    f.write_text("{ transport: { shared_memory: { enabled: true } } }")
+    assert _get(build_config("client", [], endpoint, 3000, f), "transport/shared_memory/enabled") is False
+    f.write_text("{ transport: { shared_memory: { transport_optimization: { pool_size: 33554432 } } } }")
+    with caplog.at_level(logging.WARNING, logger="khgrl.transport"):
+        mine = build_config("client", [], endpoint, 3000, f)
+    assert _get(mine, "transport/shared_memory/enabled") is True  # the file's own section, queries and replies too
+    assert "zenoh#2628" in caplog.text and "query and reply" in caplog.text
