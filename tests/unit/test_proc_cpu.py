@@ -13,29 +13,29 @@ from helpers import wait_for
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 
-# a child whose argv names the router role: burns 0.5 CPU-s once told to (a line on the stdin it shares with its
-# parent), then waits to be killed
-BURN = ("import sys, time\nsys.stdin.readline()\nt = time.process_time()\n"
-        "while time.process_time() - t < 0.5: pass\ntime.sleep(30)")
-PARENT = f"import subprocess, sys, time\nsubprocess.Popen([sys.executable, '-c', {BURN!r}, 'router'])\ntime.sleep(30)"
+# a child whose argv names the router role: burns 0.6 CPU-s once the file in its argv exists, then waits to be killed
+BURN = ("import os, sys, time\nwhile not os.path.exists(sys.argv[1]): time.sleep(0.01)\nt = time.process_time()\n"
+        "while time.process_time() - t < 0.6: pass\ntime.sleep(30)")
+PARENT = ("import subprocess, sys, time\n"
+          f"subprocess.Popen([sys.executable, '-c', {BURN!r}, sys.argv[1], 'router'])\ntime.sleep(30)")
 
 
 def _router(tree: dict) -> float:
     return sum(cpu for role, cpu in tree.values() if role == "router")
 
 
-def test_a_trees_cpu_by_role_counts_its_children():
+def test_a_trees_cpu_by_role_counts_its_children(tmp_path):
     from khgrl.benchmarks.proc_cpu import cpu_between, tree_cpu
 
     def reading(done):
         tree = tree_cpu(p.pid)
         return tree if done(tree) else None
 
-    p = subprocess.Popen([sys.executable, "-c", PARENT], stdin=subprocess.PIPE, text=True)
+    go = tmp_path / "go"
+    p = subprocess.Popen([sys.executable, "-c", PARENT, str(go)])
     try:
-        before = wait_for(lambda: reading(lambda t: len(t) == 2), 30, "the child")
-        p.stdin.write("burn\n")
-        p.stdin.flush()
+        before = wait_for(lambda: reading(lambda t: len(t) == 2 and _router(t) > 0), 30, "the child")
+        go.touch()
         after = wait_for(lambda: reading(lambda t: _router(t) >= _router(before) + 0.5), 30, "its burn")
     finally:
         for pid in tree_cpu(p.pid):
@@ -43,5 +43,5 @@ def test_a_trees_cpu_by_role_counts_its_children():
         p.wait()
     assert sorted(role for role, _ in after.values()) == ["other", "router"], after  # the parent has no role
     spent = cpu_between(before, after)
-    assert 0.5 <= spent["router"] <= 0.7 and spent["other"] < 0.1, spent
+    assert 0.5 <= spent["router"] <= 0.8 and spent["other"] < 0.1, spent
     assert spent["learner"] == spent["actor"] == 0.0
