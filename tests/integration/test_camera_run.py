@@ -139,8 +139,15 @@ def _journal_rows(ckpt_dir: Path) -> int:
 
 def _new_pools(since: float) -> list[Path]:
     """Zenoh shared-memory pools (``/dev/shm/*.zenoh`` of 1 MiB or more) made since ``since``."""
-    shm = Path("/dev/shm")
-    return [f for f in shm.glob("*.zenoh") if f.stat().st_ctime >= since and f.stat().st_size >= 2**20]
+    found = []
+    for f in Path("/dev/shm").glob("*.zenoh"):
+        try:
+            st = f.stat()
+        except FileNotFoundError:  # a stale segment another Zenoh process cleaned up meanwhile
+            continue
+        if st.st_ctime >= since and st.st_size >= 2**20:
+            found.append(f)
+    return found
 
 
 @pytest.mark.integration
