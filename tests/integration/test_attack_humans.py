@@ -81,25 +81,29 @@ class Watch:
         with self.lock:
             return [f for t, f in self.frames if t >= t0]
 
-    def rate(self, t0: float, t1: float) -> float:
-        """Steps/s between t0 and t1, by the actor's own timestamps, within episodes: the path back to the start
-        between two episodes is not a step (no frames), and a window that spans it is not slower for it."""
+    def between(self, t0: float, t1: float) -> list:
         with self.lock:
-            fs = [f for t, f in self.frames if t0 <= t < t1]
-        gaps = [b.envelope.ts - a.envelope.ts for a, b in zip(fs, fs[1:]) if a.episode == b.episode]
+            return [f for t, f in self.frames if t0 <= t < t1]
+
+    @staticmethod
+    def steps(frames: list) -> list[tuple[object, float]]:
+        """(frame, seconds to the next frame) for consecutive frames of one episode: the path back to the start
+        between two episodes is not a step (no frames), and a window that spans it is not slower for it."""
+        return [(a, b.envelope.ts - a.envelope.ts) for a, b in zip(frames, frames[1:]) if a.episode == b.episode]
+
+    def rate(self, t0: float, t1: float) -> float:
+        """Steps/s between t0 and t1, by the actor's own timestamps, within episodes (:meth:`steps`)."""
+        gaps = [g for _, g in self.steps(self.between(t0, t1))]
         return len(gaps) / sum(gaps) if gaps and sum(gaps) > 0 else 0.0
 
     def held(self, t0: float, t1: float) -> tuple[float, float]:
         """(seconds a0's steps were intervened, seconds it stepped) between t0 and t1, within episodes."""
-        with self.lock:
-            fs = [f for t, f in self.frames if t0 <= t < t1]
-        pairs = [(a, b.envelope.ts - a.envelope.ts) for a, b in zip(fs, fs[1:]) if a.episode == b.episode]
-        return sum(g for a, g in pairs if a.intervening), sum(g for _, g in pairs)
+        steps = self.steps(self.between(t0, t1))
+        return sum(g for f, g in steps if f.intervening), sum(g for _, g in steps)
 
     def gaps(self, t0: float, n: int) -> list[float]:
         """The seconds between a0's consecutive steps of one episode, in its first ``n`` frames from t0."""
-        fs = self.since(t0)[:n]
-        return [b.envelope.ts - a.envelope.ts for a, b in zip(fs, fs[1:]) if a.episode == b.episode]
+        return [g for _, g in self.steps(self.since(t0)[:n])]
 
     def grad_rate(self, t0: float, t1: float) -> float | None:
         pts = [(t, i.gradient_steps) for t, i in self.learner if t0 <= t <= t1]
