@@ -17,7 +17,9 @@ EPISODES = 2  # episode 1: no human (blocked at the second wall); episode 2: the
 @pytest.fixture(scope="module")
 def ref_run(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("reference")
-    config = ReferenceConfig(scenario="low_cov", method="khgrl", episodes=EPISODES, human_episodes=(2,))
+    # the tests' small networks, on seed 1 (seed 0's small policy fails before the human's window in episode 2)
+    config = ReferenceConfig(scenario="low_cov", method="khgrl", episodes=EPISODES, human_episodes=(2,), seed=1,
+                             tqc=TQCSettings(net_arch=(64, 64), batch_size=64))
     episodes = run_reference(config, run_dir, progress=False)
     return run_dir, episodes
 
