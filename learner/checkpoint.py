@@ -31,12 +31,12 @@ exits 2 naming the file), and stored transitions that are not finite or lie outs
 dropped (logged with counts).
 
 Disk faults (a full, read-only or unwritable directory): a failed save removes its temporary directory and
-leaves the previous checkpoint as it was; :class:`SaveFaults` keeps the reason, counts the failures (journal writes
-too), logs them (not every retry) and says when to retry (exponential backoff). A learner started anew removes the
-temporary directories that killed learners left behind (:func:`remove_stale_temps`).
+leaves the previous checkpoint as it was; :mod:`khgrl.learner.disk_faults` says which errors are the disk's, and
+counts, logs and schedules the retries. A learner started anew removes the temporary directories that killed
+learners left behind (:func:`remove_stale_temps`).
 
-One module of ~380 lines on purpose: writing and reading one checkpoint format (atomic swap, fsync, stale
-temporaries, disk faults) must stay in one place so that both sides agree.
+One module of ~300 lines on purpose: writing and reading one checkpoint format (atomic swap, fsync, stale
+temporaries) must stay in one place so that both sides agree.
 """
 
 from __future__ import annotations
@@ -45,20 +45,18 @@ import copy
 import errno
 import json
 import logging
-import math
 import os
 import shutil
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from khgrl.learner.algorithm import BUFFER_FILE, DEFAULT, MODEL_FILE, algorithm_class
 
 __all__ = ["STATE_FILE", "MODEL_FILE", "BUFFER_FILE", "FORMAT", "TMP_PREFIX", "MODEL_TMP_PREFIX", "CheckpointError",
-           "SaveFaults", "checkpoint_dir", "model_dir", "can_resume", "copy_buffer", "find_checkpoint", "find_model",
-           "newest_model", "save_checkpoint", "save_model", "load_checkpoint", "load_checkpoint_arrays",
-           "remove_stale_temps", "is_disk_fault", "fault_reason"]
+           "checkpoint_dir", "model_dir", "can_resume", "copy_buffer", "find_checkpoint", "find_model", "newest_model",
+           "save_checkpoint", "save_model", "load_checkpoint", "load_checkpoint_arrays", "remove_stale_temps"]
 
 log = logging.getLogger("khgrl.learner")
 
@@ -66,10 +64,6 @@ STATE_FILE = "state.json"
 TMP_PREFIX = "checkpoint.tmp-"  # + the PID of the learner writing it
 MODEL_TMP_PREFIX = "model.tmp-"  # (the model checkpoint's)
 FORMAT = 2  # 1: side arrays in .npy files beside the buffer; 2: inside the replay buffer pickle
-RETRY_FIRST_S = 1.0  # a failed save is retried after 1 s, 2 s, 4 s, ... up to RETRY_MAX_S
-RETRY_MAX_S = 30.0
-WARN_EVERY_S = 60.0  # a failure with an unchanged reason is logged again at most this often
-MAX_REASON = 300  # characters of a failure's reason kept (status messages carry it)
 
 
 class CheckpointError(RuntimeError):
@@ -264,83 +258,6 @@ def remove_stale_temps(learner_dir: str | Path) -> list[Path]:
             path.unlink()
         removed.append(path)
     return removed
-
-
-def is_disk_fault(exc: BaseException) -> bool:
-    """Whether a failed save is a fault of the disk (full, read-only, unwritable, I/O error), which a learner
-    survives and retries, rather than a bug.
-
-    :param exc: what :func:`save_checkpoint` raised
-    """
-    if isinstance(exc, OSError):
-        return True
-    return isinstance(exc, RuntimeError) and "write" in str(exc).lower()  # torch: "... failed writing file ..."
-
-
-def fault_reason(exc: BaseException) -> str:
-    """A short reason for a failed save: ``ENOSPC No space left on device: PATH``.
-
-    :param exc: the error
-    """
-    if isinstance(exc, OSError) and exc.errno is not None:
-        text = f"{errno.errorcode.get(exc.errno, f'errno {exc.errno}')} {exc.strerror or ''}".strip()
-        if exc.filename:
-            text += f": {exc.filename}"
-    else:
-        text = f"{type(exc).__name__}: {exc}"
-    return text[:MAX_REASON]
-
-
-class SaveFaults:
-    """The checkpoint saves of one learner process that failed: the last reason (empty once one succeeds), the
-    failures, when to retry (after RETRY_FIRST_S, doubling up to RETRY_MAX_S), and log lines that say so
-    (a failure once per reason or WARN_EVERY_S, the recovery once).
-
-    :param clock: monotonic seconds
-    """
-
-    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
-        self.clock = clock
-        self.error = ""  # why the last save failed; "" when it succeeded
-        self.failures = 0  # failed saves in this process
-        self.streak = 0  # failed saves since the last success
-        self.retry_at = 0.0  # no save before this (clock)
-        self._since = 0.0
-        self._warned_at = -math.inf
-
-    def ready(self) -> bool:
-        """Whether a save may be tried now (always, unless a failed one waits out its backoff)."""
-        return self.clock() >= self.retry_at
-
-    def failed(self, exc: BaseException, unsaved: int, what: str = "checkpoint") -> float:
-        """A save failed: note it, log it (rate-limited), and return the seconds until the retry.
-
-        :param exc: the disk fault
-        :param unsaved: transitions accepted that no checkpoint or journal holds (not durable)
-        :param what: what failed ('checkpoint', 'model checkpoint', 'journal write')
-        """
-        now, reason = self.clock(), fault_reason(exc)
-        if self.streak == 0:
-            self._since = now
-        delay = min(RETRY_MAX_S, RETRY_FIRST_S * 2 ** min(self.streak, 16))
-        self.streak += 1
-        self.failures += 1
-        self.retry_at = now + delay
-        if reason != self.error or now - self._warned_at >= WARN_EVERY_S:
-            self._warned_at = now
-            log.warning("%s failed (%s); %d failed attempts in %.0f s; training and ingest go on, %d "
-                        "transitions are not durable and the actors keep them until a checkpoint holds them; "
-                        "retrying in %.0f s (then at most every %.0f s)", what, reason, self.streak, now - self._since,
-                        unsaved, delay, RETRY_MAX_S)
-        self.error = reason
-        return delay
-
-    def succeeded(self) -> None:
-        """A save succeeded (logs the recovery after failures)."""
-        if self.streak:
-            log.warning("checkpoint recovered after %d failed attempts over %.0f s (last: %s)", self.streak,
-                        self.clock() - self._since, self.error)
-        self.error, self.streak, self.retry_at = "", 0, 0.0
 
 
 def load_checkpoint(ckpt: str | Path, task: Any, settings: Any, device: str = "cpu",

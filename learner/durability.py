@@ -21,7 +21,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from khgrl.common.delivery.ingest import StreamTable
-from khgrl.learner.checkpoint import SaveFaults, copy_buffer, is_disk_fault, save_checkpoint, save_model
+from khgrl.learner.checkpoint import copy_buffer, save_checkpoint, save_model
+from khgrl.learner.disk_faults import SaveFaults, is_disk_fault
 from khgrl.learner.journal import Journal
 from khgrl.learner.trainer import Trainer
 
@@ -151,7 +152,7 @@ class Durability:
         pauses only while the journal is cut and the replay buffer copied (what comes meanwhile goes to the
         journal's next segment); without one (or after a journal write failed) it waits for the whole save. A disk
         fault (full, read-only, unwritable) leaves the previous checkpoint and marks nothing new durable: it is
-        logged, shown in the status, retried with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`), and None
+        logged, shown in the status, retried with backoff (:class:`~khgrl.learner.disk_faults.SaveFaults`), and None
         returned."""
         j = self.journal
         with self.lock:  # ingest waits (the inbox holds what arrives): the buffer is taken as the acks will say

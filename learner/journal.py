@@ -2,12 +2,8 @@
 data is durable moments after it arrives rather than at the next full checkpoint.
 
 Layout: ``CHECKPOINT_DIR/journal/segment-000123.bin``. A segment is a sequence of records, one per batch stored in
-the replay buffer, in the order it was stored. A record is a 12-byte header -- ``b"KJ01"``, the body's length and
-its CRC-32 (little endian) -- and a body: a 4-byte length, a JSON map (``actor``, ``stream``, ``seq``, ``base``,
-``first``, ``n``, ``obs``, ``out``) and the arrays of the batch as raw little-endian bytes (``obs``, ``next_obs``,
-``action``, ``reward`` float32; ``terminated``, ``truncated``, ``intervened``, ``clipped`` uint8); a camera
-batch's meta adds ``cams`` ([name, H, W, C] each, in name order) and ``m`` (its frames), and its ``obs_frame``,
-``next_frame`` (int32) and frames (uint8, per camera) follow. A record whose header, length or checksum is wrong
+the replay buffer, in the order it was stored (the record's format: :mod:`khgrl.learner.journal_record`). A record
+whose header, length or checksum is wrong
 is either the torn tail of a learner killed while writing (bytes never confirmed: the rest of its segment is
 ignored) or damage to what was confirmed -- :mod:`khgrl.learner.journal_scan` tells them apart with the journal's
 mark (:mod:`khgrl.learner.journal_mark`), which every group written updates before its batches are acked durable;
@@ -20,7 +16,7 @@ it and closes the file, and returns the highest seq per actor stream now on disk
 the acks). Everything that arrived while one fsync ran goes into the next one. The file is open only while a group
 is written. A failed write or fsync (disk full, read-only, I/O error) stops the journal: nothing more is journaled
 and no ack claims more (the actors keep those batches) until a full snapshot -- which holds everything -- has been
-saved; the learner retries that snapshot with backoff (:class:`~khgrl.learner.checkpoint.SaveFaults`).
+saved; the learner retries that snapshot with backoff (:class:`~khgrl.learner.disk_faults.SaveFaults`).
 
 Snapshots: before a full snapshot (:func:`~khgrl.learner.checkpoint.save_checkpoint`, ingest paused) the learner
 :meth:`Journal.cut`\\ s the journal: what waits is written, and later batches go into a new segment whose index the
@@ -28,62 +24,31 @@ snapshot records (``journal.next`` in its ``state.json``); once the snapshot is 
 deleted (:meth:`Journal.snapshot_saved`). A resumed learner loads the snapshot and replays the records of the
 segments from that index on (:func:`khgrl.learner.journal_scan.read_records`).
 
-One module of ~370 lines on purpose: the journal's record format, its writer and its reader must stay in one file;
-scanning and damage are apart (journal_scan, journal_loss).
+The record's format is :mod:`khgrl.learner.journal_record` (the writer here and the reader,
+:mod:`khgrl.learner.journal_scan`, both take it from there); damage and what it cost: :mod:`khgrl.learner.journal_loss`.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import re
-import struct
 import threading
-import zlib
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
-import numpy as np
-from khgrl.common.wire.frames import cameras_of
-from khgrl.common.wire.protocol import Envelope, Transitions
+from khgrl.common.wire.protocol import Transitions
 from khgrl.learner.journal_mark import JournalMark, load_mark, remove_mark, save_mark
+from khgrl.learner.journal_record import array_bytes, encode_record
 
-__all__ = ["Journal", "JOURNAL_DIR", "SEGMENT_BYTES", "journal_dir", "segments", "encode_record", "decode_body",
-           "finite_bad_rows", "RowCheck", "ARRAYS", "MAGIC", "HEAD", "MAX_BODY"]
+__all__ = ["Journal", "JOURNAL_DIR", "SEGMENT_BYTES", "journal_dir", "segments"]
 
 log = logging.getLogger("khgrl.learner")
 
 JOURNAL_DIR = "journal"
 SEGMENT_BYTES = 64 * 2**20  # a new segment once the current one holds this much
-MAGIC = b"KJ01"
-HEAD = struct.Struct("<4sII")  # magic, body length, crc32(body)
-_META = struct.Struct("<I")
-MAX_BODY = 64 * 2**20  # a length beyond this is a damaged header (a batch is at most 4 MiB on the wire)
 MAX_WAITING_BYTES = 256 * 2**20  # batches waiting for a disk that does not keep up: beyond this the journal stops
 _NAME = re.compile(r"^segment-(\d{6,})\.bin$")
-# (field, dtype, columns: "obs" / "out" / None for a vector)
-ARRAYS = (("obs", "<f4", "obs"), ("next_obs", "<f4", "obs"), ("action", "<f4", "out"), ("reward", "<f4", None),
-          ("terminated", "|u1", None), ("truncated", "|u1", None), ("intervened", "|u1", None),
-          ("clipped", "|u1", None))
-
-RowCheck = Callable[[dict[str, np.ndarray], Any], np.ndarray]
-"""``check(arrays, descriptor) -> bad``: per row of a batch (``arrays`` by the names of :data:`ARRAYS`), whether it
-must not be stored (a boolean array of length n). ``descriptor``: the run's task descriptor (or None)."""
-
-
-def finite_bad_rows(arrays: dict[str, np.ndarray], descriptor: Any = None) -> np.ndarray:
-    """The default row check of journal replay: a row with a non-finite observation, next observation, action or
-    reward is bad.
-
-    :param arrays: the batch's arrays by name
-    :param descriptor: the run's task descriptor (unused here)
-    """
-    bad = ~np.isfinite(arrays["reward"])
-    for name in ("obs", "next_obs", "action"):
-        bad |= ~np.isfinite(arrays[name]).all(axis=1)
-    return bad
-
 
 def journal_dir(ckpt_dir: str | Path) -> Path:
     """The journal directory of a learner's checkpoint directory.
@@ -107,74 +72,6 @@ def segments(directory: str | Path) -> list[tuple[int, Path]]:
         return []
     found = [(int(m.group(1)), p) for p in directory.iterdir() if (m := _NAME.match(p.name))]
     return sorted(found)
-
-
-def encode_record(msg: Transitions, seq: int, skipped: int = 0) -> bytes:
-    """One journal record of a stored batch.
-
-    :param msg: the batch
-    :param seq: its seq in the actor's stream
-    :param skipped: the batches its stream had skipped when it was stored (``ActorStream.skipped``: a replay tells
-        the learner's own skips from batches the journal lost)
-    """
-    meta = {"actor": msg.actor, "stream": msg.stream or "", "seq": int(seq), "base": int(msg.base_seq or 0),
-            "first": int(msg.first_step), "n": msg.n, "obs": int(msg.obs.shape[1]), "out": int(msg.action.shape[1]),
-            "skipped": int(skipped)}
-    if msg.frames is not None:  # a camera batch: its cameras and frame count (the arrays follow the others)
-        meta.update(cams=[[k, *map(int, shape)] for k, shape in cameras_of(msg.frames)], m=_frame_count(msg))
-    text = json.dumps(meta).encode()
-    parts = [_META.pack(len(text)), text]
-    parts += [np.ascontiguousarray(getattr(msg, name), dtype=dt).tobytes() for name, dt, _ in ARRAYS]
-    parts += [np.ascontiguousarray(a).tobytes() for a in _frame_parts(msg)]
-    body = b"".join(parts)
-    return HEAD.pack(MAGIC, len(body), zlib.crc32(body)) + body
-
-
-def _frame_count(msg: Transitions) -> int:
-    return int(len(next(iter(msg.frames.values()))))
-
-
-def _frame_parts(msg: Transitions) -> list[np.ndarray]:
-    """A camera batch's arrays after :data:`ARRAYS` in a record: ``obs_frame``, ``next_frame`` (int32), then each
-    camera's frames in name order (none: a vector batch)."""
-    if msg.frames is None:
-        return []
-    return [np.asarray(msg.obs_frame, "<i4"), np.asarray(msg.next_frame, "<i4"),
-            *(np.asarray(msg.frames[k], np.uint8) for k, _ in cameras_of(msg.frames))]
-
-
-def decode_body(body: memoryview) -> tuple[Transitions, int | None]:
-    """The batch of a record's body and the batches its stream had skipped then (None: a record of a learner
-    before that was kept); ValueError, KeyError or TypeError if it does not decode.
-
-    :param body: the record's body (after its header)
-    """
-    (mlen,) = _META.unpack_from(body, 0)
-    meta = json.loads(bytes(body[_META.size:_META.size + mlen]))
-    n, off = int(meta["n"]), _META.size + mlen
-    arrays = {}
-    for name, dt, cols in ARRAYS:
-        shape = (n,) if cols is None else (n, int(meta[cols]))
-        count = int(np.prod(shape))
-        arr = np.frombuffer(body, dtype=dt, count=count, offset=off).reshape(shape)
-        arrays[name] = arr
-        off += arr.nbytes
-    if "cams" in meta:  # a camera batch's frame indices and frames
-        m = int(meta["m"])
-        specs = [("obs_frame", "<i4", (n,)), ("next_frame", "<i4", (n,))]
-        specs += [(f"cam:{c[0]}", "|u1", (m, *map(int, c[1:]))) for c in meta["cams"]]
-        for name, dt, shape in specs:
-            arr = np.frombuffer(body, dtype=dt, count=int(np.prod(shape)), offset=off).reshape(shape)
-            arrays[name] = arr
-            off += arr.nbytes
-        arrays["frames"] = {k[4:]: arrays.pop(k) for k in list(arrays) if k.startswith("cam:")}
-    if off != len(body):
-        raise ValueError(f"{len(body) - off} bytes left over")
-    msg = Transitions(actor=meta["actor"], first_step=int(meta["first"]), stream=meta["stream"] or None,
-                      base_seq=int(meta["base"]), **arrays)
-    object.__setattr__(msg, "envelope", Envelope(kind=Transitions.KIND, sender=meta["actor"], seq=int(meta["seq"]),
-                                                 ts=0.0))
-    return msg, (int(meta["skipped"]) if "skipped" in meta else None)
 
 
 def _fsync_dir(directory: Path) -> None:
@@ -228,7 +125,7 @@ class Journal:
         :param stream: its actor's :class:`~khgrl.common.delivery.ingest.ActorStream` (``durable`` is raised there
             once the record is on disk)
         """
-        size = sum(getattr(msg, name).nbytes for name, _, _ in ARRAYS) + sum(a.nbytes for a in _frame_parts(msg))
+        size = array_bytes(msg)
         with self._mu:
             if self.error:
                 return

@@ -25,8 +25,9 @@ from pathlib import Path
 from typing import Iterator, NamedTuple
 
 from khgrl.common.wire.protocol import Transitions
-from khgrl.learner.journal import HEAD, MAGIC, MAX_BODY, decode_body, segments
+from khgrl.learner.journal import segments
 from khgrl.learner.journal_mark import JournalMark, load_mark
+from khgrl.learner.journal_record import HEAD, MAGIC, MAX_BODY, decode_body
 
 __all__ = ["Damage", "Record", "JournalScan", "read_records"]
 

@@ -28,7 +28,7 @@ from khgrl.common.delivery.learner_side import IDLE_WAIT_S, LearnerIngest
 from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import LearnerInfo
 from khgrl.common.wire.protocol import Control, Status
-from khgrl.learner.checkpoint import fault_reason
+from khgrl.learner.disk_faults import fault_reason
 from khgrl.learner.durability import Durability
 from khgrl.learner.journal import Journal
 from khgrl.learner.resume import open_learner, rss_mb

@@ -10,7 +10,7 @@ import logging
 import os
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from khgrl.common.config.settings import TQCSettings
@@ -20,14 +20,15 @@ from khgrl.learner.algorithm import DEFAULT, algorithm_class
 from khgrl.learner.checkpoint import (
     STATE_FILE,
     CheckpointError,
-    fault_reason,
     find_checkpoint,
     find_model,
     remove_stale_temps,
 )
-from khgrl.learner.journal import ARRAYS, RowCheck, journal_dir, segments
+from khgrl.learner.disk_faults import fault_reason
+from khgrl.learner.journal import journal_dir, segments
 from khgrl.learner.journal_loss import JournalDamage, JournalLoss, check_loss
 from khgrl.learner.journal_mark import remove_mark
+from khgrl.learner.journal_record import ARRAYS
 from khgrl.learner.journal_scan import JournalScan
 from khgrl.learner.sound import load_sound_checkpoint
 from khgrl.learner.trainer import Trainer, build_algorithm, keep_freed_memory, torch_device
@@ -36,8 +37,12 @@ __all__ = ["open_learner", "replay_journal", "rss_mb", "DEFAULT_ROW_CHECK", "Jou
 
 log = logging.getLogger("khgrl.learner")
 
-# The check of every journal row a resumed learner replays (see RowCheck; another per call through
-# open_learner(row_check=...)).
+RowCheck = Callable[[dict[str, np.ndarray], Any], np.ndarray]
+"""``check(arrays, descriptor) -> bad``: per row of a journal batch (``arrays`` by the names of
+:data:`~khgrl.learner.journal_record.ARRAYS`), whether it must not be stored (a boolean array of length n).
+``descriptor``: the run's task descriptor (or None)."""
+
+# The check of every journal row a resumed learner replays (another per call through open_learner(row_check=...)).
 DEFAULT_ROW_CHECK: RowCheck = bad_rows  # finite, and within the task's value bounds
 
 

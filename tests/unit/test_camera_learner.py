@@ -21,7 +21,7 @@ from khgrl.common.wire.protocol import Transitions, decode
 from khgrl.deploy.examples.camera_task import make_task
 from khgrl.learner.frame_replay import FrameReplayBuffer
 from khgrl.learner.image_policy import DrQTQCPolicy
-from khgrl.learner.journal import decode_body, encode_record
+from khgrl.learner.journal_record import decode_body, encode_record
 from khgrl.learner.sound import drop_bad_rows
 from khgrl.learner.tqc import TQCAlgorithm
 

@@ -22,16 +22,13 @@ from khgrl.common.process import StopFlag
 from khgrl.common.wire.messages import LearnerInfo
 from khgrl.common.wire.protocol import Ack, Status, Transitions, decode, encode
 from khgrl.learner.checkpoint import (
-    RETRY_MAX_S,
     TMP_PREFIX,
-    SaveFaults,
-    fault_reason,
     find_checkpoint,
-    is_disk_fault,
     load_checkpoint_arrays,
     remove_stale_temps,
     save_checkpoint,
 )
+from khgrl.learner.disk_faults import RETRY_MAX_S, SaveFaults, fault_reason, is_disk_fault
 from khgrl.learner.loop import LearnerLoop, open_learner
 
 SMALL = TQCSettings(learning_starts=16, buffer_size=1000, net_arch=(32, 32), batch_size=32)

@@ -15,10 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from khgrl.common.process import StopFlag
+from khgrl.common.wire.bounds import bad_rows
 from khgrl.common.wire.protocol import Ack, Control
 from khgrl.learner import journal as journal_module
 from khgrl.learner.checkpoint import find_checkpoint, find_model
-from khgrl.learner.journal import Journal, finite_bad_rows, journal_dir, segments
+from khgrl.learner.journal import Journal, journal_dir, segments
+from khgrl.learner.journal_record import ARRAYS
 from khgrl.learner.journal_scan import read_records
 from khgrl.learner.loop import LearnerLoop, open_learner
 
@@ -33,7 +35,7 @@ class _Stream:
 def _same(a, b) -> None:
     assert (a.actor, a.stream, a.envelope.seq, a.first_step, a.base_seq) == \
         (b.actor, b.stream, b.envelope.seq, b.first_step, b.base_seq)
-    for name, _, _ in journal_module.ARRAYS:
+    for name, _, _ in ARRAYS:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
 
 
@@ -123,11 +125,11 @@ def test_a_failed_write_claims_nothing_until_a_snapshot(tmp_path, monkeypatch):
     assert list(j.sync()[0].values()) == [(s, 3)]
 
 
-def test_finite_row_check():
+def test_the_replays_row_check_without_a_task_refuses_what_is_not_finite():
     arrays = {"obs": np.zeros((3, 2), np.float32), "next_obs": np.zeros((3, 2), np.float32),
               "action": np.zeros((3, 1), np.float32), "reward": np.array([0, np.inf, 0], np.float32)}
     arrays["obs"][2, 1] = np.nan
-    assert finite_bad_rows(arrays, None).tolist() == [False, True, True]
+    assert bad_rows(arrays, None).tolist() == [False, True, True]  # (resume.DEFAULT_ROW_CHECK)
 
 
 # ------------------------------------------------------------------------------------ loop and resume
