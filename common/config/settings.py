@@ -18,7 +18,9 @@ and ``config.json`` with the run's runtime facts: run id, router endpoint, actor
 that file instead of a hand-built argv, and ``khgrl up --config RUN_DIR/config.toml`` runs the same configuration
 again.
 
-One module of ~380 lines on purpose: the dataclasses and the flags built from them must stay together: a flag is a
+A table becomes the dataclass in :mod:`khgrl.common.config.tables` (types and choices checked there).
+
+One module of ~330 lines on purpose: the dataclasses and the flags built from them must stay together: a flag is a
 field.
 """
 
@@ -38,6 +40,7 @@ from khgrl.common.config.fields import _LA, _LAH, ACTOR, HUMAN, LEARNER, REFEREN
 from khgrl.common.config.files import load_file, read_table, to_toml, write_run_config
 from khgrl.common.config.hilserl import PRESET, RECIPES, HilSerlSettings
 from khgrl.common.config.safety import SafetySettings
+from khgrl.common.config.tables import build, merge
 from khgrl.common.config.tqc import SAMPLINGS, TQCSettings
 
 __all__ = ["METHODS", "HUMAN_METHODS", "REFERENCE_METHODS", "SAMPLINGS", "HILSERL_DEFAULTS", "HUMANS",
@@ -301,73 +304,20 @@ def _overrides(args: argparse.Namespace) -> dict:
     return out
 
 
-# ------------------------------------------------------------------------------------ files
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out.get(k, {}), v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
-def _coerce(value: Any, typ: Any, where: str) -> Any:
-    if typ is bool:
-        if not isinstance(value, bool):
-            raise ValueError(f"{where}: expected true/false, got {value!r}")
-        return value
-    if typ is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ValueError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if typ is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ValueError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if typ is str:
-        if not isinstance(value, str):
-            raise ValueError(f"{where}: expected a string, got {value!r}")
-        return value
-    if not isinstance(value, (list, tuple)):  # tuple[int, ...]
-        raise ValueError(f"{where}: expected a list of integers, got {value!r}")
-    return tuple(_coerce(v, int, where) for v in value)
-
-
-def _build(cls, data: dict, where: str):
-    hints = get_type_hints(cls)
-    names = {f.name for f in fields(cls)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ValueError(f"{where}: unknown setting(s) {', '.join(unknown)}")
-    kw = {}
-    for f in fields(cls):
-        if f.name not in data:
-            continue
-        typ, value = hints[f.name], data[f.name]
-        if is_dataclass(typ):
-            if not isinstance(value, dict):
-                raise ValueError(f"{where}.{f.name}: expected a table")
-            kw[f.name] = _build(typ, value, f"{where}.{f.name}")
-            continue
-        kw[f.name] = _coerce(value, typ, f"{where}.{f.name}")
-        choices = f.metadata.get("choices")
-        if choices and kw[f.name] not in choices:
-            raise ValueError(f"{where}.{f.name}: {kw[f.name]!r} is not one of {', '.join(choices)}")
-    return cls(**kw)
-
-
 def resolve(config_file: str | Path | None = None, args: argparse.Namespace | None = None,
             overrides: dict | None = None) -> RunConfig:
     """Defaults < ``config_file`` < flags in ``args`` (from :func:`add_config_flags`) < ``overrides``;
     validated (:class:`ValueError` names the bad setting)."""
     data = load_file(config_file) if config_file else {}
     if args is not None:
-        data = _merge(data, _overrides(args))
+        data = merge(data, _overrides(args))
     if overrides:
-        data = _merge(data, overrides)
+        data = merge(data, overrides)
     if data.get("recipe") == "hil-serl":  # HIL-SERL's recipe (common/config/hilserl.py), unless set
-        data = _merge(PRESET, data)
+        data = merge(PRESET, data)
     if data.get("method") == "hil-serl":  # the recipe's algorithm and sampling, unless set
-        data = _merge(HILSERL_DEFAULTS, data)
-    return _build(RunConfig, data, "config").validate()
+        data = merge(HILSERL_DEFAULTS, data)
+    return build(RunConfig, data, "config").validate()
 
 
 def read_run_file(path: str | Path) -> tuple[RunConfig, dict]:
@@ -377,4 +327,4 @@ def read_run_file(path: str | Path) -> tuple[RunConfig, dict]:
         raise FileNotFoundError(f"run configuration {path} does not exist")
     data = json.loads(path.read_text())
     runtime = data.pop("runtime", {}) if isinstance(data, dict) else {}
-    return _build(RunConfig, data, str(path)).validate(), runtime
+    return build(RunConfig, data, str(path)).validate(), runtime
