@@ -3,11 +3,10 @@ data is durable moments after it arrives rather than at the next full checkpoint
 
 Layout: ``CHECKPOINT_DIR/journal/segment-000123.bin``. A segment is a sequence of records, one per batch stored in
 the replay buffer, in the order it was stored (the record's format: :mod:`khgrl.learner.journal_record`). A record
-whose header, length or checksum is wrong
-is either the torn tail of a learner killed while writing (bytes never confirmed: the rest of its segment is
-ignored) or damage to what was confirmed -- :mod:`khgrl.learner.journal_scan` tells them apart with the journal's
-mark (:mod:`khgrl.learner.journal_mark`), which every group written updates before its batches are acked durable;
-a resumed learner refuses damage (:mod:`khgrl.learner.resume`).
+whose header, length or checksum is wrong is either the torn tail of a learner killed while writing (bytes never
+confirmed: the rest of its segment is ignored) or damage to what was confirmed -- :mod:`khgrl.learner.journal_scan`
+tells them apart with the journal's mark (:mod:`khgrl.learner.journal_mark`), which every group written updates
+before its batches are acked durable; a resumed learner refuses damage (:mod:`khgrl.learner.resume`).
 
 Writing (group commit): the ingest thread :meth:`Journal.append`\\ s each stored batch to a list in memory (no I/O
 on the ingest path); :meth:`Journal.sync` -- the learner's *journal thread* calls it as soon as something waits,
