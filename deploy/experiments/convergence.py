@@ -9,7 +9,8 @@ Per run, two milestones (episodes counted from 1; "autonomous" = no intervention
 At each: the episode, the environment steps up to and including it, the **human steps** up to it (intervention
 steps of those episodes plus the teacher's ``steps_driven``: the budget a person spends) and the wall seconds of
 those episodes. A run that never reaches a milestone is censored: its values at the end of the run are lower bounds
-("> N"). Per task, each HIL-SERL arm against KhGRL: the ratio of the seed means with a percentile bootstrap interval
+("> N"). Per task, each HIL-SERL arm against KhGRL (and, with both HIL-SERL arms, its recipe against its protocol:
+hypothesis C3 of docs/results_vs_hilserl.md): the ratio of the seed means with a percentile bootstrap interval
 (seeds resampled within each arm), the final policies' success over new scenes (Wilson), and the smallest one-sided
 Mann-Whitney p that the seeds allow. Writes ``convergence.md``, ``convergence.csv`` and ``curves_<task>.png``.
 """
@@ -165,19 +166,31 @@ def _arm_cell(runs: list[RunConvergence], name: str, key: str) -> str:
     return f"{'' if all(m.reached for m in ms) else '≥ '}{_num(np.mean([getattr(m, key) for m in ms]))} ({seeds})"
 
 
-def _ratio_cell(hil: list[RunConvergence], kh: list[RunConvergence], name: str, key: str) -> str:
+def _ratio_cell(num: list[RunConvergence], den: list[RunConvergence], name: str, key: str) -> str:
     if name == "whole run":  # the human budget of the whole runs: nothing censored
         if key != "human_steps":
             return ""
-        point, lo, hi = ratio_interval([r.human_budget for r in hil], [r.human_budget for r in kh])
+        point, lo, hi = ratio_interval([r.human_budget for r in num], [r.human_budget for r in den])
         return f"{_num(point)} [{_num(lo)}, {_num(hi)}]"
-    point, lo, hi = ratio_interval([getattr(r.milestones[name], key) for r in hil],
-                                   [getattr(r.milestones[name], key) for r in kh])
-    reached = [r.milestones[name].reached for r in hil]
-    flag = "" if all(r.milestones[name].reached for r in kh) else "†"
+    point, lo, hi = ratio_interval([getattr(r.milestones[name], key) for r in num],
+                                   [getattr(r.milestones[name], key) for r in den])
+    reached = [r.milestones[name].reached for r in num]
+    flag = "" if all(r.milestones[name].reached for r in den) else "†"
     if not any(reached):
         return f"> {_num(point)}{flag}"
     return f"{'' if all(reached) else '≥ '}{_num(point)} [{_num(lo)}, {_num(hi)}]{flag}"
+
+
+def _ratio_table(title: str, pairs: list[tuple[str, str]], groups: dict[str, list[RunConvergence]]) -> list[str]:
+    """Rows of ``numerator : denominator`` for each pair of arms, per milestone and for the whole run's human steps."""
+    lines = [f"| {title} | milestone | {' | '.join(h for _, h in METRICS)} | min p |",
+             "|---|---|" + "---|" * (len(METRICS) + 1)]
+    for num, den in pairs:
+        p = smallest_p(len(groups[num]), len(groups[den]))
+        for name in (*MILESTONES, "whole run"):
+            cells = " | ".join(_ratio_cell(groups[num], groups[den], name, k) for k, _ in METRICS)
+            lines.append(f"| {METHOD_LABEL[num]} : {METHOD_LABEL[den]} | {name} | {cells} | {p:.3g} |")
+    return [*lines, ""]
 
 
 def _task_markdown(task: str, groups: dict[str, list[RunConvergence]]) -> list[str]:
@@ -192,15 +205,11 @@ def _task_markdown(task: str, groups: dict[str, list[RunConvergence]]) -> list[s
     lines += ["", "Human budget of the whole run (intervention + teacher steps): " + "; ".join(
         f"{METHOD_LABEL.get(m, m)} {_num(np.mean([r.human_budget for r in rs]))} "
         f"({', '.join(str(r.human_budget) for r in rs)})" for m, rs in groups.items()), ""]
-    arms = [m for m in HIL_ARMS if m in groups and "khgrl" in groups]
-    if arms:
-        lines += [f"| HIL-SERL arm : KhGRL | milestone | {head} | min p |", rule]
-        for arm in arms:
-            p = smallest_p(len(groups[arm]), len(groups["khgrl"]))
-            for name in (*MILESTONES, "whole run"):
-                cells = " | ".join(_ratio_cell(groups[arm], groups["khgrl"], name, k) for k, _ in METRICS)
-                lines.append(f"| {METHOD_LABEL[arm]} : KhGRL | {name} | {cells} | {p:.3g} |")
-        lines.append("")
+    pairs = [(arm, "khgrl") for arm in HIL_ARMS if arm in groups and "khgrl" in groups]
+    if pairs:
+        lines += _ratio_table("HIL-SERL arm : KhGRL", pairs, groups)
+    if all(arm in groups for arm in HIL_ARMS):  # does the recipe matter (HIL-SERL against itself)?
+        lines += _ratio_table("HIL-SERL's recipe : its protocol", [HIL_ARMS[::-1]], groups)
     evals = [(m, sum(r.evaluation[1] for r in rs), sum(r.evaluation[2] for r in rs),
               ", ".join(sorted({r.evaluation[0] for r in rs} - {""}))) for m, rs in groups.items()]
     if any(n for _, _, n, _ in evals):
@@ -213,8 +222,9 @@ NOTE = ("Milestones: 'first' the first autonomous success (no human step in the 
         f"completes the first window of {WINDOW} autonomous episodes with >= {RATE:.0%} successes. Cells: mean over "
         "seeds (per seed). '>N': the run never reached the milestone, N is its value at the run's "
         "end (a lower bound); '≥' a mean or ratio with such lower bounds in the HIL-SERL arm; '> X' every run of that "
-        "arm censored. '†': some KhGRL run censored too (its end value enters the mean; the ratio may be too high). "
-        "Ratio = HIL-SERL arm's seed mean : KhGRL's (whole run: the runs' human budgets), [2.5 %, 97.5 %] percentile "
+        "arm censored. '†': some run of the arm after the colon censored too (its end value enters the mean; the ratio "
+        "may be too high). Ratio = one arm's seed mean : another's (HIL-SERL arm : KhGRL; HIL-SERL's recipe : its "
+        "protocol), whole run: the runs' human budgets; [2.5 %, 97.5 %] percentile "
         f"bootstrap over seeds (each arm resampled independently, {RESAMPLES} resamples, seed {BOOT_SEED}). Human "
         "steps = intervention steps + the teacher's steps driven; wall s = the episodes' wall time (not the "
         "teacher's). min p: the smallest one-sided Mann-Whitney p that n1 vs n2 seeds can give, 1 / C(n1 + n2, n1).")

@@ -142,6 +142,24 @@ def test_report_writes_convergence_files(tmp_path):
     assert "| KhGRL | 80/20 | 21.5 (23, 20) |" in text and "| HIL-SERL, its recipe | 80/20 | ≥ 9 (>10, >8) |" in text
 
 
+def test_the_recipe_against_the_protocol_once_both_hil_serl_arms_ran(tmp_path):
+    exp, out = tmp_path / "exp", tmp_path / "report"
+    _experiment(exp)
+    assert "| HIL-SERL's recipe : its protocol |" not in write_convergence(find_runs(exp), out)  # (no protocol runs)
+    # the protocol (no teacher): seed 0's first autonomous success at 8 of 10, seed 1 none in 10
+    _write_run(exp / "fetch_moved-hil-serl-seed0", [i == 8 for i in range(1, 11)], {4: 12})
+    _write_run(exp / "fetch_moved-hil-serl-seed1", [False] * 10, {4: 10})
+    lines = write_convergence(find_runs(exp), out).splitlines()
+    assert "| HIL-SERL's recipe : its protocol | milestone | episodes | env steps | human steps | wall s | min p |" \
+        in lines
+    # episodes to the first: recipe (>10, 2) mean 6 vs protocol (8, >10) mean 9; both have a censored run
+    first = next(line for line in lines if line.startswith("| HIL-SERL, its recipe : HIL-SERL | first |"))
+    assert first.split(" | ")[2].startswith("≥ 0.667 [") and first.split(" | ")[2].endswith("]†"), first
+    # the whole run's human steps: recipe (320, 300) vs protocol (12, 10), never censored
+    whole = next(line for line in lines if line.startswith("| HIL-SERL, its recipe : HIL-SERL | whole run |"))
+    assert whole.split(" | ")[4].startswith("28.2 [") and whole.endswith("| 0.167 |"), whole
+
+
 def test_no_convergence_files_for_one_method_or_a_passage_scenario(tmp_path):
     exp = tmp_path / "exp"
     _write_run(exp / "fetch_moved-khgrl-seed0", KH0, KH0_HUMAN)
