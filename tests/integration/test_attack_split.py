@@ -372,8 +372,10 @@ def test_plain_mode_batches_of_fake_actor_ids_without_the_key_are_never_admitted
     with ProcGroup(tmp_path) as g:
         ep = g.router()
         learner = g.learner(run, ep, "--learning-starts", "64", "--checkpoint-every", "0", "--max-lead", "8", *FULL_UTD)
+        # (more episodes than the attack needs: a0 is stopped after it, whatever its speed -- 5 episodes ended
+        # before the attack's 9 s on a quiet machine)
         a0 = g.actor(run, ep, "--scenario", "low_cov", "--method", "kgrl", "--learning-starts", "64",
-                     "--episodes", "5", "--id", "a0")
+                     "--episodes", "40", "--id", "a0")
         with open_client(ep) as s:
             subs = [s.declare_subscriber(keys.status("*", "*"), on_status),
                     s.declare_subscriber(keys.transitions("a0"), on_batch)]
@@ -393,9 +395,10 @@ def test_plain_mode_batches_of_fake_actor_ids_without_the_key_are_never_admitted
                     if sent % 50 == 0:
                         time.sleep(max(0.0, t_attack + sent / FAKE_PER_S - time.monotonic()))
                 t_end = time.monotonic()
+                assert t_end - t_attack >= ATTACK_S, "a0 ended during the attack"
                 time.sleep(1.5)  # the learner's status after the attack
                 during = seen["learner"]
-                assert a0.wait(180) == 0, a0.tail()
+                assert a0.stop(60) == 0, a0.tail()
                 s.put(keys.control("learner"), encode(Control(command="stop"), "tester", 0))
                 assert learner.wait(60) == 0, learner.tail()
             finally:
@@ -406,7 +409,11 @@ def test_plain_mode_batches_of_fake_actor_ids_without_the_key_are_never_admitted
           f"{attacked:.1f} under attack; learner rejects {during.rejects}, dropped unadmitted "
           f"{during.not_admitted_dropped}")
     assert sent >= FAKE_IDS, sent
-    assert set(during.next_seq) == {"a0"} and during.rejects.get("mac", 0) >= 100, during
+    # no fake stored; the fakes the fair inbox let through were refused by their missing mac, the rest dropped
+    # unadmitted (how many get through depends on the ingest thread's CPU: 85 and 130 of 3,900 and 9,000 here)
+    refused = during.rejects.get("mac", 0)
+    assert set(during.next_seq) == {"a0"} and refused >= 20, during
+    assert refused + during.not_admitted_dropped >= 0.9 * sent, (refused, during.not_admitted_dropped, sent)
     assert attacked >= 0.4 * quiet, (quiet, attacked)
     state = read_json(run_dir / "learner" / "checkpoint" / "state.json")
     assert set(state["actors"]) == {"a0"}, sorted(state["actors"])[:10]
