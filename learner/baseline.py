@@ -30,6 +30,7 @@ from khgrl.common.tasks.passage.env import PassageEnv
 from khgrl.common.tasks.scripted_human import HumanCorrectionWrapper, ScriptedHuman, ScriptedHumanConfig
 from sb3_contrib import TQC
 from stable_baselines3.common.callbacks import StopTrainingOnMaxEpisodes
+from stable_baselines3.common.logger import configure
 
 __all__ = ["ReferenceConfig", "InterventionTQC", "build_env", "run_reference"]
 
@@ -189,6 +190,7 @@ def run_reference(config: ReferenceConfig, run_dir: str | Path, progress: bool =
     env = _StatsWrapper(env, on_episode)
     kwargs = config.tqc.sb3_kwargs(config.seed)
     model = InterventionTQC("MlpPolicy", env, **kwargs)
+    model.set_logger(configure(str(run_dir / "sb3"), ["csv"]))  # (SB3's default makes a directory in /tmp)
     t0 = time.perf_counter()
     model.learn(total_timesteps=config.episodes * base.horizon,
                 callback=StopTrainingOnMaxEpisodes(max_episodes=config.episodes, verbose=0))

@@ -19,6 +19,7 @@ from khgrl.learner.checkpoint import copy_buffer
 from khgrl.learner.frame_batch import PREV, pack_frames
 from khgrl.learner.frame_replay import FrameReplayBuffer, frame_capacity
 from khgrl.learner.frame_store import FrameStore, FrameStoreFull
+from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
 
 CAMS = ("pixels/front", "pixels/wrist")
@@ -304,6 +305,7 @@ def test_sb3_tqc_learns_from_it_and_saves_it(tmp_path):
     model = TQC("MultiInputPolicy", Cameras(), buffer_size=100, learning_starts=10, batch_size=8, seed=0,
                 replay_buffer_class=FrameReplayBuffer, replay_buffer_kwargs=dict(min_episode_steps=7, max_streams=1),
                 policy_kwargs=dict(net_arch=[16, 16], n_critics=2, n_quantiles=5), device="cpu")
+    model.set_logger(Logger(folder=None, output_formats=[]))  # (SB3's default leaves a directory in /tmp)
     before = [p.detach().clone() for p in model.critic.parameters()]
     model.learn(total_timesteps=28)
     rb = model.replay_buffer

@@ -34,10 +34,10 @@ TASK = SimpleNamespace(out_dim=ACT, obs_low=[-5.0] * OBS, obs_high=[5.0] * OBS)
 
 def _model(algo: str, seed: int = 5):
     """The learner's model of ``algo`` in float64 (networks and entropy coefficient)."""
-    from stable_baselines3.common.logger import configure
+    from stable_baselines3.common.logger import Logger
 
     model = algorithm_class(algo).build(TASK, SETTINGS, seed, "cpu").model
-    model.set_logger(configure(None, []))
+    model.set_logger(Logger(folder=None, output_formats=[]))  # (configure(None) leaves a directory in /tmp)
     model.policy.double()
     model.log_ent_coef.data = model.log_ent_coef.data.double()
     return model
@@ -131,10 +131,10 @@ def _filled(algo: str, cuda_graph_trainer: bool):
     """The learner's ``algo`` (float32, CPU) with 300 stored transitions; with ``cuda_graph_trainer``, trained by
     the CUDA-graph learner's iteration run eagerly."""
     from khgrl.learner.cuda_graph import GraphedTrainer
-    from stable_baselines3.common.logger import configure
+    from stable_baselines3.common.logger import Logger
 
     algo_ = algorithm_class(algo).build(TASK, SETTINGS, 5, "cpu")
-    algo_.model.set_logger(configure(None, []))
+    algo_.model.set_logger(Logger(folder=None, output_formats=[]))  # (configure(None) leaves a directory in /tmp)
     rng = np.random.default_rng(0)
     n = 300
     algo_.store(rng.normal(size=(n, OBS)).astype(np.float32), rng.normal(size=(n, OBS)).astype(np.float32),

@@ -24,6 +24,7 @@ from khgrl.learner.image_policy import (
 from sb3_contrib import TQC
 from stable_baselines3 import SAC
 from stable_baselines3.common.buffers import DictReplayBuffer
+from stable_baselines3.common.logger import Logger
 
 SIDE, EPISODE = 32, 20
 HELPERS = [(TQC, tqc_image_policy, DrQTQCPolicy), (SAC, sac_image_policy, DrQSACPolicy),
@@ -79,6 +80,7 @@ def _model(algo: type, helper, learning_starts: int = 100, **encoder):
     policy, kwargs = helper(env.observation_space, features_dim=8, **encoder)
     model = algo(policy, env, policy_kwargs={**kwargs, "net_arch": [16, 16]}, learning_starts=learning_starts,
                  batch_size=8, buffer_size=400, train_freq=20, gradient_steps=2, seed=0)
+    model.set_logger(Logger(folder=None, output_formats=[]))  # (SB3's default leaves a directory in /tmp)
     return model, env
 
 
