@@ -2,14 +2,9 @@
 learner/main.py with ``--learner-threads 1``): under pytest-xdist on a 2-core machine a second intra-op thread per
 worker oversubscribes the cores, and OpenMP's spin-waits made the backward pass of an 8x8 network 15x slower
 (test_shares' lock-step test: 36.5 s with torch's default threads, 11.8 s with one, on the same loaded machine).
-Set before torch is imported; the processes a test starts inherit it.
-
-The suite's files run longest first (:mod:`file_order`): with ``--dist loadfile`` a worker takes a whole file, and
-a long integration file handed out last kept one worker busy minutes after the other had finished."""
+Set before torch is imported; the processes a test starts inherit it."""
 
 import os
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
-
-from file_order import pytest_addoption, pytest_collection_modifyitems, pytest_configure  # noqa: E402,F401
