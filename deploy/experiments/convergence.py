@@ -12,7 +12,8 @@ those episodes. A run that never reaches a milestone is censored: its values at 
 ("> N"). Per task, each HIL-SERL arm against KhGRL (and, with both HIL-SERL arms, its recipe against its protocol:
 hypothesis C3 of docs/results_vs_hilserl.md): the ratio of the seed means with a percentile bootstrap interval
 (seeds resampled within each arm), the final policies' success over new scenes (Wilson), and the smallest one-sided
-Mann-Whitney p that the seeds allow. Writes ``convergence.md``, ``convergence.csv`` and ``curves_<task>.png``.
+Mann-Whitney p that the seeds allow; and each run on a line of its own. Writes ``convergence.md``,
+``convergence.csv`` and ``curves_<task>.png``.
 """
 
 from __future__ import annotations
@@ -193,6 +194,21 @@ def _ratio_table(title: str, pairs: list[tuple[str, str]], groups: dict[str, lis
     return [*lines, ""]
 
 
+def _run_row(r: RunConvergence) -> str:
+    """One run's line: its first autonomous success (the teacher's share of the human steps said), its 80/20 or
+    what its last autonomous episodes did, and its autonomous successes."""
+    auto = [row["success"] for row in r.rows if row["intervention_steps"] == 0]
+    first, window, n = r.milestones["first"], r.milestones["80/20"], len(r.rows)
+    teacher = f" ({r.teacher_steps:,} of them the teacher's)" if r.teacher_steps else ""
+    first_text = f"{first.episodes} / {first.human_steps:,}{teacher}" if first.reached else \
+        f"none in {n} / {r.human_budget:,} spent"
+    last = auto[-WINDOW:]
+    window_text = f"episode {window.episodes}{' (ended there)' if r.converged else ''}" if window.reached else \
+        f"not reached in {n}; {sum(last)} of its last {len(last)} autonomous succeeded"
+    return f"| {METHOD_LABEL.get(r.method, r.method)} | {r.seed} | {first_text} | {window_text} | " \
+           f"{sum(auto)} of {len(auto)} |"
+
+
 def _task_markdown(task: str, groups: dict[str, list[RunConvergence]]) -> list[str]:
     head = " | ".join(h for _, h in METRICS)
     rule = "|---|---|" + "---|" * (len(METRICS) + 1)
@@ -202,6 +218,9 @@ def _task_markdown(task: str, groups: dict[str, list[RunConvergence]]) -> list[s
             cells = " | ".join(_arm_cell(runs, name, k) for k, _ in METRICS)
             lines.append(f"| {METHOD_LABEL.get(method, method)} | {name} | {cells} | "
                          f"{sum(r.converged for r in runs)}/{len(runs)} |")
+    lines += ["", "| method | seed | first autonomous success: episode / human steps | 80 % over 20 autonomous | "
+              "autonomous successes |", "|---|---|---|---|---|",
+              *(_run_row(r) for runs in groups.values() for r in sorted(runs, key=lambda r: r.seed))]
     lines += ["", "Human budget of the whole run (intervention + teacher steps): " + "; ".join(
         f"{METHOD_LABEL.get(m, m)} {_num(np.mean([r.human_budget for r in rs]))} "
         f"({', '.join(str(r.human_budget) for r in rs)})" for m, rs in groups.items()), ""]

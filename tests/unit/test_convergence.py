@@ -140,6 +140,14 @@ def test_report_writes_convergence_files(tmp_path):
     assert "| KhGRL | 14/20 = 70 % (95 % CI 48-85 %, Wilson) | episodes |" in text  # pooled over seeds 9/10, 5/10
     assert "| HIL-SERL, its recipe | 1/20 = 5 %" in text
     assert "| KhGRL | 80/20 | 21.5 (23, 20) |" in text and "| HIL-SERL, its recipe | 80/20 | ≥ 9 (>10, >8) |" in text
+    # each run on its own line: seed 0 of KhGRL reached 80/20 without stopping there; the recipe's seed 0 never
+    # succeeded on its own (its one success had help) and spent 300 teacher + 20 takeover steps
+    assert "| KhGRL | 0 | 3 / 10 | episode 23 | 18 of 23 |" in lines
+    assert "| KhGRL | 1 | 1 / 0 | episode 20 (ended there) | 20 of 20 |" in lines
+    assert "| HIL-SERL, its recipe | 0 | none in 10 / 320 spent | not reached in 10; 0 of its last 9 autonomous " \
+           "succeeded | 0 of 9 |" in lines
+    assert "| HIL-SERL, its recipe | 1 | 2 / 300 (300 of them the teacher's) | not reached in 8; 1 of its last 8 " \
+           "autonomous succeeded | 1 of 8 |" in lines
 
 
 def test_the_recipe_against_the_protocol_once_both_hil_serl_arms_ran(tmp_path):
