@@ -167,7 +167,8 @@ def run_reference(config: ReferenceConfig, run_dir: str | Path, progress: bool =
     """Train TQC for ``config.episodes`` episodes; write config, per-episode metrics and timing to run_dir.
 
     :param config: the run
-    :param run_dir: where config.json, episodes.csv/json, summary.json (and scale_table.npy) go
+    :param run_dir: where config.json, episodes.csv/json, summary.json (and scale_table.npy) go, and SB3's log
+        (sb3/progress.csv)
     :param progress: show a progress bar
     """
     run_dir = Path(run_dir)
