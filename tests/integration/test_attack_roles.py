@@ -134,7 +134,9 @@ def test_secure_a0_certificate_without_its_key_forges_nothing_a_second_signer_ra
             with watch.lock:
                 msg, acked = watch.batch, watch.acked
             assert acked >= FORGE_FROM, acked
-            again = msg.replace(reward=np.full(msg.n, 100.0, np.float32), **_unsigned(msg))
+            # stamped as a0 would stamp it at that seq (the newest batch seen may already be past it)
+            again = msg.replace(reward=np.full(msg.n, 100.0, np.float32), base_seq=min(msg.base_seq or 0, acked),
+                                **_unsigned(msg))
             t0 = time.monotonic()
             attacker.put(keys.transitions("a0"), encode(_sign(again, copy, acked), "a0", acked))
             rc = _ended(up, 60)
