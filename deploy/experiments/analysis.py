@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from khgrl.deploy.experiments.convergence import write_convergence
 from khgrl.deploy.experiments.figures import axis_names, figure_name, plot_learning, plot_scale
+from khgrl.deploy.experiments.run_milestones import load_report_runs
 from khgrl.deploy.experiments.run_results import (
     METHOD_LABEL,
     STABLE_WINDOW,
@@ -47,9 +48,20 @@ from khgrl.deploy.experiments.summary_table import summary_markdown
 
 __all__ = ["RunResult", "find_runs", "load_run", "stable_success", "zero_cost_from", "analyse", "STABLE_WINDOW"]
 
-def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, scenarios: list[str] | None = None) -> str:
+def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, scenarios: list[str] | None = None,
+            earlier: list[Path] = ()) -> str:
     """Read every run of the experiment directories (optionally only some seeds / scenarios), write the tables and
-    figures into ``out``; return summary.md."""
+    figures into ``out``; return summary.md.
+
+    :param exp_dirs: experiment directories (``khgrl experiment`` output).
+    :param out: the report's directory.
+    :param seeds: only these seeds (default: all).
+    :param scenarios: only these scenarios or task labels (default: all).
+    :param earlier: directories of earlier reports whose runs (their ``convergence.csv``) join the convergence
+        tables: runs whose directories are elsewhere or gone (:func:`load_report_runs`).
+    """
+    before = [r for d in earlier for r in load_report_runs(Path(d))
+              if (seeds is None or r.seed in seeds) and (scenarios is None or r.task in scenarios)]
     found = [r for d in exp_dirs for r in find_runs(Path(d))
              if (seeds is None or r[2] in seeds) and (scenarios is None or r[0] in scenarios)]
     running = [r for r in found if _unfinished(r[3])]  # an experiment still running, or a run cut short
@@ -85,7 +97,7 @@ def analyse(exp_dirs: list[Path], out: Path, seeds: list[int] | None = None, sce
         names = ", ".join(r[3].name for r in running)
         text += f"\nLeft out, not finished (experiment.json: running or interrupted): {names}\n"
     (out / "summary.md").write_text(text)
-    write_convergence(found, out)  # tasks with runs of several methods: convergence.md, .csv, curves_<task>.png
+    write_convergence(found, out, before)  # tasks with runs of several methods: convergence.md, .csv, curves_<task>.png
     return text
 
 

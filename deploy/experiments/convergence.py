@@ -1,124 +1,41 @@
 """How much each method needs to converge, KhGRL against HIL-SERL (``khgrl report EXP`` on a task's runs).
 
-Per run, two milestones (episodes counted from 1; "autonomous" = no intervention step in the episode):
-
-* ``first``: the first autonomous success;
-* ``80/20``: the episode that completes the first window of 20 consecutive autonomous episodes (human-assisted ones
-  skipped) with >= 80 % successes -- the criterion of ``--until-success 0.8``.
-
-At each: the episode, the environment steps up to and including it, the **human steps** up to it (intervention
-steps of those episodes plus the teacher's ``steps_driven``: the budget a person spends) and the wall seconds of
-those episodes. A run that never reaches a milestone is censored: its values at the end of the run are lower bounds
-("> N"). Per task, each HIL-SERL arm against KhGRL (and, with both HIL-SERL arms, its recipe against its protocol:
-hypothesis C3 of docs/results_vs_hilserl.md): the ratio of the seed means with a percentile bootstrap interval
-(seeds resampled within each arm), the final policies' success over new scenes (Wilson), and the smallest one-sided
-Mann-Whitney p that the seeds allow; and each run on a line of its own. Writes ``convergence.md``,
-``convergence.csv`` and ``curves_<task>.png``.
+Each run's milestones (``first``, ``80/20``) and human budget: deploy/experiments/run_milestones.py. Per task, each
+HIL-SERL arm against KhGRL (and, with both HIL-SERL arms, its recipe against its protocol: hypothesis C3 of
+docs/results_vs_hilserl.md): the ratio of the seed means with a percentile bootstrap interval (seeds resampled
+within each arm), the final policies' success over new scenes (Wilson), and the smallest one-sided Mann-Whitney p
+that the seeds allow; and each run on a line of its own. Writes ``convergence.md``, ``convergence.csv`` and
+``curves_<task>.png``.
 """
 
 from __future__ import annotations
 
 import csv
-import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from khgrl.common.tasks.passage.scenarios import SCENARIOS
 from khgrl.deploy.experiments.figures import plot_curves
-from khgrl.deploy.experiments.run_results import METHOD_LABEL, load_evaluation
+from khgrl.deploy.experiments.run_milestones import (
+    MILESTONES,
+    RATE,
+    WINDOW,
+    Milestone,
+    RunConvergence,
+    csv_rows,
+    milestone_episode,
+    run_convergence,
+)
+from khgrl.deploy.experiments.run_results import METHOD_LABEL
 from khgrl.deploy.tools.intervals import rate_text
 
 __all__ = ["MILESTONES", "METRICS", "HIL_ARMS", "Milestone", "RunConvergence", "milestone_episode",
            "run_convergence", "ratio_interval", "smallest_p", "write_convergence"]
 
-WINDOW, RATE = 20, 0.8  # the 80/20 milestone
-MILESTONES = ("first", "80/20")
 METRICS = (("episodes", "episodes"), ("steps", "env steps"), ("human_steps", "human steps"), ("wall_s", "wall s"))
 HIL_ARMS = ("hil-serl", "hil-serl_recipe")
 RESAMPLES, BOOT_SEED = 10_000, 0
-
-
-@dataclass
-class Milestone:
-    """A run's values at a milestone; where not reached (``reached`` False) its values at the run's end."""
-
-    reached: bool
-    episodes: int
-    steps: int
-    human_steps: int
-    wall_s: float
-
-
-@dataclass
-class RunConvergence:
-    task: str
-    method: str
-    seed: int
-    rows: list[dict]  # episode, steps, success, intervention_steps, wall_time
-    teacher_steps: int  # the teacher's steps_driven (0 without a teacher)
-    converged: bool  # ended early by --until-success
-    milestones: dict[str, Milestone]
-    human_budget: int  # the whole run's: intervention steps + teacher steps
-    evaluation: tuple[str, int, int]  # (kind, successes, n) of load_evaluation
-
-
-def milestone_episode(success: list[bool], human: list[bool], name: str) -> int | None:
-    """Position (1-based, in the rows' order) of the episode that reaches a milestone, None if none does.
-
-    :param success: each episode's success.
-    :param human: whether each episode had an intervention step.
-    :param name: ``first`` or ``80/20`` (:data:`MILESTONES`).
-    """
-    size, need = (1, 1) if name == "first" else (WINDOW, math.ceil(RATE * WINDOW - 1e-9))
-    window: list[bool] = []
-    for ep, (s, h) in enumerate(zip(success, human), start=1):
-        if h:
-            continue
-        window = (window + [s])[-size:]
-        if len(window) == size and sum(window) >= need:
-            return ep
-    return None
-
-
-def _episodes(run_dir: Path) -> list[dict]:
-    f = next(f for f in (run_dir / "actor-a0" / "episodes.csv", run_dir / "episodes.csv") if f.exists())
-    with open(f, newline="") as fh:
-        return [{"episode": int(r["episode"]), "steps": int(r.get("steps") or 0), "success": r["success"] == "True",
-                 "intervention_steps": int(r["intervention_steps"]), "wall_time": float(r.get("wall_time") or 0.0)}
-                for r in csv.DictReader(fh)]
-
-
-def _json(path: Path) -> dict:
-    try:
-        return dict(json.loads(path.read_text()) or {})
-    except (OSError, ValueError, TypeError):
-        return {}
-
-
-def run_convergence(task: str, method: str, seed: int, run_dir: Path) -> RunConvergence:
-    """A run's milestones and human budget (module docstring).
-
-    :param task: the task's label.
-    :param method: the run's method (``khgrl``, ``hil-serl``, ...).
-    :param seed: its seed.
-    :param run_dir: the run directory (``actor-a0/episodes.csv``, ``actor-a0/summary.json``).
-    """
-    rows, summary = _episodes(Path(run_dir)), _json(Path(run_dir) / "actor-a0" / "summary.json")
-    teacher = summary["teacher"] if "teacher" in summary else _json(Path(run_dir) / "actor-a0" / "teacher.json")
-    teacher_steps = int((teacher or {}).get("steps_driven") or 0)  # teacher.json: a run without summary.json yet
-    steps = np.cumsum([0] + [r["steps"] for r in rows], dtype=np.int64)
-    human = teacher_steps + np.cumsum([0] + [r["intervention_steps"] for r in rows], dtype=np.int64)
-    wall = np.cumsum([0.0] + [r["wall_time"] for r in rows])
-    marks = {}
-    for name in MILESTONES:
-        at = milestone_episode([r["success"] for r in rows], [r["intervention_steps"] > 0 for r in rows], name)
-        i = at if at is not None else len(rows)  # rows up to and including it (all of them: censored)
-        marks[name] = Milestone(at is not None, rows[i - 1]["episode"] if i else 0, int(steps[i]), int(human[i]),
-                                float(wall[i]))
-    return RunConvergence(task, method, seed, rows, teacher_steps, summary.get("converged") is True, marks,
-                          int(human[-1]), load_evaluation(Path(run_dir)))
 
 
 def ratio_interval(hil: list[float], khgrl: list[float], resamples: int = RESAMPLES,
@@ -148,13 +65,6 @@ def smallest_p(n1: int, n2: int) -> float:
     :param n2: seeds of the other.
     """
     return 1.0 / math.comb(n1 + n2, n1)
-
-
-def _csv_rows(runs: list[RunConvergence]) -> list[dict]:
-    return [{"task": r.task, "method": r.method, "seed": r.seed, "milestone": name, "reached": m.reached,
-             "episodes": m.episodes, "steps": m.steps, "human_steps": m.human_steps, "wall_s": f"{m.wall_s:.3f}",
-             "teacher_steps": r.teacher_steps, "run_human_steps": r.human_budget, "converged": r.converged}
-            for r in runs for name, m in r.milestones.items()]
 
 
 def _num(v: float) -> str:
@@ -197,16 +107,15 @@ def _ratio_table(title: str, pairs: list[tuple[str, str]], groups: dict[str, lis
 def _run_row(r: RunConvergence) -> str:
     """One run's line: its first autonomous success (the teacher's share of the human steps said), its 80/20 or
     what its last autonomous episodes did, and its autonomous successes."""
-    auto = [row["success"] for row in r.rows if row["intervention_steps"] == 0]
-    first, window, n = r.milestones["first"], r.milestones["80/20"], len(r.rows)
+    first, window, counts = r.milestones["first"], r.milestones["80/20"], r.autonomous_counts()
     teacher = f" ({r.teacher_steps:,} of them the teacher's)" if r.teacher_steps else ""
     first_text = f"{first.episodes} / {first.human_steps:,}{teacher}" if first.reached else \
-        f"none in {n} / {r.human_budget:,} spent"
-    last = auto[-WINDOW:]
+        f"none in {first.episodes} / {r.human_budget:,} spent"  # not reached: the values at the run's end
+    last = "" if counts is None else f"; {counts[3]} of its last {counts[2]} autonomous succeeded"
     window_text = f"episode {window.episodes}{' (ended there)' if r.converged else ''}" if window.reached else \
-        f"not reached in {n}; {sum(last)} of its last {len(last)} autonomous succeeded"
-    return f"| {METHOD_LABEL.get(r.method, r.method)} | {r.seed} | {first_text} | {window_text} | " \
-           f"{sum(auto)} of {len(auto)} |"
+        f"not reached in {window.episodes}{last}"
+    auto = "?" if counts is None else f"{counts[1]} of {counts[0]}"
+    return f"| {METHOD_LABEL.get(r.method, r.method)} | {r.seed} | {first_text} | {window_text} | {auto} |"
 
 
 def _task_markdown(task: str, groups: dict[str, list[RunConvergence]]) -> list[str]:
@@ -249,30 +158,50 @@ NOTE = ("Milestones: 'first' the first autonomous success (no human step in the 
         "teacher's). min p: the smallest one-sided Mann-Whitney p that n1 vs n2 seeds can give, 1 / C(n1 + n2, n1).")
 
 
-def write_convergence(found: list[tuple[str, str, int, Path]], out: Path) -> str | None:
+def write_convergence(found: list[tuple[str, str, int, Path]], out: Path,
+                      earlier: list[RunConvergence] = ()) -> str | None:
     """For each task (not a passage-world scenario) with runs of more than one method: ``convergence.md``,
     ``convergence.csv`` and ``curves_<task>.png`` in ``out``. Returns the markdown, None if no task qualifies.
 
     :param found: (task, method, seed, run dir) of the runs (:func:`~khgrl.deploy.experiments.run_results.find_runs`).
     :param out: the report's directory.
+    :param earlier: runs of earlier reports (:func:`~khgrl.deploy.experiments.convergence_csv.load_report_runs`);
+        one that is also among ``found`` is left out (the run at hand counts).
     """
+    runs = [run_convergence(task, method, seed, run_dir) for task, method, seed, run_dir in found
+            if task not in SCENARIOS]
+    at_hand = {(r.task, r.method, r.seed) for r in runs}
+    added = [r for r in earlier if r.task not in SCENARIOS and (r.task, r.method, r.seed) not in at_hand]
     tasks: dict[str, dict[str, list[RunConvergence]]] = {}
-    for task, method, seed, run_dir in found:
-        if task not in SCENARIOS:
-            tasks.setdefault(task, {}).setdefault(method, []).append(run_convergence(task, method, seed, run_dir))
+    for r in sorted(runs + added, key=lambda r: r.seed):
+        tasks.setdefault(r.task, {}).setdefault(r.method, []).append(r)
     tasks = {t: {m: g[m] for m in sorted(g, key=lambda m: (m != "khgrl", m))} for t, g in tasks.items() if len(g) > 1}
     if not tasks:
         return None
     out.mkdir(parents=True, exist_ok=True)
-    lines = ["# Convergence: KhGRL against HIL-SERL", "", NOTE, ""]
-    rows = _csv_rows([r for _, groups in sorted(tasks.items()) for runs in groups.values() for r in runs])
+    lines = ["# Convergence: KhGRL against HIL-SERL", "", NOTE, "", *_earlier_note(added)]
+    rows = csv_rows([r for _, groups in sorted(tasks.items()) for runs in groups.values() for r in runs])
     with open(out / "convergence.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
     for task, groups in sorted(tasks.items()):
         lines += _task_markdown(task, groups)
-        plot_curves(task, groups, out / f"curves_{task}.png")
+        drawn = {m: [r for r in rs if r.rows is not None] for m, rs in groups.items()}
+        if any(drawn.values()):  # the runs whose episodes are at hand
+            plot_curves(task, {m: rs for m, rs in drawn.items() if rs}, out / f"curves_{task}.png")
     text = "\n".join(lines).rstrip("\n") + "\n"
     (out / "convergence.md").write_text(text)
     return text
+
+
+def _earlier_note(added: list[RunConvergence]) -> list[str]:
+    """The line that names the runs taken from earlier reports (no curve here: their episodes are not at hand)."""
+    sources: dict[str, list[str]] = {}
+    for r in added:
+        sources.setdefault(r.source, []).append(f"{r.task}-{r.method}-seed{r.seed}")
+    if not sources:
+        return []
+    named = "; ".join(f"{src}: {len(names)} runs" for src, names in sources.items())
+    return [f"Runs of earlier reports, known by their convergence.csv (in the tables, not in the curves; '?': a "
+            f"count that report did not keep): {named}.", ""]

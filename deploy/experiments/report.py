@@ -3,7 +3,8 @@
 * Experiment directories (``khgrl experiment`` output: run directories named ``<scenario>-<method>-seed<S>``):
   statistics across seeds, Fig. 4-6 and the data behind them (:mod:`khgrl.deploy.experiments.analysis`), and for
   tasks run with several methods what each needs to converge (:mod:`khgrl.deploy.experiments.convergence`), written
-  to ``--out`` (default ``EXP/report``).
+  to ``--out`` (default ``EXP/report``); ``--with-report OLD`` adds the runs of an earlier report (its
+  ``convergence.csv``) to the convergence tables.
 * Run directories of ``khgrl reference`` (``RUN/episodes.csv``) or ``khgrl up`` (``RUN/actor-<id>/episodes.csv``,
   one series per actor): per-episode curves in one figure and a markdown table.
 """
@@ -95,6 +96,27 @@ def markdown_table(series: dict[str, list[dict]]) -> str:
     return "\n".join(lines)
 
 
+def _report_experiments(args: argparse.Namespace, experiments: list[str]) -> int:
+    """``khgrl report EXP ...``: the experiments' tables and figures (and earlier reports' runs, ``--with-report``)."""
+    from khgrl.deploy.experiments.analysis import analyse
+
+    out = Path(args.out or Path(experiments[0]) / "report")
+    if any(Path(d).resolve() == out.resolve() for d in args.with_report):
+        print(f"khgrl report: error: --out {out} is a report given to --with-report; it would be overwritten by "
+              "one whose summary holds only the runs at hand: write to another directory", file=sys.stderr)
+        return 2
+    try:
+        print(analyse([Path(r) for r in experiments], out, seeds=args.seeds, scenarios=args.scenarios,
+                      earlier=[Path(d) for d in args.with_report]))
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"khgrl report: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig6_scale.png and the learning "
+          "curves of each scenario (fig4_high_cov.png, fig5_low_cov.png, learning_<task>.png); for tasks with runs "
+          "of several methods convergence.md, convergence.csv and curves_<task>.png")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="khgrl report", description="Results of experiments (statistics across seeds, "
                                 "Fig. 4-6) or of single runs (per-episode curves and a table).")
@@ -106,8 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenarios", nargs="+", default=None,
                    help=f"experiments: only these scenarios ({', '.join(SCENARIOS)}) or task labels (fetch_moved, "
                         "...) (default: all)")
+    p.add_argument("--with-report", nargs="+", default=(), metavar="DIR",
+                   help="experiments: earlier reports' directories whose runs (their convergence.csv) join the "
+                        "convergence tables, for runs whose directories are elsewhere or gone (default: none)")
     args = p.parse_args(argv)
-    from khgrl.deploy.experiments.analysis import analyse, find_runs
+    from khgrl.deploy.experiments.analysis import find_runs
 
     missing = [r for r in args.runs if not Path(r).is_dir()]
     if missing:
@@ -117,17 +142,12 @@ def main(argv: list[str] | None = None) -> int:
     if experiments and len(experiments) != len(args.runs):
         print("khgrl report: error: give either experiment directories or run directories, not both", file=sys.stderr)
         return 2
+    if args.with_report and not experiments:
+        print("khgrl report: error: --with-report joins an earlier report's runs to experiment directories' runs; "
+              "give experiment directories", file=sys.stderr)
+        return 2
     if experiments:
-        out = Path(args.out or Path(experiments[0]) / "report")
-        try:
-            print(analyse([Path(r) for r in experiments], out, seeds=args.seeds, scenarios=args.scenarios))
-        except FileNotFoundError as exc:
-            print(f"khgrl report: error: {exc}", file=sys.stderr)
-            return 2
-        print(f"wrote {out}/: summary.md, per_run.csv, per_episode.csv, scale.csv, fig6_scale.png and the learning "
-              "curves of each scenario (fig4_high_cov.png, fig5_low_cov.png, learning_<task>.png); for tasks with runs "
-              "of several methods convergence.md, convergence.csv and curves_<task>.png")
-        return 0
+        return _report_experiments(args, experiments)
     args.out = args.out or "runs/report.png"
     series: dict[str, list[dict]] = {}
     try:

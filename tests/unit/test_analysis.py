@@ -104,6 +104,15 @@ def test_report_cli_dispatches_and_rejects_mixed_input(tmp_path, capsys):
     assert main([str(tmp_path / "missing")]) == 2
     err = capsys.readouterr().err
     assert "not both" in err and "not a directory" in err and "no run directories" in err
+    # --with-report: an earlier report's directory, never the one written, and only beside experiments
+    assert main([str(exp), "--with-report", str(tmp_path)]) == 2 and "no convergence.csv" in capsys.readouterr().err
+    (tmp_path / "r0" / "convergence.csv").write_text("task,method\nfetch_moved,khgrl\n")
+    assert main([str(exp), "--with-report", str(tmp_path / "r0"), "--out", str(tmp_path / "r0")]) == 2
+    assert "would be overwritten" in capsys.readouterr().err and (tmp_path / "r0" / "summary.md").exists()
+    assert main([str(exp), "--with-report", str(tmp_path / "r0"), "--out", str(tmp_path / "r1")]) == 2
+    assert "line 2: not a convergence.csv row" in capsys.readouterr().err
+    assert main([str(single), "--with-report", str(tmp_path / "r0")]) == 2
+    assert "give experiment directories" in capsys.readouterr().err
     assert np.isfinite(float(next(csv.DictReader(open(exp / "report" / "per_run.csv")))["mean_return_last_10"]))
 
 

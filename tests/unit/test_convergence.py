@@ -17,6 +17,7 @@ from khgrl.deploy.experiments.convergence import (
     smallest_p,
     write_convergence,
 )
+from khgrl.deploy.experiments.run_milestones import load_report_runs
 from khgrl.deploy.experiments.run_results import find_runs
 from khgrl.deploy.tools.intervals import wilson_interval
 
@@ -175,3 +176,63 @@ def test_no_convergence_files_for_one_method_or_a_passage_scenario(tmp_path):
     _write_run(exp / "low_cov-hil-serl-seed0", KH0, {})
     assert write_convergence(find_runs(exp), tmp_path / "out") is None
     assert not (tmp_path / "out" / "convergence.md").exists()
+
+
+def _tables(text: str) -> list[str]:
+    """convergence.md without its header (the note and the line naming earlier reports)."""
+    lines = text.splitlines()
+    return lines[lines.index("## fetch_moved"):]
+
+
+def test_an_earlier_reports_runs_join_the_tables_as_if_their_directories_were_at_hand(tmp_path):
+    whole, part, later = tmp_path / "whole", tmp_path / "part", tmp_path / "later"
+    _experiment(whole)
+    analyse([whole], tmp_path / "r_whole")
+    # the same four runs, three in one experiment (its report kept) and the recipe's seed 1 in another
+    _experiment(part)
+    (part / "fetch_moved-hil-serl_recipe-seed1").rename(tmp_path / "moved")
+    later.mkdir()
+    (tmp_path / "moved").rename(later / "fetch_moved-hil-serl_recipe-seed1")
+    analyse([part], tmp_path / "r_part")
+    analyse([later], tmp_path / "r_merged", earlier=[tmp_path / "r_part"])
+    expected = (tmp_path / "r_whole" / "convergence.md").read_text()
+    merged = (tmp_path / "r_merged" / "convergence.md").read_text()
+    assert _tables(merged) == _tables(expected)  # ratios, per-run lines, evaluations: all as if at hand
+    assert f"{tmp_path / 'r_part'}: 3 runs" in merged
+    assert sorted(csv.DictReader(open(tmp_path / "r_merged" / "convergence.csv")), key=str) == \
+        sorted(csv.DictReader(open(tmp_path / "r_whole" / "convergence.csv")), key=str)
+    # a run in both: the one at hand counts (here a recipe seed 0 that succeeds at once, not the report's)
+    _write_run(later / "fetch_moved-hil-serl_recipe-seed0", [True] * 3, {}, TEACHER)
+    lines = write_convergence(find_runs(later), tmp_path / "r2", load_report_runs(tmp_path / "r_part")).splitlines()
+    assert "| HIL-SERL, its recipe | 0 | 1 / 300 (300 of them the teacher's) | not reached in 3; 3 of its last 3 " \
+           "autonomous succeeded | 3 of 3 |" in lines
+    assert f"{tmp_path / 'r_part'}: 2 runs" in "\n".join(lines)
+
+
+def test_a_report_written_before_the_counts_were_kept_and_bad_files(tmp_path):
+    exp = tmp_path / "exp"
+    _experiment(exp)
+    analyse([exp], tmp_path / "r")
+    path = tmp_path / "r" / "convergence.csv"
+    rows = list(csv.DictReader(open(path)))
+    old = [k for k in rows[0] if not k.startswith(("eval_", "autonomous", "last_autonomous"))]
+    with open(path, "w", newline="") as fh:  # the columns of the reports of issue 35's first 43 runs
+        w = csv.DictWriter(fh, fieldnames=old, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    runs = {(r.method, r.seed): r for r in load_report_runs(tmp_path / "r")}
+    assert runs[("khgrl", 0)].evaluation == ("episodes", 9, 10)  # from per_run.csv beside it
+    assert runs[("khgrl", 0)].autonomous_counts() is None and runs[("khgrl", 0)].rows is None
+    text = write_convergence([], tmp_path / "r2", list(runs.values()))
+    assert "| KhGRL | 0 | 3 / 10 | episode 23 | ? |" in text
+    assert "| HIL-SERL, its recipe | 0 | none in 10 / 320 spent | not reached in 10 | ? |" in text
+    assert "| KhGRL | 14/20 = 70 % (95 % CI 48-85 %, Wilson) | episodes |" in text
+    assert not (tmp_path / "r2" / "curves_fetch_moved.png").exists()  # no episodes, no curve
+    with pytest.raises(FileNotFoundError, match="no convergence.csv"):
+        load_report_runs(tmp_path)
+    path.write_text(path.read_text().replace(",first,", ",third,", 1))
+    with pytest.raises(ValueError, match="has milestones"):
+        load_report_runs(tmp_path / "r")
+    path.write_text("task,method\nfetch_moved,khgrl\n")
+    with pytest.raises(ValueError, match="line 2: not a convergence.csv row"):
+        load_report_runs(tmp_path / "r")
