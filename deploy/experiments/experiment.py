@@ -91,12 +91,12 @@ class _Runner:
 
     def one(self, spec: RunSpec) -> str:
         run_dir = self.out / spec.name
-        if self.stopping:
-            return "not started"
-        if run_is_done(run_dir, self.cfg):
+        if run_is_done(run_dir, self.cfg):  # before the Ctrl-C check: a run finished before is counted as done
             self.progress.skip(spec.name)
             self.record(spec.name, status="done", reused=True)
             return "done"
+        if self.stopping:
+            return "not started"
         if alive := rundir.live_run(run_dir):  # another invocation runs it: neither wiped nor resumed
             self.progress.finish(spec.name, "failed", 0.0, f"still running elsewhere: {', '.join(alive)}")
             return "failed"

@@ -148,3 +148,18 @@ def test_a_failed_run_prints_its_reason(capsys):
     progress.finish("r2", "done", 9.0, "ignored for a finished run")
     out = capsys.readouterr().out.splitlines()
     assert out == ["r1: failed in 3 s: khgrl up: error: no module named 'mytask'", "r2: done in 9 s"]
+
+
+def test_after_ctrl_c_a_run_finished_before_counts_as_done_and_the_rest_as_not_started(tmp_path):
+    from khgrl.deploy.experiments.experiment import RunSpec, _Runner
+
+    cfg = ExperimentConfig(out=str(tmp_path), tasks=["fetch:moved"], methods=["khgrl"], seeds=[0, 1], episodes=3)
+    finished = tmp_path / "fetch_moved-khgrl-seed0"
+    finished.mkdir()
+    (finished / "summary.json").write_text(json.dumps({"failed": [], "exit_codes": {"a0": 0},
+                                                       "a0": {"episodes": 3, "unconfirmed_transitions": 0}}))
+    runner = _Runner(cfg, [], Progress(total_runs=2, episodes=3, enabled=False))
+    runner.stopping = True  # Ctrl-C before these runs' turn came (before: both "not started")
+    assert [runner.one(RunSpec("fetch_moved", "khgrl", s, "fetch:moved")) for s in (0, 1)] == ["done", "not started"]
+    assert json.loads((tmp_path / "experiment.json").read_text())["runs"] == {
+        "fetch_moved-khgrl-seed0": {"status": "done", "reused": True}}
