@@ -17,6 +17,10 @@ FIGURE = {"high_cov": ("fig4_high_cov.png", "Fig. 4 (high-covariance scenario A)
           "low_cov": ("fig5_low_cov.png", "Fig. 5 (low-covariance scenario B)")}
 
 
+def _seeds(n: int) -> str:
+    return f"{n} seed{'' if n == 1 else 's'}"
+
+
 def figure_name(scenario: str) -> tuple[str, str]:
     """(file name, title) of a scenario's learning-curve figure: the paper's Fig. 4/5, or ``learning_<task>.png``."""
     return FIGURE.get(scenario, (f"learning_{scenario}.png", scenario))
@@ -42,7 +46,7 @@ def plot_learning(scenario: str, groups: dict[str, list[list[dict]]], episodes: 
     fig, axes = plt.subplots(len(keys), 1, figsize=(9, 2.5 * len(keys)), sharex=True, constrained_layout=True)
     ep = np.arange(1, episodes + 1)
     for method, runs in groups.items():
-        color, label = METHOD_COLOR[method], f"{METHOD_LABEL[method]} ({len(runs)} seeds)"
+        color, label = METHOD_COLOR[method], f"{METHOD_LABEL[method]} ({_seeds(len(runs))})"
         for ax, (key, _) in zip(axes, keys):
             m = episode_matrix(runs, key, episodes)
             mean = np.nanmean(m, axis=0)
@@ -136,7 +140,7 @@ def plot_curves(task: str, groups: dict[str, list], path: Path) -> None:
                 if run.converged and succ.size:
                     ax.plot(x[-1], succ[-1], "*", ms=9, color=f"C{k % 10}", label=None if marked else "converged")
             marked = marked or (run.converged and bool(succ.size))
-        axes[0, col].set_title(f"{METHOD_LABEL.get(method, method)} ({len(runs)} seeds)", fontsize=10)
+        axes[0, col].set_title(f"{METHOD_LABEL.get(method, method)} ({_seeds(len(runs))})", fontsize=10)
         axes[0, col].set_xlabel("episode")
         axes[1, col].set_xlabel("human steps (cumulative; teacher's at the start)")
         axes[0, col].legend(fontsize=7)
