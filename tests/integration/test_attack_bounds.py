@@ -98,7 +98,8 @@ def test_rewards_at_the_old_default_bound_are_refused(tmp_path):
     from khgrl.common.delivery.task_link import load_task_file
 
     run_dir = tmp_path / "run"
-    up = Launcher(tmp_path, run_dir, *KGRL, "--seed", "5", "--episodes", "2")
+    up = Launcher(tmp_path, run_dir, *KGRL, "--seed", "5", "--episodes", "2",
+                  "--rate", "50")  # ~10 s of stepping: the run outlives the attack on a fast machine too
     try:
         runtime = wait_for(lambda: (run_dir / "config.json").is_file() and read_json(run_dir / "config.json")
                            ["runtime"], 120, "config.json")

@@ -714,8 +714,10 @@ def test_hostile_messages_on_every_topic_are_rejected_counted_and_harmless(tmp_p
     run_dir, port, run = tmp_path / "run", free_port(), unique_run("evil")
     endpoint = f"tcp/127.0.0.1:{port}"
     keys = Keys(run)
+    # --rate 30: 3 episodes take ~25 s whatever the machine, so the run outlives the attack (~10 s) and the status
+    # reports after it (unpaced, a fast machine ended the run in the middle of the attack)
     argv = _up_argv(run_dir, port, run, *FAST, *FULL_UTD, "--episodes", "3", "--human-episodes", str(HUMAN_EPISODE),
-                    "--no-progress")
+                    "--no-progress", "--rate", "30")
     out_path, err_path = tmp_path / "up.stdout", tmp_path / "up.stderr"
     launcher = None
     view = _Observer(keys)
