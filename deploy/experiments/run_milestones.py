@@ -53,7 +53,7 @@ class RunConvergence:
     method: str
     seed: int
     rows: list[dict] | None  # episode, steps, success, intervention_steps, wall_time (None: a run of an earlier
-    # report, known by its convergence.csv alone: deploy/experiments/convergence_csv.py)
+    # report, known by its convergence.csv alone: load_report_runs)
     teacher_steps: int  # the teacher's steps_driven (0 without a teacher)
     converged: bool  # ended early by --until-success
     milestones: dict[str, Milestone]
