@@ -129,7 +129,7 @@ def _task_markdown(task: str, groups: dict[str, list[RunConvergence]]) -> list[s
                          f"{sum(r.converged for r in runs)}/{len(runs)} |")
     lines += ["", "| method | seed | first autonomous success: episode / human steps | 80 % over 20 autonomous | "
               "autonomous successes |", "|---|---|---|---|---|",
-              *(_run_row(r) for runs in groups.values() for r in sorted(runs, key=lambda r: r.seed))]
+              *(_run_row(r) for runs in groups.values() for r in runs)]  # (write_convergence: in seed order)
     lines += ["", "Human budget of the whole run (intervention + teacher steps): " + "; ".join(
         f"{METHOD_LABEL.get(m, m)} {_num(np.mean([r.human_budget for r in rs]))} "
         f"({', '.join(str(r.human_budget) for r in rs)})" for m, rs in groups.items()), ""]
