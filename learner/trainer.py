@@ -157,6 +157,12 @@ class Trainer:
         """More than ``learning_starts`` transitions are in: training iterations come due."""
         return self.total > self.learning_starts
 
+    @property
+    def first_due(self) -> int:
+        """The transition count at which the first training iteration comes due: the first multiple of
+        ``train_freq`` past ``learning_starts``."""
+        return (self.learning_starts // self.train_freq + 1) * self.train_freq
+
     # ------------------------------------------------------------------------------------ data
     def add(self, msg: Transitions, stream: ActorStream, positions: Callable[[], dict[str, int]]) -> None:
         """Store one accepted batch as SB3's ``_store_transition`` would, transition by transition, for one
@@ -283,19 +289,22 @@ class Trainer:
     def ack(self, stream: ActorStream) -> Ack:
         """What the learner holds of one actor's stream, in the actor's own index space.
 
-        ``trained`` inside ``learning_starts`` (no iteration due yet): what is ingested, rounded down to a multiple
-        of ``train_freq`` -- as trained on, since the initial weights are what SB3 acts with there. Not rounded,
+        ``trained`` before the first iteration comes due (:attr:`first_due` transitions: inside ``learning_starts``
+        and up to the next multiple of ``train_freq``): what is ingested, rounded down to a multiple of
+        ``train_freq`` -- as trained on, since the initial weights are what SB3 acts with there. Not rounded,
         an episode ending off the grid (Fetch: 100 steps, ``learning_starts`` 100) let the actor run ``max_lead``
         past its short last batch: past the first due iteration (104) with the initial weights whenever the ack
         of the batch that made it due came late -- a seeded run that depended on timing. On the grid, the actor
         waits at the first due step for that iteration as at every later one (``max_lead >= train_freq``: it
-        never waits for an iteration that cannot come).
+        never waits for an iteration that cannot come). Counted from ``learning_starts`` instead (0 as soon as
+        more than ``learning_starts`` are in), an episode ending between the two (Panda: 43 + 60 = 103 steps)
+        left the actor waiting for weights at 103 and the learner for its 104th transition: a deadlock.
 
         :param stream: the actor's stream
         """
-        if self.training_started:
+        if self.total >= self.first_due:
             trained = min(self.weights_trained.get(stream.actor, 0), stream.index)
-        else:  # inside learning_starts: what is ingested, down to the training grid (the docstring)
+        else:  # before the first iteration is due: what is ingested, down to the training grid (the docstring)
             trained = stream.index - stream.index % self.train_freq
         return Ack(actor=stream.actor, received=stream.next_seq - 1, durable=stream.durable, trained=int(trained),
                    version=self.version, epoch=self.epoch, stream=stream.stream or None)

@@ -227,9 +227,12 @@ def test_loop_orders_stream_and_keeps_sb3_schedule(tmp_path):
     # inside learning_starts: no training due, trained = everything ingested, down to a multiple of train_freq
     assert not tr.due and ack().trained == 16
     assert loop.offer(batch(2, 16, 5)) == "accepted" and not tr.due  # 21: the next multiple of 8 is 24
-    assert ack().trained == 0  # training started, the initial weights cover nothing
+    # past learning_starts, before the first iteration is due (24): still down to the grid, so that the actor
+    # (21 - 16 < max_lead) steps on to 24 instead of waiting for weights while the learner waits for its 24th
+    assert tr.first_due == 24 and ack().trained == 16
     assert loop.offer(batch(3, 21, 8)) == "accepted"  # 29 ingested: due at 24
     assert [at for at, _ in tr.due] == [24]
+    assert ack().trained == 0  # the iteration at 24 is due, not done: the initial weights cover nothing
     loop.step()
     assert not tr.due and tr.version == 1 and tr.gradient_steps == SMALL.gradient_steps and tr.iterations == 1
     weights = pub.of(Weights)

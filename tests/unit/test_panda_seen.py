@@ -49,3 +49,28 @@ def test_a_cube_not_seen_is_reached_for_at_the_regions_centre(envs) -> None:
     (x0, y0), (x1, y1) = seen.region
     assert info["cube_seen"] is False and seen.not_seen == before + 1
     assert np.allclose(first[CUBE][:2], [(x0 + x1) / 2, (y0 + y1) / 2])
+
+
+def test_pixels_camera_locates_the_cube_in_its_own_front_frame(envs) -> None:
+    """``panda:pick-pixels-camera``: ``panda:pick-pixels`` whose first ``environment_state`` holds the estimate that
+    ``panda:pick-camera`` makes from the same frame; its frames, state and later observations are pick-pixels'."""
+    _, seen = envs
+    pixels, located = (load_task(spec).make_env(0) for spec in ("panda:pick-pixels", "panda:pick-pixels-camera"))
+    try:
+        for seed in (1, 3):  # seed 3: the cube is not found (the region's centre)
+            truth, _ = pixels.reset(seed=seed)
+            first, info = located.reset(seed=seed)
+            flat, seen_info = seen.reset(seed=seed)
+            assert info["cube_seen"] is seen_info["cube_seen"] is (seed == 1)
+            np.testing.assert_array_equal(first["environment_state"][:2], flat[CUBE][:2])
+            assert not np.array_equal(first["environment_state"][:2], truth["environment_state"][:2])
+            for key in ("front", "wrist", "agent_pos"):
+                np.testing.assert_array_equal(first[key], truth[key])
+            a, *_ = pixels.step(np.array([0.45, 0.05, 0.2]))
+            b, *_ = located.step(np.array([0.45, 0.05, 0.2]))
+            np.testing.assert_array_equal(a["environment_state"], b["environment_state"])
+        assert located.sight.seen == 1 and located.sight.not_seen == 1
+        assert load_task("panda:pick-pixels-camera").image_keys == ("front", "wrist")
+    finally:
+        pixels.close()
+        located.close()

@@ -12,6 +12,10 @@ Rendering: gym-hil's own ``image_obs`` path renders both cameras with its ``mujo
 settings (shadow map 4096, 8 samples); here one renderer made by
 :func:`~khgrl.common.tasks.panda.camera.front_renderer` (shadows and reflections off, no multisampling) renders both
 cameras after every reset and step. Measured by ``python -m khgrl.benchmarks.pixels_step`` (ms per env step).
+
+``scene_from_camera`` (``panda:pick-pixels-camera``): the first observation's ``environment_state`` holds the cube's
+(x, y) located in that observation's own ``front`` frame (:class:`~khgrl.common.tasks.panda.seen.CubeSight`, as
+``panda:pick-camera`` locates it), so the scene and its via-points come from what the policy's camera sees.
 """
 
 from __future__ import annotations
@@ -55,15 +59,20 @@ class PandaPixels(PandaPosition):
     """:class:`~khgrl.common.tasks.panda.arm.PandaPosition` observing cameras (see the module docstring).
 
     :param size: height and width of each image (pixels).
+    :param scene_from_camera: the first observation's ``environment_state`` holds the cube's (x, y) as the front
+        frame of that observation shows it (:class:`~khgrl.common.tasks.panda.seen.CubeSight`; ``info["cube_seen"]``),
+        not its true place: the scene, via-points and scripted human then start from what the camera sees.
     :param kwargs: :class:`~khgrl.common.tasks.panda.arm.PandaPosition`'s parameters.
     """
 
-    def __init__(self, size: int = IMAGE_SIZE, **kwargs: Any) -> None:
+    def __init__(self, size: int = IMAGE_SIZE, *, scene_from_camera: bool = False, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         from khgrl.common.tasks.panda.camera import front_renderer
+        from khgrl.common.tasks.panda.seen import CubeSight
 
         self.size = int(size)
         self._renderer = front_renderer(self.base.model, self.size)
+        self.sight = CubeSight(self.base.model, self.region) if scene_from_camera else None
         image = spaces.Box(0, 255, shape=(self.size, self.size, 3), dtype=np.uint8)
         self.observation_space = spaces.Dict({
             STATE_KEY: spaces.Box(self._low[AGENT], self._high[AGENT], dtype=np.float64),
@@ -80,7 +89,15 @@ class PandaPixels(PandaPosition):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         flat, info = super().reset(seed=seed, options=options)
-        return self._observe(flat), info
+        obs = self._observe(flat)
+        if self.sight is None:
+            return obs, info
+        from khgrl.common.tasks.panda.camera import camera_of
+
+        camera = camera_of(self.base.model, self.base.data, "front")
+        seen, found = self.sight.place(obs["front"], camera, obs[PRIVILEGED_KEY][:2].copy())
+        obs[PRIVILEGED_KEY][:2] = seen
+        return obs, {**info, "cube_seen": found}
 
     def step(self, action):
         flat, reward, terminated, truncated, info = super().step(action)

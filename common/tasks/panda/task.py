@@ -31,9 +31,12 @@ policy does not see.
 ``panda:pick-camera``: ``panda:pick`` whose scene (placement, via-points) is what gym-hil's front camera sees
 (:class:`~khgrl.common.tasks.panda.seen.PandaSeen`); its observations are ``panda:pick``'s after the reset, so a
 policy trained on ``panda:pick`` runs on it unchanged (``khgrl eval RUN --task panda:pick-camera``).
+``panda:pick-pixels-camera``: both, ``panda:pick-pixels`` whose scene is located in its own first ``front`` frame.
 """
 
 from __future__ import annotations
+
+from functools import partial
 
 import numpy as np
 from khgrl.common.kmp.fit import KMPConfig
@@ -56,8 +59,8 @@ ABOVE, LIFT = 0.08, 0.16  # heights above the grasp: the descent starts here; th
 PHASES = {"above": 0.30, "grasp": 0.42, "hold": 0.55, "lift": 0.80}
 GRASP_PHASE = 0.46  # the gripper closes here (after the pinch site reaches the cube, before the lift starts)
 NEAR = 0.01  # the scripted human lets go when the mean is this close (x, y) to the cube
-SCENARIOS = ("pick", "pick-pixels", "pick-camera")  # pixels.py: observes gym-hil's cameras; seen.py: the scene
-# from the front camera
+SCENARIOS = ("pick", "pick-pixels", "pick-camera", "pick-pixels-camera")  # pixels.py: observes gym-hil's
+# cameras; seen.py: the scene from the front camera
 VIA_PHASES = np.linspace(PHASES["above"], PHASES["lift"], 16)  # where the via-points are (16: the most allowed)
 KMP = KMPConfig(length_scale=0.05)  # see the module docstring
 # L0: the fetch task's choice (same units: metres, a band of a few cm where the demonstrations spread); not tuned
@@ -148,8 +151,8 @@ class PandaGuide:
 def make_task(scenario: str = "pick", *, horizon: int = HORIZON, seed: int = 0) -> Task:
     """gym-hil's Panda pick-cube, the cube placed at random every episode.
 
-    :param scenario: "pick", "pick-pixels" (the same task observing gym-hil's cameras) or "pick-camera" (the
-        scene from the front camera).
+    :param scenario: "pick", "pick-pixels" (the same task observing gym-hil's cameras), "pick-camera" (the
+        scene from the front camera) or "pick-pixels-camera" (both).
     :param horizon: N, steps per episode.
     :param seed: seed of the teacher's demonstrations.
     """
@@ -157,8 +160,9 @@ def make_task(scenario: str = "pick", *, horizon: int = HORIZON, seed: int = 0) 
         raise ValueError(f"unknown panda scenario {scenario!r}; choose one of {list(SCENARIOS)}")
     sched = GripperSchedule(close_at=GRASP_PHASE, open_at=1.1)
     (x0, y0), (x1, y1) = REGION
-    pixels = scenario == "pick-pixels"
-    env_class = {"pick-pixels": PandaPixels, "pick-camera": PandaSeen}.get(scenario, PandaPosition)
+    pixels = scenario.startswith("pick-pixels")
+    env_class = {"pick-pixels": PandaPixels, "pick-camera": PandaSeen,
+                 "pick-pixels-camera": partial(PandaPixels, scene_from_camera=True)}.get(scenario, PandaPosition)
     return Task(
         name=f"panda-{scenario}",
         make_env=lambda s: env_class(horizon=horizon, workspace=BOUNDS, gripper=sched, region=REGION),
