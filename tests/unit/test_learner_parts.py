@@ -245,6 +245,36 @@ def test_loop_orders_stream_and_keeps_sb3_schedule(tmp_path):
     assert len(pub.of(Ack)) == len(acks)
 
 
+@pytest.mark.parametrize("learning_starts, lengths", [
+    (16, [7, 13, 4, 9, 30, 11]),  # 20 after the second episode: between learning_starts and the first due (24)
+    (21, [10, 12, 50]),  # 22, 23: inside (21, 24)
+    (100, [43, 60, 43, 43]),  # panda:pick-pixels' first grid run: 103 in, the first iteration due at 104
+    (16, [8, 8, 8, 5, 3, 17]),  # ends on the grid
+])
+def test_flow_control_never_waits_for_an_iteration_that_cannot_come(tmp_path, learning_starts: int,
+                                                                   lengths: list[int]) -> None:
+    """One actor with the actor's rule (``common/delivery/actor_side.py``: wait while ``sent - ack.trained >=
+    max_lead``; a batch cut at multiples of its running index or at an episode's end) against the real loop:
+    whenever the actor waits, a training iteration is due, whatever the episodes' lengths."""
+    tqc = TQCSettings(learning_starts=learning_starts, buffer_size=1000, net_arch=(8, 8), batch_size=8,
+                      gradient_steps=1)
+    loop, _ = make_loop(tmp_path, tqc=tqc)
+    tr, max_lead, cut = loop.trainer, 8, 8
+    sent = pending = seq = waits = 0
+    trained = lambda: tr.ack(loop.streams["a0"]).trained if "a0" in loop.streams else 0  # noqa: E731
+    for length in lengths:
+        for t in range(length):
+            while sent - trained() >= max_lead:
+                assert tr.due, f"deadlock: the actor waits at {sent} and no iteration is due ({tr.total} in)"
+                loop.step()
+                waits += 1
+            pending += 1
+            if (sent + pending) % cut == 0 or t == length - 1:
+                assert loop.offer(batch(seq, sent, pending)) == "accepted"
+                seq, sent, pending = seq + 1, sent + pending, 0
+    assert waits > 0 and tr.iterations > 0
+
+
 def test_loop_receives_payloads_and_rejects_bad_ones(tmp_path):
     loop, pub = make_loop(tmp_path)
     good = encode(batch(0, 0, 8), "a0", 0)
