@@ -193,4 +193,5 @@ def test_panda_pixels_learner_killed_and_resumed_loses_nothing(tmp_path: Path, m
     assert check["lost"] == 0 and check["duplicated"] == 0 and check["produced"] == summary["next_index"], check
     rb = _replay(run_dir / "learner")
     _assert_frames_once(rb, summary["next_index"], _episodes(run_dir))
-    assert rb.store.shapes == {"front": (3, 128, 128), "wrist": (3, 128, 128)}  # channel-first, uint8
+    assert rb.store.shapes == {"front": (3, 128, 128), "wrist": (3, 128, 128)}  # channel-first, as SB3 holds them
+    assert {k: f.dtype for k, f in rb.store.frames.items()} == {"front": np.uint8, "wrist": np.uint8}
