@@ -165,7 +165,6 @@ def test_panda_pixels_learner_killed_and_resumed_loses_nothing(tmp_path: Path, m
     from khgrl.benchmarks.scale import provenance_check
 
     monkeypatch.setenv("ZENOH_CONFIG", str(REPO / "deploy" / "zenoh" / "shared-memory.json5"))
-    monkeypatch.setenv("MUJOCO_GL", "egl")
     t0 = time.time() - 1.0
     learner_args = ["--learning-starts", "16", "--max-lead", "8", "--checkpoint-every", "32", "--buffer-size", "2000",
                     "--batch-size", "16", "--gradient-steps", "1"]
